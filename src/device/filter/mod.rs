@@ -1,0 +1,1 @@
+//! The tunable-filter controller (to be written).

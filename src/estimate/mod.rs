@@ -1,0 +1,2 @@
+//! Estimation (to be written).
+#![forbid(unsafe_code)]

@@ -1,0 +1,1 @@
+//! The streaming pipeline (to be written).

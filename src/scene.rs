@@ -1,0 +1,1 @@
+//! The scene description (to be written).
