@@ -28,6 +28,7 @@ pub mod io;
 pub mod optics;
 pub mod pipeline;
 pub mod scene;
+pub mod synth;
 
 /// The irid version, as written into output file headers.
 pub const VERSION: &str = env!("CARGO_PKG_VERSION");

@@ -1,1 +1,3 @@
-//! File formats (to be written).
+//! Files: ENVI spectral cubes, OpenEXR parameter maps, angle maps.
+
+pub mod angle_map;

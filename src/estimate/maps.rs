@@ -1,0 +1,242 @@
+//! Parameter maps: the result of fitting a cube, one value per pixel per
+//! channel, with a validity flag and a reason code.
+//!
+//! Invalid pixels hold NaN in every estimate channel and a non-zero
+//! [`Reason`]. A valid pixel may still carry a warning reason (for example
+//! [`Reason::AngleNotIdentifiable`]), so `valid` and `reason` are separate.
+
+/// Why a pixel is invalid, or what to be careful about on a valid one.
+/// The numeric codes are the file format (the EXR `reason` channel).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[repr(u8)]
+pub enum Reason {
+    /// Valid, nothing to report.
+    Ok = 0,
+    /// A band value is NaN or infinite.
+    NonFinite = 1,
+    /// Too dark to measure (below the calibration's floor).
+    Dark = 2,
+    /// A band is saturated.
+    Saturated = 3,
+    /// Bands are missing (not captured in this sweep).
+    MissingBands = 4,
+    /// No fringe in the band range and the level alone cannot fix the thickness.
+    NoFringe = 5,
+    /// Two fringe orders fit the spectrum about equally well.
+    AmbiguousOrder = 6,
+    /// The best model leaves residuals well above the noise.
+    PoorFit = 7,
+    /// Valid thickness, but the angle is not identifiable from the data
+    /// (small angles, Brewster's angle for p): σ_θ says how little is known.
+    AngleNotIdentifiable = 8,
+    /// Reflectance outside what the model can produce (e.g. above 1 or below 0).
+    OutOfModel = 9,
+    /// The pixel lies outside the region the caller asked to solve.
+    Masked = 10,
+}
+
+impl Reason {
+    /// Whether a pixel with this reason still carries a valid estimate.
+    pub fn is_valid(self) -> bool {
+        matches!(self, Reason::Ok | Reason::AngleNotIdentifiable)
+    }
+
+    /// A short name for summaries and documentation.
+    pub fn name(self) -> &'static str {
+        match self {
+            Reason::Ok => "ok",
+            Reason::NonFinite => "non-finite input",
+            Reason::Dark => "dark",
+            Reason::Saturated => "saturated",
+            Reason::MissingBands => "missing bands",
+            Reason::NoFringe => "no fringe in range",
+            Reason::AmbiguousOrder => "ambiguous order",
+            Reason::PoorFit => "poor fit",
+            Reason::AngleNotIdentifiable => "angle not identifiable",
+            Reason::OutOfModel => "out of model",
+            Reason::Masked => "masked",
+        }
+    }
+
+    /// Every reason, in code order.
+    pub const ALL: [Reason; 11] = [
+        Reason::Ok,
+        Reason::NonFinite,
+        Reason::Dark,
+        Reason::Saturated,
+        Reason::MissingBands,
+        Reason::NoFringe,
+        Reason::AmbiguousOrder,
+        Reason::PoorFit,
+        Reason::AngleNotIdentifiable,
+        Reason::OutOfModel,
+        Reason::Masked,
+    ];
+
+    /// The reason with this code.
+    pub fn from_code(code: u8) -> Option<Reason> {
+        Reason::ALL.get(usize::from(code)).copied()
+    }
+}
+
+/// One pixel's estimate. Angles in degrees, lengths in nm.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PixelEstimate {
+    /// Film thickness.
+    pub thickness_nm: f64,
+    /// Film index used (the global estimate or the known value), at the
+    /// middle band for a dispersive film.
+    pub n_film: f64,
+    /// Incidence angle (estimated or known).
+    pub theta_deg: f64,
+    /// Standard error of the thickness, including the global index's share.
+    pub sigma_thickness_nm: f64,
+    /// Standard error of the angle (0 when the angle was known).
+    pub sigma_theta_deg: f64,
+    /// RMS of the reflectance residuals of the final model.
+    pub residual_rms: f64,
+    /// Why the pixel is invalid, or a warning.
+    pub reason: Reason,
+}
+
+impl PixelEstimate {
+    /// An invalid pixel: NaN estimates and the reason.
+    pub fn invalid(reason: Reason) -> Self {
+        PixelEstimate {
+            thickness_nm: f64::NAN,
+            n_film: f64::NAN,
+            theta_deg: f64::NAN,
+            sigma_thickness_nm: f64::NAN,
+            sigma_theta_deg: f64::NAN,
+            residual_rms: f64::NAN,
+            reason,
+        }
+    }
+
+    /// Whether the estimate is valid.
+    pub fn is_valid(&self) -> bool {
+        self.reason.is_valid()
+    }
+}
+
+/// Metadata written beside the maps.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct MapMeta {
+    /// Solver mode name.
+    pub mode: String,
+    /// Band centres, nm, in cube plane order.
+    pub wavelengths_nm: Vec<f64>,
+    /// Band FWHMs, nm.
+    pub fwhm_nm: Vec<f64>,
+    /// Global film index (estimated or known).
+    pub n_film: f64,
+    /// Its standard error (0 when known).
+    pub n_film_sigma: f64,
+    /// Whether the film index was estimated.
+    pub n_film_estimated: bool,
+    /// A note on the index estimate (e.g. an unresolved twin).
+    pub n_film_note: String,
+    /// Polarisation name.
+    pub polarization: String,
+}
+
+/// Per-pixel parameter maps, row-major `width × height`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ParamMaps {
+    /// Width.
+    pub width: usize,
+    /// Height.
+    pub height: usize,
+    /// Film thickness, nm.
+    pub thickness_nm: Vec<f32>,
+    /// Film index.
+    pub n_film: Vec<f32>,
+    /// Incidence angle, degrees.
+    pub theta_deg: Vec<f32>,
+    /// σ of the thickness, nm.
+    pub sigma_thickness_nm: Vec<f32>,
+    /// σ of the angle, degrees.
+    pub sigma_theta_deg: Vec<f32>,
+    /// Residual RMS.
+    pub residual_rms: Vec<f32>,
+    /// 1 valid, 0 invalid.
+    pub valid: Vec<f32>,
+    /// [`Reason`] code.
+    pub reason: Vec<f32>,
+    /// Metadata.
+    pub meta: MapMeta,
+}
+
+impl ParamMaps {
+    /// Maps of the given size, every pixel invalid ([`Reason::Masked`]).
+    pub fn new(width: usize, height: usize) -> Self {
+        let n = width * height;
+        let nan = vec![f32::NAN; n];
+        ParamMaps {
+            width,
+            height,
+            thickness_nm: nan.clone(),
+            n_film: nan.clone(),
+            theta_deg: nan.clone(),
+            sigma_thickness_nm: nan.clone(),
+            sigma_theta_deg: nan.clone(),
+            residual_rms: nan,
+            valid: vec![0.0; n],
+            reason: vec![f32::from(Reason::Masked as u8); n],
+            meta: MapMeta::default(),
+        }
+    }
+
+    /// Store pixel (x, y)'s estimate.
+    pub fn set(&mut self, x: usize, y: usize, e: &PixelEstimate) {
+        let i = y * self.width + x;
+        self.set_index(i, e);
+    }
+
+    /// Store the estimate of the pixel with row-major index `i`.
+    pub fn set_index(&mut self, i: usize, e: &PixelEstimate) {
+        let valid = e.is_valid();
+        let v = |x: f64| if valid { x as f32 } else { f32::NAN };
+        self.thickness_nm[i] = v(e.thickness_nm);
+        self.n_film[i] = v(e.n_film);
+        self.theta_deg[i] = v(e.theta_deg);
+        self.sigma_thickness_nm[i] = v(e.sigma_thickness_nm);
+        self.sigma_theta_deg[i] = v(e.sigma_theta_deg);
+        self.residual_rms[i] = v(e.residual_rms);
+        self.valid[i] = if valid { 1.0 } else { 0.0 };
+        self.reason[i] = f32::from(e.reason as u8);
+    }
+
+    /// Pixel (x, y)'s estimate read back.
+    pub fn get(&self, x: usize, y: usize) -> PixelEstimate {
+        let i = y * self.width + x;
+        PixelEstimate {
+            thickness_nm: f64::from(self.thickness_nm[i]),
+            n_film: f64::from(self.n_film[i]),
+            theta_deg: f64::from(self.theta_deg[i]),
+            sigma_thickness_nm: f64::from(self.sigma_thickness_nm[i]),
+            sigma_theta_deg: f64::from(self.sigma_theta_deg[i]),
+            residual_rms: f64::from(self.residual_rms[i]),
+            reason: Reason::from_code(self.reason[i] as u8).unwrap_or(Reason::OutOfModel),
+        }
+    }
+
+    /// Number of valid pixels.
+    pub fn valid_count(&self) -> usize {
+        self.valid.iter().filter(|v| **v > 0.5).count()
+    }
+
+    /// The channels by file name, in a fixed order.
+    pub fn channels(&self) -> [(&'static str, &[f32]); 8] {
+        [
+            ("thickness_nm", &self.thickness_nm),
+            ("n_film", &self.n_film),
+            ("theta_deg", &self.theta_deg),
+            ("sigma_thickness_nm", &self.sigma_thickness_nm),
+            ("sigma_theta_deg", &self.sigma_theta_deg),
+            ("residual_rms", &self.residual_rms),
+            ("valid", &self.valid),
+            ("reason", &self.reason),
+        ]
+    }
+}
