@@ -51,7 +51,12 @@ pub fn fresnel_p(ni: Complex64, nj: Complex64, qi: Complex64, qj: Complex64) -> 
 }
 
 /// Amplitude reflection coefficients `(r_s, r_p)` of the film stack.
-pub fn amplitude(media: Media, d_nm: f64, theta1: f64, wavelength_nm: f64) -> (Complex64, Complex64) {
+pub fn amplitude(
+    media: Media,
+    d_nm: f64,
+    theta1: f64,
+    wavelength_nm: f64,
+) -> (Complex64, Complex64) {
     let kx = media.n1 * theta1.sin();
     let q1 = normal_component(media.n1, kx);
     let q2 = normal_component(media.n2, kx);
@@ -102,13 +107,7 @@ pub fn reflectance(
 /// for `n1 < n2 < n3` this is also the film's reflectance at its half-wave
 /// points (Eq. 9–10).
 pub fn bare_reflectance(n1: Complex64, n3: Complex64, theta1: f64, pol: Polarization) -> f64 {
-    reflectance(
-        Media { n1, n2: n1, n3 },
-        0.0,
-        theta1,
-        550.0,
-        pol,
-    )
+    reflectance(Media { n1, n2: n1, n3 }, 0.0, theta1, 550.0, pol)
 }
 
 /// Real Fresnel coefficients of a lossless film below every critical angle,
