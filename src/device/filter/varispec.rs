@@ -100,9 +100,11 @@ impl VariSpec {
         &self.opts
     }
 
-    /// Longest time one retried command can take (for callers' budgets).
+    /// Upper bound on one retried set command or query: per attempt at most
+    /// five reply waits (echo, status, `R?` echo and value, `R 1`) plus a
+    /// resynchronisation (two reply timeouts).
     pub fn worst_case_command(&self) -> Duration {
-        (self.opts.reply_timeout * 4 + QUIET * 4) * (self.opts.retries + 1)
+        (self.opts.reply_timeout * 7 + QUIET) * (self.opts.retries + 1)
     }
 
     fn write_all(&mut self, bytes: &[u8]) -> Result<(), FilterError> {
