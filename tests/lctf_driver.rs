@@ -83,8 +83,15 @@ fn controller_errors_quote_the_code() {
     let h = emulator(EmuConfig::ready());
     let mut f = open(&h);
     match f.select_palette(5) {
-        Err(FilterError::Controller { code, meaning, command }) => {
-            assert_eq!((code, meaning, command.as_str()), (9, "palette undefined", "P 5"));
+        Err(FilterError::Controller {
+            code,
+            meaning,
+            command,
+        }) => {
+            assert_eq!(
+                (code, meaning, command.as_str()),
+                (9, "palette undefined", "P 5")
+            );
         }
         other => panic!("{other:?}"),
     }

@@ -482,10 +482,7 @@ impl Controller {
             }
             Command::Initialise => {
                 self.initialised = false;
-                self.long_op = Some((
-                    LongOp::Initialise,
-                    self.now.saturating_add(INITIALISE_US),
-                ));
+                self.long_op = Some((LongOp::Initialise, self.now.saturating_add(INITIALISE_US)));
                 (b'I', zero)
             }
             Command::Jump(j) => {
@@ -517,7 +514,10 @@ impl Controller {
             }
             Command::Wavelength(step) => {
                 self.step_wavelength(step)?;
-                (b'W', self.target.map_or(Val::Star, |t| Val::Centi(i64::from(t))))
+                (
+                    b'W',
+                    self.target.map_or(Val::Star, |t| Val::Centi(i64::from(t))),
+                )
             }
             Command::Trigger => {
                 self.advance()?;
@@ -555,7 +555,11 @@ impl Controller {
             }
             Step::Next | Step::Prev => {
                 let base = self.target.ok_or(ErrorCode::WavelengthRange)?;
-                let j = if step == Step::Next { self.jump } else { -self.jump };
+                let j = if step == Step::Next {
+                    self.jump
+                } else {
+                    -self.jump
+                };
                 let wl = i64::from(base) + i64::from(j);
                 let wl = u32::try_from(wl).map_err(|_| ErrorCode::WavelengthRange)?;
                 self.check_range(wl)?;
@@ -645,11 +649,14 @@ impl Controller {
             b'J' => self.reply(letter, &[Val::Centi(i64::from(self.jump))]),
             b'M' => self.reply(letter, &[Val::Int(i64::from(self.seq_mode))]),
             b'P' => self.reply(letter, &[Val::Int(i64::from(self.palette_pos))]),
-            b'R' => self.reply(letter, &[Val::Int(self.error.map_or(0, |e| i64::from(e.code())))]),
+            b'R' => self.reply(
+                letter,
+                &[Val::Int(self.error.map_or(0, |e| i64::from(e.code())))],
+            ),
             b'S' => self.reply(letter, &[b(self.asleep)]),
             b'V' => {
                 let nm = |c: u32| {
-                    if c % 100 == 0 {
+                    if c.is_multiple_of(100) {
                         Val::Int(i64::from(c / 100))
                     } else {
                         Val::Centi(i64::from(c))
@@ -740,7 +747,10 @@ mod tests {
         let mut c = ready();
         assert_eq!(send(&mut c, b"W 550\r", 0), "W 550\r");
         assert_eq!(send(&mut c, b"W?\r", 0), "W?\rW 550.00\r");
-        assert_eq!(send(&mut c, b"V?\r", 0), "V?\rV   1.00    400    720  10001\r");
+        assert_eq!(
+            send(&mut c, b"V?\r", 0),
+            "V?\rV   1.00    400    720  10001\r"
+        );
         assert_eq!(send(&mut c, b"B1\r", 0), "B1\r");
         assert_eq!(send(&mut c, b"W?\r", 0), "W?\r550.00\r");
         assert_eq!(send(&mut c, b"V ?\r", 0), "V ?\r1.00 400 720 10001\r");
@@ -788,7 +798,10 @@ mod tests {
     fn errors_are_pending_until_reset() {
         let mut c = ready();
         assert_eq!(send(&mut c, b"W 900\r", 0), "W 900\r");
-        assert_eq!(c.status_byte() & status::ERROR_PENDING, status::ERROR_PENDING);
+        assert_eq!(
+            c.status_byte() & status::ERROR_PENDING,
+            status::ERROR_PENDING
+        );
         assert_eq!(send(&mut c, b"R?\r", 0), "R?\rR     12\r");
         assert_eq!(send(&mut c, b"W?\r", 0), "W?\rW      *\r");
         // Processing continues with the error pending.
@@ -851,7 +864,10 @@ mod tests {
         c.sync_pulse(500_000);
         c.sync_pulse(600_000);
         assert_eq!(c.target_centi(), Some(50_000), "wraps");
-        assert_eq!(send(&mut c, b"D?\r", 600_000), "D?\rD      3\rD      0 500.00\rD      1 600.00\rD      2 700.00\r");
+        assert_eq!(
+            send(&mut c, b"D?\r", 600_000),
+            "D?\rD      3\rD      0 500.00\rD      1 600.00\rD      2 700.00\r"
+        );
         send(&mut c, b"X\r", 700_000);
         assert_eq!(c.target_centi(), Some(60_000));
     }

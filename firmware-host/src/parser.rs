@@ -237,7 +237,8 @@ fn parse_uint(s: &[u8]) -> Result<i64, ErrorCode> {
     if s.is_empty() || s.len() > 9 || !s.iter().all(u8::is_ascii_digit) {
         return Err(ErrorCode::Syntax);
     }
-    Ok(s.iter().fold(0i64, |acc, &d| acc * 10 + i64::from(d - b'0')))
+    Ok(s.iter()
+        .fold(0i64, |acc, &d| acc * 10 + i64::from(d - b'0')))
 }
 
 /// Signed decimal with an optional fraction, in hundredths, rounded half up

@@ -53,7 +53,11 @@ pub struct Prng(u64);
 impl Prng {
     /// Seeded generator; a zero seed is remapped (xorshift would stick at 0).
     pub const fn new(seed: u64) -> Self {
-        Self(if seed == 0 { 0x9E37_79B9_7F4A_7C15 } else { seed })
+        Self(if seed == 0 {
+            0x9E37_79B9_7F4A_7C15
+        } else {
+            seed
+        })
     }
 
     /// Next pseudo-random value.
@@ -154,7 +158,8 @@ mod tests {
             t95_us: 50_000,
             jitter_max_us: 0,
         };
-        let m = Motion::resting(40_000).retarget(70_000, 1_000, &p, REFERENCE_TEMP_CENTI_C, &mut rng);
+        let m =
+            Motion::resting(40_000).retarget(70_000, 1_000, &p, REFERENCE_TEMP_CENTI_C, &mut rng);
         let at = m.position_centi(1_000 + 50_000);
         let frac = (at - 40_000.0) / 30_000.0;
         assert!((frac - 0.95).abs() < 0.001, "{frac}");

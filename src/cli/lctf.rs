@@ -134,8 +134,7 @@ pub fn parse_bands(s: &str) -> anyhow::Result<Vec<f64>> {
     let [start, stop, step] = parts[..] else {
         bail!("bands {s:?}: expected start:stop:step in nm");
     };
-    if !(start.is_finite() && stop.is_finite() && step.is_finite() && step > 0.0 && stop >= start)
-    {
+    if !(start.is_finite() && stop.is_finite() && step.is_finite() && step > 0.0 && stop >= start) {
         bail!("bands {s:?}: need start <= stop and step > 0");
     }
     let n = ((stop - start) / step + 1e-9).floor() as usize + 1;
@@ -170,7 +169,11 @@ fn info(c: &Connection) -> anyhow::Result<()> {
     } else {
         println!(
             "controller: VariSpec protocol{}",
-            if s.emulated { " (emulated on a pseudo-terminal)" } else { "" }
+            if s.emulated {
+                " (emulated on a pseudo-terminal)"
+            } else {
+                ""
+            }
         );
         println!("revision:   {}", v.revision);
         println!("range:      {} - {} nm", v.min_nm, v.max_nm);

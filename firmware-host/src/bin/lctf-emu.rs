@@ -50,7 +50,11 @@ fn parse() -> Result<Option<EmuConfig>, String> {
             other => return Err(format!("unknown argument {other:?}")),
         }
     }
-    let mut unit = if unit_nir { Config::nir() } else { Config::visible() };
+    let mut unit = if unit_nir {
+        Config::nir()
+    } else {
+        Config::visible()
+    };
     unit.initialised = !cold;
     unit.exercised = !cold;
     unit.seed = seed;

@@ -59,7 +59,7 @@ pub fn fields(line: &[u8], letter: u8) -> Result<Vec<&str>, ReplyError> {
     Ok(body.split_ascii_whitespace().collect())
 }
 
-fn exactly<'a>(line: &'a [u8], letter: u8, n: usize) -> Result<Vec<&'a str>, ReplyError> {
+fn exactly(line: &[u8], letter: u8, n: usize) -> Result<Vec<&str>, ReplyError> {
     let f = fields(line, letter)?;
     if f.len() == n {
         Ok(f)
@@ -154,7 +154,10 @@ mod tests {
             wavelength(b"R 12"),
             Err(ReplyError::WrongLetter { .. })
         ));
-        assert!(matches!(wavelength(b"W inf"), Err(ReplyError::BadNumber(_))));
+        assert!(matches!(
+            wavelength(b"W inf"),
+            Err(ReplyError::BadNumber(_))
+        ));
         assert_eq!(busy(b"!<"), Ok(true));
         assert_eq!(busy(b"!>"), Ok(false));
         assert_eq!(status_byte(b"@C"), Ok(0x43));

@@ -119,7 +119,9 @@ impl VariSpec {
         if now >= deadline {
             return Ok(false);
         }
-        self.port.set_timeout(deadline - now).map_err(std::io::Error::from)?;
+        self.port
+            .set_timeout(deadline - now)
+            .map_err(std::io::Error::from)?;
         let mut buf = [0u8; 256];
         match self.port.read(&mut buf) {
             Ok(0) => Ok(false),
@@ -174,7 +176,11 @@ impl VariSpec {
             }
             if !self.fill(deadline)? {
                 let got: Vec<u8> = self.rx.iter().copied().collect();
-                return Err(self.timeout(&format!("answer to {:?}", char::from(cmd)), started, &got));
+                return Err(self.timeout(
+                    &format!("answer to {:?}", char::from(cmd)),
+                    started,
+                    &got,
+                ));
             }
         }
     }
@@ -294,9 +300,10 @@ impl VariSpec {
     fn wait_idle(&mut self, timeout: Duration) -> Result<(), FilterError> {
         let deadline = Instant::now() + timeout;
         loop {
-            match self.immediate(b'!').and_then(|a| {
-                reply::busy(&a).map_err(|why| reply_err("!", &a, why))
-            }) {
+            match self
+                .immediate(b'!')
+                .and_then(|a| reply::busy(&a).map_err(|why| reply_err("!", &a, why)))
+            {
                 Ok(false) => return Ok(()),
                 Ok(true) => {}
                 Err(e) if e.is_transient() => {
