@@ -247,23 +247,27 @@ impl Service {
                     false
                 }
             };
-            let now = self.device_now();
-            while let Ok(c) = self.control.try_recv() {
-                match c {
-                    Control::Sync => self.ctl.sync_pulse(now),
-                    Control::Temperature(t) => self.ctl.set_temperature(t),
-                }
-            }
             if readable {
                 match nix::unistd::read(self.master.as_fd(), &mut buf) {
                     Ok(n) => {
+                        // Stamped after the read: the bytes were sent before
+                        // it, so a host timing from its send never sees a
+                        // settle shorter than the model's.
+                        let t = self.device_now();
                         for &b in &buf[..n] {
-                            self.receive(b, now);
+                            self.receive(b, t);
                         }
                     }
                     Err(Errno::EAGAIN | Errno::EINTR) => {}
                     // EIO: no client has the slave open; keep serving.
                     Err(_) => std::thread::sleep(TICK),
+                }
+            }
+            let now = self.device_now();
+            while let Ok(c) = self.control.try_recv() {
+                match c {
+                    Control::Sync => self.ctl.sync_pulse(now),
+                    Control::Temperature(t) => self.ctl.set_temperature(t),
                 }
             }
             self.ctl.poll(now);

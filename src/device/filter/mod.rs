@@ -120,8 +120,9 @@ pub trait FilterController {
     fn version(&mut self) -> Result<ControllerInfo, FilterError>;
     /// Start tuning to `nm`; returns once the controller accepted it.
     fn set_wavelength(&mut self, nm: f64) -> Result<(), FilterError>;
-    /// Wait until the filter has settled; returns the time since the last
-    /// tuning command was accepted.
+    /// Wait until the filter has settled; returns the time from sending the
+    /// last tuning command to the first "idle" answer (an upper bound on the
+    /// true settle time, never below it).
     fn wait_settled(&mut self, timeout: Duration) -> Result<Duration, FilterError>;
     /// Tune and wait: the settle time.
     fn tune(&mut self, nm: f64, timeout: Duration) -> Result<Duration, FilterError> {

@@ -341,10 +341,12 @@ impl FilterController for VariSpec {
     fn set_wavelength(&mut self, nm: f64) -> Result<(), FilterError> {
         self.check_range(nm)?;
         let cmd = format!("W {nm:.2}");
-        // Re-sending W is safe: it retargets the same wavelength.
-        self.retrying(|v| v.command(&cmd))?;
-        self.tuned_at = Some(Instant::now());
-        Ok(())
+        // Re-sending W is safe: it retargets the same wavelength. The settle
+        // time counts from the (last) send: the unit cannot start earlier.
+        self.retrying(|v| {
+            v.tuned_at = Some(Instant::now());
+            v.command(&cmd)
+        })
     }
 
     fn wait_settled(&mut self, timeout: Duration) -> Result<Duration, FilterError> {
@@ -379,9 +381,10 @@ impl FilterController for VariSpec {
             });
         }
         let cmd = format!("P {idx}");
-        self.retrying(|v| v.command(&cmd))?;
-        self.tuned_at = Some(Instant::now());
-        Ok(())
+        self.retrying(|v| {
+            v.tuned_at = Some(Instant::now());
+            v.command(&cmd)
+        })
     }
 
     fn arm_sync(&mut self, every_nth: u16) -> Result<(), FilterError> {
@@ -391,13 +394,12 @@ impl FilterController for VariSpec {
 
     fn trigger(&mut self) -> Result<(), FilterError> {
         // Not idempotent (each X advances): a failed X is reported, not resent.
+        self.tuned_at = Some(Instant::now());
         let r = self.command("X");
         if r.as_ref().is_err_and(FilterError::is_transient) {
             self.resync(true)?;
         }
-        r?;
-        self.tuned_at = Some(Instant::now());
-        Ok(())
+        r
     }
 
     fn status(&mut self) -> Result<Status, FilterError> {
