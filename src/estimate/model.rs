@@ -245,6 +245,11 @@ impl FilmModel {
         self.n_bands
     }
 
+    /// Ambient index at the middle band.
+    pub fn n1_mid(&self) -> f64 {
+        self.n1_mid
+    }
+
     /// Film index at the middle band.
     pub fn n2_mid(&self) -> f64 {
         self.n2_mid

@@ -66,6 +66,8 @@ pub const ANGLE_SIGMA_LIMIT_DEG: f64 = 0.5;
 pub struct Scratch {
     /// The caller's gathered spectrum (solve_row).
     pixel: Vec<f64>,
+    sorted_y: Vec<f64>,
+    smooth_y: Vec<f64>,
     spectrum: Vec<f64>,
     weight: Vec<f64>,
     cur: ModelOut,
@@ -231,6 +233,9 @@ pub struct Solver {
     d_max: f64,
     /// Bands by increasing wavelength: (plane index, λ, wavenumber 1/λ).
     sorted: Vec<(usize, f64, f64)>,
+    /// Inverse normal matrices of the five-point parabola centred on each
+    /// sorted band (`None` at the ends or if singular).
+    parabola: Vec<Option<[[f64; 3]; 3]>>,
 }
 
 /// Largest film thickness the solver considers, nm.
@@ -292,7 +297,27 @@ impl Solver {
                 v.sort_by(|a, b| a.1.total_cmp(&b.1));
                 v
             },
+            parabola: Vec::new(),
         };
+        solver.parabola = (0..solver.sorted.len())
+            .map(|i| {
+                if i < 2 || i + 2 >= solver.sorted.len() {
+                    return None;
+                }
+                let x0 = solver.sorted[i].2;
+                let mut m = [[0.0; 3]; 3];
+                for j in i - 2..=i + 2 {
+                    let u = (solver.sorted[j].2 - x0) * 1e4;
+                    let row = [u * u, u, 1.0];
+                    for r in 0..3 {
+                        for c in 0..3 {
+                            m[r][c] += row[r] * row[c];
+                        }
+                    }
+                }
+                inv3(m)
+            })
+            .collect();
         if let FilmKnowledge::Known(film) = &scene.film {
             let film = film.clone();
             let prepared = solver.prepare(&film)?;
@@ -781,7 +806,7 @@ impl Solver {
         }
         let lam_min = self.sorted.first().map_or(400.0, |b| b.1);
         if effort.closed_form && n_ok == nb {
-            if let Some(fe) = self.extrema_estimate(prep, theta_known, scratch) {
+            if let Some(fe) = self.extrema_estimate(prep, theta_known, noise, scratch) {
                 if effort.closed_form_only {
                     return (fe, f64::NAN);
                 }
@@ -934,23 +959,48 @@ impl Solver {
     /// from their spacing and the interference lattice, the angle from the
     /// extrema levels, the thickness from Eq. 14. `None` when fewer than two
     /// consistent extrema are in range (the caller then searches).
+    ///
+    /// σ comes from the parabola fits' covariance (reflectance noise from
+    /// `noise`, else from the fits' own residuals), propagated to the
+    /// extremum positions and levels, then to g, θ (σ_R / |dR/dθ|) and d.
     fn extrema_estimate(
         &self,
         prep: &Prepared,
         theta_known: Option<f64>,
-        scratch: &Scratch,
+        noise: Option<f64>,
+        scratch: &mut Scratch,
     ) -> Option<PixelEstimate> {
         let nb = self.sorted.len();
-        let y = |i: usize| scratch.spectrum[self.sorted[i].0];
+        if nb < 7 {
+            return None;
+        }
+        // The spectrum by increasing wavelength, raw and [1 2 1]-smoothed.
+        let ys = &mut scratch.sorted_y;
+        let sm = &mut scratch.smooth_y;
+        ys.resize(nb, 0.0);
+        sm.resize(nb, 0.0);
+        for (i, b) in self.sorted.iter().enumerate() {
+            ys[i] = scratch.spectrum[b.0];
+        }
+        for i in 1..nb - 1 {
+            sm[i] = 0.25 * ys[i - 1] + 0.5 * ys[i] + 0.25 * ys[i + 1];
+        }
         let x = |i: usize| self.sorted[i].2;
-        // Extrema of the [1 2 1]-smoothed spectrum, alternating in type.
         const MAX_EXT: usize = 16;
-        let mut ext = [(0.0f64, 0.0f64, 0i8); MAX_EXT]; // (wavenumber, value, +1 max / −1 min)
+        #[derive(Clone, Copy, Default)]
+        struct Ext {
+            pos: f64,
+            val: f64,
+            kind: i8,
+            var_pos: f64,
+            var_val: f64,
+        }
+        let mut ext = [Ext::default(); MAX_EXT];
         let mut n_ext = 0usize;
-        let sm = |i: usize| 0.25 * y(i - 1) + 0.5 * y(i) + 0.25 * y(i + 1);
+        let (mut rss, mut rdof) = (0.0, 0.0);
         let mut i = 2;
         while i + 2 < nb && n_ext < MAX_EXT {
-            let (a, b, c) = (sm(i - 1), sm(i), sm(i + 1));
+            let (a, b, c) = (sm[i - 1], sm[i], sm[i + 1]);
             let kind: i8 = if b > a && b >= c {
                 1
             } else if b < a && b <= c {
@@ -958,90 +1008,136 @@ impl Solver {
             } else {
                 0
             };
-            if kind != 0 {
-                // Least-squares parabola through five raw samples.
-                let x0 = x(i);
-                let (mut s0, mut s1, mut s2, mut s3, mut s4, mut t0, mut t1, mut t2) =
-                    (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
-                for j in i - 2..=i + 2 {
-                    let u = (x(j) - x0) * 1e4;
-                    let v = y(j);
-                    let u2 = u * u;
-                    s0 += 1.0;
-                    s1 += u;
-                    s2 += u2;
-                    s3 += u2 * u;
-                    s4 += u2 * u2;
-                    t0 += v;
-                    t1 += v * u;
-                    t2 += v * u2;
-                }
-                if let Some([qa, qb, qc]) = solve3([[s4, s3, s2], [s3, s2, s1], [s2, s1, s0]], [t2, t1, t0]) {
-                    if qa * f64::from(kind) < 0.0 {
-                        let u = -qb / (2.0 * qa);
-                        let span = (x(i + 2) - x(i - 2)).abs() * 1e4;
-                        if u.abs() <= span {
-                            let pos = x0 + u * 1e-4;
-                            let val = qc - qb * qb / (4.0 * qa);
-                            if n_ext > 0 && ext[n_ext - 1].2 == kind {
-                                // Two of a kind in a row: noise; keep the more extreme.
-                                if (val - ext[n_ext - 1].1) * f64::from(kind) > 0.0 {
-                                    ext[n_ext - 1] = (pos, val, kind);
-                                }
-                            } else {
-                                ext[n_ext] = (pos, val, kind);
-                                n_ext += 1;
-                            }
-                        }
-                    }
-                }
-                i += 2;
-            } else {
+            if kind == 0 {
                 i += 1;
+                continue;
+            }
+            // Least-squares parabola v = qa u² + qb u + qc through five raw
+            // samples (u in units of 1e-4 nm⁻¹ for conditioning).
+            let x0 = x(i);
+            let (mut t0, mut t1, mut t2, mut tvv) = (0.0, 0.0, 0.0, 0.0);
+            for j in i - 2..=i + 2 {
+                let u = (x(j) - x0) * 1e4;
+                let v = ys[j];
+                t2 += v * u * u;
+                t1 += v * u;
+                t0 += v;
+                tvv += v * v;
+            }
+            i += 2;
+            let Some(minv) = self.parabola[i - 2] else { continue };
+            let t = [t2, t1, t0];
+            let q: [f64; 3] = std::array::from_fn(|r| (0..3).map(|c| minv[r][c] * t[c]).sum());
+            let (qa, qb, qc) = (q[0], q[1], q[2]);
+            if qa * f64::from(kind) >= 0.0 {
+                continue;
+            }
+            let u = -qb / (2.0 * qa);
+            let span = (x(i) - x(i - 4)).abs() * 1e4;
+            if u.abs() > span {
+                continue;
+            }
+            rss += (tvv - (qa * t2 + qb * t1 + qc * t0)).max(0.0);
+            rdof += 2.0;
+            // Delta method: ∂u/∂(a, b), ∂v/∂(a, b, c).
+            let gu = [qb / (2.0 * qa * qa), -1.0 / (2.0 * qa), 0.0];
+            let gv = [qb * qb / (4.0 * qa * qa), -qb / (2.0 * qa), 1.0];
+            let quad = |g: &[f64; 3]| -> f64 {
+                (0..3)
+                    .map(|r| (0..3).map(|c| g[r] * minv[r][c] * g[c]).sum::<f64>())
+                    .sum()
+            };
+            let e = Ext {
+                pos: x0 + u * 1e-4,
+                val: qc - qb * qb / (4.0 * qa),
+                kind,
+                var_pos: quad(&gu) * 1e-8,
+                var_val: quad(&gv),
+            };
+            if n_ext > 0 && ext[n_ext - 1].kind == kind {
+                // Two of a kind in a row: noise; keep the more extreme.
+                if (e.val - ext[n_ext - 1].val) * f64::from(kind) > 0.0 {
+                    ext[n_ext - 1] = e;
+                }
+            } else {
+                ext[n_ext] = e;
+                n_ext += 1;
             }
         }
         if n_ext < 2 {
             return None;
         }
         let ext = &ext[..n_ext];
+        let var_r = match noise {
+            Some(n) => n * n,
+            None if rdof > 0.0 => rss / rdof,
+            None => return None,
+        };
         // Adjacent extrema are a quarter wave apart in phase: Δσ = 1/(4g).
-        let span = (ext[n_ext - 1].0 - ext[0].0).abs();
+        let span = (ext[n_ext - 1].pos - ext[0].pos).abs();
         if span <= 0.0 {
             return None;
         }
         let g0 = (n_ext - 1) as f64 / (4.0 * span);
         // Lattice: at a half-wave point 2gσ = m, at a quarter-wave point
-        // 2gσ = m + ½. Which kind is the half-wave point follows the sign.
-        let mut g_sum = 0.0;
+        // 2gσ = m + ½; which kind is the half-wave point follows the sign.
+        let (mut wsum, mut gsum) = (0.0, 0.0);
         for e in ext {
-            let half_wave = f64::from(e.2) * prep.sign > 0.0;
-            let off = if half_wave { 0.0 } else { 0.5 };
-            let m = (2.0 * g0 * e.0 - off).round().max(0.0);
-            g_sum += (m + off) / (2.0 * e.0);
+            let off = if f64::from(e.kind) * prep.sign > 0.0 { 0.0 } else { 0.5 };
+            let m = (2.0 * g0 * e.pos - off).round().max(0.0);
+            let gi = (m + off) / (2.0 * e.pos);
+            let var_g = gi * gi * (e.var_pos * var_r).max(1e-30) / (e.pos * e.pos);
+            wsum += 1.0 / var_g;
+            gsum += gi / var_g;
         }
-        let g = g_sum / n_ext as f64;
+        let g = gsum / wsum;
+        let var_g = 1.0 / wsum;
+        // Every extremum must sit on the same lattice: one that implies a
+        // different order means the spacing estimate was off.
+        for e in ext {
+            let off = if f64::from(e.kind) * prep.sign > 0.0 { 0.0 } else { 0.5 };
+            let m = (2.0 * g * e.pos - off).round();
+            if (m - (2.0 * g0 * e.pos - off).round()).abs() > 0.0 || m < 0.0 {
+                return None;
+            }
+            let phase_err = 2.0 * g * e.pos - off - m;
+            if phase_err.abs() > 0.08 {
+                return None;
+            }
+        }
         // Adjacent extrema must agree on the order they imply.
-        if ((g - g0) / g0).abs() > 0.25 {
+        if !g.is_finite() || ((g - g0) / g0).abs() > 0.25 {
             return None;
         }
-        let theta = match theta_known {
-            Some(t) => t,
+        let (theta, sigma_theta) = match theta_known {
+            Some(t) => (t, 0.0),
             None => {
                 let (mut hw, mut qw, mut nh, mut nq) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+                let mut var_hw = 0.0;
                 for e in ext {
-                    if f64::from(e.2) * prep.sign > 0.0 {
-                        hw += e.1;
+                    if f64::from(e.kind) * prep.sign > 0.0 {
+                        hw += e.val;
+                        var_hw += e.var_val * var_r;
                         nh += 1.0;
                     } else {
-                        qw += e.1;
+                        qw += e.val;
                         nq += 1.0;
                     }
                 }
-                angle_start(
+                let t = angle_start(
                     &prep.table,
                     (nh > 0.0).then(|| hw / nh),
                     (nq > 0.0).then(|| qw / nq),
-                )
+                );
+                // σ_R / |dR/dθ| of the half-wave level (Eq. 10's slope).
+                let slope = table_slope(&prep.table, t);
+                let sig = if nh > 0.0 && slope != 0.0 {
+                    (var_hw / (nh * nh)).sqrt() / slope.abs()
+                } else {
+                    f64::INFINITY
+                };
+                let (lo, hi) = self.theta_range;
+                (t, sig.min((hi - lo) / 12f64.sqrt()))
             }
         };
         let q2 = prep.model.q2_mid(theta);
@@ -1049,24 +1145,23 @@ impl Solver {
         if !(d.is_finite() && d >= 0.0 && d <= self.d_max) {
             return None;
         }
-        // σ from the spread of the per-extremum lattice values.
-        let mut var = 0.0;
-        for e in ext {
-            let half_wave = f64::from(e.2) * prep.sign > 0.0;
-            let off = if half_wave { 0.0 } else { 0.5 };
-            let m = (2.0 * g * e.0 - off).round();
-            let gi = (m + off) / (2.0 * e.0);
-            var += (gi - g) * (gi - g);
-        }
-        let sigma_g = (var / (n_ext as f64 - 1.0).max(1.0)).sqrt().max(0.5);
+        // d = g/q2(θ): the angle's error moves d through q2.
+        let n1 = prep.model.n1_mid();
+        let dq2 = n1 * n1 * theta.sin() * theta.cos() / q2;
+        let sigma_d = ((var_g / (q2 * q2)) + (d * dq2 / q2 * sigma_theta).powi(2)).sqrt();
+        let reason = if theta_known.is_none() && sigma_theta.to_degrees() > ANGLE_SIGMA_LIMIT_DEG {
+            Reason::AngleNotIdentifiable
+        } else {
+            Reason::Ok
+        };
         Some(PixelEstimate {
             thickness_nm: d,
             n_film: prep.model.n2_mid(),
             theta_deg: theta.to_degrees(),
-            sigma_thickness_nm: sigma_g / q2,
-            sigma_theta_deg: if theta_known.is_some() { 0.0 } else { f64::NAN },
-            residual_rms: f64::NAN,
-            reason: Reason::Ok,
+            sigma_thickness_nm: sigma_d,
+            sigma_theta_deg: sigma_theta.to_degrees(),
+            residual_rms: (rss / (5.0 * n_ext as f64)).sqrt(),
+            reason,
         })
     }
 
@@ -1307,6 +1402,32 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
         s += x * y;
     }
     s
+}
+
+/// Slope dR/dθ of the half-wave envelope at `theta`, from the table.
+fn table_slope(table: &[(f64, f64, f64)], theta: f64) -> f64 {
+    let i = table.partition_point(|e| e.0 < theta).clamp(1, table.len().saturating_sub(1).max(1));
+    if table.len() < 2 {
+        return 0.0;
+    }
+    let (a, b) = (table[i - 1], table[i]);
+    (b.1 - a.1) / (b.0 - a.0)
+}
+
+/// Inverse of a 3×3 matrix by cofactors; `None` if singular.
+fn inv3(m: [[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
+    let c = |r0: usize, r1: usize, c0: usize, c1: usize| m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0];
+    let cof = [
+        [c(1, 2, 1, 2), -c(1, 2, 0, 2), c(1, 2, 0, 1)],
+        [-c(0, 2, 1, 2), c(0, 2, 0, 2), -c(0, 2, 0, 1)],
+        [c(0, 1, 1, 2), -c(0, 1, 0, 2), c(0, 1, 0, 1)],
+    ];
+    let det = m[0][0] * cof[0][0] + m[0][1] * cof[0][1] + m[0][2] * cof[0][2];
+    if !det.is_finite() || det.abs() < 1e-300 {
+        return None;
+    }
+    // inverse = adjugate / det, adjugate = cofactor transposed.
+    Some(std::array::from_fn(|r| std::array::from_fn(|c| cof[c][r] / det)))
 }
 
 /// Solve a 3×3 linear system by Cramer's rule; `None` if singular.
