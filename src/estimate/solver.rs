@@ -59,7 +59,7 @@ pub struct IndexEstimate {
 pub const MAX_BANDS: usize = 512;
 
 /// Angle σ above which the angle is reported as not identifiable, degrees.
-pub const ANGLE_SIGMA_LIMIT_DEG: f64 = 0.5;
+pub const ANGLE_SIGMA_LIMIT_DEG: f64 = 0.25;
 
 /// Reusable per-thread working memory of the solver.
 #[derive(Clone, Debug, Default)]
@@ -164,6 +164,9 @@ struct Effort {
     n_refine: usize,
     /// Iteration cap of each refinement.
     iters: usize,
+    /// After a closed-form start, also refine the best other fringe order
+    /// and flag the pixel if it fits as well.
+    verify_order: bool,
 }
 
 impl Effort {
@@ -172,20 +175,23 @@ impl Effort {
             Mode::Fast => Effort {
                 closed_form: true,
                 closed_form_only: true,
-                n_refine: 1,
-                iters: 4,
+                n_refine: 2,
+                iters: 6,
+                verify_order: false,
             },
             Mode::Balanced => Effort {
                 closed_form: true,
                 closed_form_only: false,
                 n_refine: 2,
                 iters: 8,
+                verify_order: false,
             },
             Mode::Accurate => Effort {
-                closed_form: false,
+                closed_form: true,
                 closed_form_only: false,
                 n_refine: 3,
                 iters: 25,
+                verify_order: true,
             },
         }
     }
@@ -197,6 +203,7 @@ impl Effort {
         closed_form_only: false,
         n_refine: 2,
         iters: 10,
+        verify_order: false,
     };
 }
 
@@ -821,8 +828,27 @@ impl Solver {
                 let rms = (fit.sse / n_ok as f64).sqrt();
                 // A wrong order leaves fringe-sized residuals; only then is
                 // the full search worth its cost.
-                if noise.is_some_and(|n| rms <= 2.0 * n) {
+                let good = noise.is_some_and(|n| rms <= 2.0 * n);
+                if good && !effort.verify_order {
                     return self.finish(&[fit], n_ok, theta_known, noise, prep, lam_min);
+                }
+                if good {
+                    // Refine the best other order the fringe search offers.
+                    let mut cands = [Candidate::default(); MAX_CANDIDATES];
+                    let n_cands = self.fringe_search(scratch, prep.sign, true, &mut cands);
+                    let q2 = prep.model.q2_mid(fit.theta);
+                    let quarter = 0.25 * lam_min / (2.0 * q2);
+                    let alt = cands[..n_cands]
+                        .iter()
+                        .map(|c| c.g / q2)
+                        .find(|d| (d - fit.d).abs() > quarter);
+                    let mut fits = [fit, fit];
+                    let mut n_fits = 1;
+                    if let Some(d_alt) = alt {
+                        fits[1] = self.refine(prep, d_alt, fit.theta, theta_known.is_none(), 5, scratch);
+                        n_fits = 2;
+                    }
+                    return self.finish(&fits[..n_fits], n_ok, theta_known, noise, prep, lam_min);
                 }
             }
         }
