@@ -762,8 +762,10 @@ pub fn image_to_cube(img: EnviImage) -> Result<Cube, IoError> {
     let bands = header_bands(&img.header, &img.header_path)?;
     let mut data = img.data;
     if let Some(f) = img.header.reflectance_scale_factor {
-        let inv = (1.0 / f) as f32;
-        data.iter_mut().for_each(|v| *v *= inv);
+        // Divide in f64 so that exact stored values give the correctly
+        // rounded reflectance.
+        data.iter_mut()
+            .for_each(|v| *v = (f64::from(*v) / f) as f32);
     }
     Ok(Cube {
         width: img.header.samples,
