@@ -14,6 +14,7 @@
 
 pub mod cube;
 pub mod maps;
+pub mod model;
 pub mod solver;
 
 pub use cube::Cube;

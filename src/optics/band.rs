@@ -22,3 +22,16 @@ impl Band {
         (f(self.center_nm - h) + 4.0 * f(self.center_nm) + f(self.center_nm + h)) / 6.0
     }
 }
+
+impl Band {
+    /// Quadrature nodes `(wavelength_nm, weight)` of the passband (placeholder).
+    pub fn nodes(&self) -> [(f64, f64); 3] {
+        let sigma = self.fwhm_nm / (8.0 * std::f64::consts::LN_2).sqrt();
+        let h = (3.0f64).sqrt() * sigma;
+        [
+            (self.center_nm - h, 1.0 / 6.0),
+            (self.center_nm, 4.0 / 6.0),
+            (self.center_nm + h, 1.0 / 6.0),
+        ]
+    }
+}
