@@ -76,12 +76,19 @@ fn main() {
             };
         }
         for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
+            if let Some(i) = args.iter().position(|a| a == "--mode") {
+                if args.get(i + 1).map(String::as_str) != Some(mode.name()) {
+                    continue;
+                }
+            }
             let mut solver = Solver::new(&sc, &bands, mode).unwrap();
             let t0 = Instant::now();
             let idx = solver.estimate_film_index(&cube).unwrap();
             let t_index = t0.elapsed().as_secs_f64();
             let t1 = Instant::now();
+            irid::estimate::model::EVALS.store(0, std::sync::atomic::Ordering::Relaxed);
             let maps = solver.fit_cube(&cube).unwrap();
+            println!("evals/px {}", irid::estimate::model::EVALS.load(std::sync::atomic::Ordering::Relaxed) as f64 / (cube.width * cube.height) as f64);
             let t_fit = t1.elapsed().as_secs_f64();
             let acc = compare(&maps, &truth_t);
             println!(

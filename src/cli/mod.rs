@@ -1,4 +1,5 @@
-//! Command-line front ends: `irid fit`, `irid synth`, `irid model`.
+//! Command-line front ends: `irid fit`, `irid synth`, `irid model`,
+//! `irid lctf`.
 //!
 //! This layer reads the clock (to report speed), parses arguments, picks
 //! files and thread pools, and turns every error into one line on stderr
@@ -8,6 +9,7 @@
 
 pub mod common;
 pub mod fit;
+pub mod lctf;
 pub mod model;
 pub mod synth;
 
@@ -32,6 +34,8 @@ pub enum Command {
     Synth(synth::SynthArgs),
     /// Print the model reflectance of a single film for given parameters.
     Model(model::ModelArgs),
+    /// Talk to the tunable-filter controller (or its emulator).
+    Lctf(lctf::LctfArgs),
 }
 
 /// Run a parsed command line.
@@ -40,6 +44,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Fit(a) => fit::run(&a),
         Command::Synth(a) => synth::run(&a),
         Command::Model(a) => model::run(&a),
+        Command::Lctf(a) => lctf::run(&a),
     }
 }
 

@@ -13,6 +13,7 @@
 #![forbid(unsafe_code)]
 
 pub mod cube;
+pub mod fastmath;
 pub mod maps;
 pub mod model;
 pub mod solver;

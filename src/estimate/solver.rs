@@ -64,13 +64,12 @@ pub const ANGLE_SIGMA_LIMIT_DEG: f64 = 0.5;
 /// Reusable per-thread working memory of the solver.
 #[derive(Clone, Debug, Default)]
 pub struct Scratch {
+    /// The caller's gathered spectrum (solve_row).
+    pixel: Vec<f64>,
     spectrum: Vec<f64>,
     weight: Vec<f64>,
     cur: ModelOut,
     trial: ModelOut,
-    dth_cur: Vec<f64>,
-    dth_trial: Vec<f64>,
-    shifted: ModelOut,
 }
 
 impl Scratch {
@@ -80,9 +79,6 @@ impl Scratch {
             self.weight = vec![0.0; n];
             self.cur = ModelOut::new(n);
             self.trial = ModelOut::new(n);
-            self.shifted = ModelOut::new(n);
-            self.dth_cur = vec![0.0; n];
-            self.dth_trial = vec![0.0; n];
         }
     }
 }
@@ -156,7 +152,7 @@ struct Candidate {
 const MAX_CANDIDATES: usize = 4;
 
 /// Result of refining one start.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, Default)]
 struct Fit {
     d: f64,
     theta: f64,
@@ -186,6 +182,8 @@ pub struct Solver {
     basis: FringeBasis,
     theta_range: (f64, f64),
     d_max: f64,
+    /// Bands by increasing wavelength: (plane index, λ, wavenumber 1/λ).
+    sorted: Vec<(usize, f64, f64)>,
 }
 
 /// Largest film thickness the solver considers, nm.
@@ -238,6 +236,15 @@ impl Solver {
             basis,
             theta_range,
             d_max,
+            sorted: {
+                let mut v: Vec<(usize, f64, f64)> = bands
+                    .iter()
+                    .enumerate()
+                    .map(|(i, b)| (i, b.center_nm, 1.0 / b.center_nm))
+                    .collect();
+                v.sort_by(|a, b| a.1.total_cmp(&b.1));
+                v
+            },
         };
         if let FilmKnowledge::Known(film) = &scene.film {
             let film = film.clone();
@@ -362,14 +369,13 @@ impl Solver {
         out: &mut [PixelEstimate],
         scratch: &mut Scratch,
     ) {
-        let mut spec = std::mem::take(&mut scratch.spectrum);
-        spec.resize(cube.bands.len(), 0.0);
-        let mut local = vec![0.0; cube.bands.len()];
+        let mut pixel = std::mem::take(&mut scratch.pixel);
+        pixel.resize(cube.bands.len(), 0.0);
         for (x, o) in out.iter_mut().enumerate().take(cube.width) {
-            cube.spectrum_into(x, y, &mut local);
-            *o = self.solve_pixel(&local, self.scene.angle.known_at(x, y), scratch);
+            cube.spectrum_into(x, y, &mut pixel);
+            *o = self.solve_pixel(&pixel, self.scene.angle.known_at(x, y), scratch);
         }
-        scratch.spectrum = spec;
+        scratch.pixel = pixel;
     }
 
     /// Fit a whole cube: the film index first where unknown, then every
@@ -723,6 +729,28 @@ impl Solver {
                 return (PixelEstimate::invalid(Reason::OutOfModel), f64::NAN);
             }
         }
+        let lam_min = self.sorted.first().map_or(400.0, |b| b.1);
+        if self.mode != Mode::Accurate && n_ok == nb {
+            if let Some(fe) = self.extrema_estimate(prep, theta_known, scratch) {
+                if self.mode == Mode::Fast {
+                    return (fe, f64::NAN);
+                }
+                let fit = self.refine(
+                    prep,
+                    fe.thickness_nm,
+                    fe.theta_deg.to_radians(),
+                    theta_known.is_none(),
+                    5,
+                    scratch,
+                );
+                let rms = (fit.sse / n_ok as f64).sqrt();
+                // A wrong order leaves fringe-sized residuals; only then is
+                // the full search worth its cost.
+                if noise.is_some_and(|n| rms <= 2.0 * n) {
+                    return self.finish(&[fit], n_ok, theta_known, noise, prep, lam_min);
+                }
+            }
+        }
         let mut cands = [Candidate::default(); MAX_CANDIDATES];
         let n_cands = self.fringe_search(scratch, prep.sign, n_ok == nb, &mut cands);
 
@@ -739,7 +767,7 @@ impl Solver {
                         ..Default::default()
                     }
                 };
-                angle_start(&prep.table, c.a + c.b, c.a - c.b)
+                angle_start(&prep.table, Some(c.a + c.b), Some(c.a - c.b))
             }
         };
         let q2 = prep.model.q2_mid(theta0);
@@ -751,11 +779,6 @@ impl Solver {
             starts[n_starts] = (c.g / q2, 0.0);
             n_starts += 1;
         }
-        let lam_min = self
-            .bands
-            .iter()
-            .map(|b| b.center_nm)
-            .fold(f64::INFINITY, f64::min);
         starts[n_starts] = (0.0, 0.0);
         starts[n_starts + 1] = (lam_min / (8.0 * q2), 0.0);
         n_starts += 2;
@@ -769,21 +792,39 @@ impl Solver {
             Mode::Balanced => (2, 6),
             Mode::Accurate => (3, 25),
         };
-        let mut fits: [Option<Fit>; 3] = [None; 3];
-        for (i, s) in starts[..n_starts.min(n_refine)].iter().enumerate() {
-            if !s.1.is_finite() {
+        let mut fits = [Fit::default(); 3];
+        let mut n_fits = 0;
+        for st in starts[..n_starts.min(n_refine)].iter() {
+            if !st.1.is_finite() {
                 continue;
             }
-            fits[i] = Some(self.refine(prep, s.0, theta0, theta_known.is_none(), iters, scratch));
+            fits[n_fits] = self.refine(prep, st.0, theta0, theta_known.is_none(), iters, scratch);
+            n_fits += 1;
         }
-        let mut fits: Vec<Fit> = fits.iter().flatten().copied().collect();
-        fits.sort_by(|a, b| a.sse.total_cmp(&b.sse));
-        let Some(best) = fits.first().copied() else {
+        self.finish(&fits[..n_fits], n_ok, theta_known, noise, prep, lam_min)
+    }
+
+    /// From refined fits to an estimate: best fit, covariance, flags.
+    fn finish(
+        &self,
+        fits: &[Fit],
+        n_ok: usize,
+        theta_known: Option<f64>,
+        noise: Option<f64>,
+        prep: &Prepared,
+        lam_min: f64,
+    ) -> (PixelEstimate, f64) {
+        let n_par = if theta_known.is_some() { 1 } else { 2 };
+        let mut order = [0usize, 1, 2];
+        let order = &mut order[..fits.len().min(3)];
+        order.sort_by(|&a, &b| fits[a].sse.total_cmp(&fits[b].sse));
+        let Some(best) = order.first().map(|&i| fits[i]) else {
             return (PixelEstimate::invalid(Reason::PoorFit), f64::NAN);
         };
         if !(best.sse.is_finite() && best.d.is_finite() && best.theta.is_finite()) {
             return (PixelEstimate::invalid(Reason::PoorFit), f64::NAN);
         }
+        let q2 = prep.model.q2_mid(best.theta);
         let dof = (n_ok - n_par).max(1) as f64;
         let var = (best.sse / dof).max(1e-14);
         // Covariance with a weak prior on the angle (its search range as a
@@ -806,7 +847,7 @@ impl Solver {
         let rms = (best.sse / n_ok as f64).sqrt();
         let mut reason = Reason::Ok;
         // A second order that fits as well as the best is an ambiguity.
-        if let Some(second) = fits.get(1) {
+        if let Some(second) = order.get(1).map(|&i| fits[i]) {
             let apart = (second.d - best.d).abs() > 0.25 * lam_min / (2.0 * q2);
             if apart && second.sse - best.sse < 4.0 * var {
                 reason = Reason::AmbiguousOrder;
@@ -820,7 +861,10 @@ impl Solver {
         if reason == Reason::Ok && !sig_d.is_finite() {
             reason = Reason::NoFringe;
         }
-        if reason == Reason::Ok && theta_known.is_none() && sig_th.to_degrees() > ANGLE_SIGMA_LIMIT_DEG {
+        if reason == Reason::Ok
+            && theta_known.is_none()
+            && sig_th.to_degrees() > ANGLE_SIGMA_LIMIT_DEG
+        {
             reason = Reason::AngleNotIdentifiable;
         }
         let est = PixelEstimate {
@@ -837,6 +881,147 @@ impl Solver {
         } else {
             (PixelEstimate::invalid(reason), best.sse)
         }
+    }
+
+    /// The closed-form path: fringe extrema located between bands (a
+    /// least-squares parabola in wavenumber through five samples), the order
+    /// from their spacing and the interference lattice, the angle from the
+    /// extrema levels, the thickness from Eq. 14. `None` when fewer than two
+    /// consistent extrema are in range (the caller then searches).
+    fn extrema_estimate(
+        &self,
+        prep: &Prepared,
+        theta_known: Option<f64>,
+        scratch: &Scratch,
+    ) -> Option<PixelEstimate> {
+        let nb = self.sorted.len();
+        let y = |i: usize| scratch.spectrum[self.sorted[i].0];
+        let x = |i: usize| self.sorted[i].2;
+        // Extrema of the [1 2 1]-smoothed spectrum, alternating in type.
+        const MAX_EXT: usize = 16;
+        let mut ext = [(0.0f64, 0.0f64, 0i8); MAX_EXT]; // (wavenumber, value, +1 max / −1 min)
+        let mut n_ext = 0usize;
+        let sm = |i: usize| 0.25 * y(i - 1) + 0.5 * y(i) + 0.25 * y(i + 1);
+        let mut i = 2;
+        while i + 2 < nb && n_ext < MAX_EXT {
+            let (a, b, c) = (sm(i - 1), sm(i), sm(i + 1));
+            let kind: i8 = if b > a && b >= c {
+                1
+            } else if b < a && b <= c {
+                -1
+            } else {
+                0
+            };
+            if kind != 0 {
+                // Least-squares parabola through five raw samples.
+                let x0 = x(i);
+                let (mut s0, mut s1, mut s2, mut s3, mut s4, mut t0, mut t1, mut t2) =
+                    (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+                for j in i - 2..=i + 2 {
+                    let u = (x(j) - x0) * 1e4;
+                    let v = y(j);
+                    let u2 = u * u;
+                    s0 += 1.0;
+                    s1 += u;
+                    s2 += u2;
+                    s3 += u2 * u;
+                    s4 += u2 * u2;
+                    t0 += v;
+                    t1 += v * u;
+                    t2 += v * u2;
+                }
+                if let Some([qa, qb, qc]) = solve3([[s4, s3, s2], [s3, s2, s1], [s2, s1, s0]], [t2, t1, t0]) {
+                    if qa * f64::from(kind) < 0.0 {
+                        let u = -qb / (2.0 * qa);
+                        let span = (x(i + 2) - x(i - 2)).abs() * 1e4;
+                        if u.abs() <= span {
+                            let pos = x0 + u * 1e-4;
+                            let val = qc - qb * qb / (4.0 * qa);
+                            if n_ext > 0 && ext[n_ext - 1].2 == kind {
+                                // Two of a kind in a row: noise; keep the more extreme.
+                                if (val - ext[n_ext - 1].1) * f64::from(kind) > 0.0 {
+                                    ext[n_ext - 1] = (pos, val, kind);
+                                }
+                            } else {
+                                ext[n_ext] = (pos, val, kind);
+                                n_ext += 1;
+                            }
+                        }
+                    }
+                }
+                i += 2;
+            } else {
+                i += 1;
+            }
+        }
+        if n_ext < 2 {
+            return None;
+        }
+        let ext = &ext[..n_ext];
+        // Adjacent extrema are a quarter wave apart in phase: Δσ = 1/(4g).
+        let span = (ext[n_ext - 1].0 - ext[0].0).abs();
+        if span <= 0.0 {
+            return None;
+        }
+        let g0 = (n_ext - 1) as f64 / (4.0 * span);
+        // Lattice: at a half-wave point 2gσ = m, at a quarter-wave point
+        // 2gσ = m + ½. Which kind is the half-wave point follows the sign.
+        let mut g_sum = 0.0;
+        for e in ext {
+            let half_wave = f64::from(e.2) * prep.sign > 0.0;
+            let off = if half_wave { 0.0 } else { 0.5 };
+            let m = (2.0 * g0 * e.0 - off).round().max(0.0);
+            g_sum += (m + off) / (2.0 * e.0);
+        }
+        let g = g_sum / n_ext as f64;
+        // Adjacent extrema must agree on the order they imply.
+        if ((g - g0) / g0).abs() > 0.25 {
+            return None;
+        }
+        let theta = match theta_known {
+            Some(t) => t,
+            None => {
+                let (mut hw, mut qw, mut nh, mut nq) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+                for e in ext {
+                    if f64::from(e.2) * prep.sign > 0.0 {
+                        hw += e.1;
+                        nh += 1.0;
+                    } else {
+                        qw += e.1;
+                        nq += 1.0;
+                    }
+                }
+                angle_start(
+                    &prep.table,
+                    (nh > 0.0).then(|| hw / nh),
+                    (nq > 0.0).then(|| qw / nq),
+                )
+            }
+        };
+        let q2 = prep.model.q2_mid(theta);
+        let d = g / q2;
+        if !(d.is_finite() && d >= 0.0 && d <= self.d_max) {
+            return None;
+        }
+        // σ from the spread of the per-extremum lattice values.
+        let mut var = 0.0;
+        for e in ext {
+            let half_wave = f64::from(e.2) * prep.sign > 0.0;
+            let off = if half_wave { 0.0 } else { 0.5 };
+            let m = (2.0 * g * e.0 - off).round();
+            let gi = (m + off) / (2.0 * e.0);
+            var += (gi - g) * (gi - g);
+        }
+        let sigma_g = (var / (n_ext as f64 - 1.0).max(1.0)).sqrt().max(0.5);
+        Some(PixelEstimate {
+            thickness_nm: d,
+            n_film: prep.model.n2_mid(),
+            theta_deg: theta.to_degrees(),
+            sigma_thickness_nm: sigma_g / q2,
+            sigma_theta_deg: if theta_known.is_some() { 0.0 } else { f64::NAN },
+            residual_rms: f64::NAN,
+            reason: Reason::Ok,
+        })
     }
 
     /// Candidate optical thicknesses: local minima of the projection
@@ -945,20 +1130,11 @@ impl Solver {
     ) -> Fit {
         let model = &prep.model;
         let (lo, hi) = self.theta_range;
-        let h = 1e-6;
-        let eval = |d: f64, th: f64, out: &mut ModelOut, dth: &mut [f64], sh: &mut ModelOut| {
+        let eval = |d: f64, th: f64, out: &mut ModelOut| {
             model.eval(d, th, out, true);
-            if free_theta {
-                // Step inward so a bound never pushes the angle outside.
-                let hs = if th + h > hi { -h } else { h };
-                model.eval(d, th + hs, sh, false);
-                for k in 0..dth.len() {
-                    dth[k] = (sh.r[k] - out.r[k]) / hs;
-                }
-            }
         };
         let (mut d, mut th) = (d0.clamp(0.0, self.d_max), theta0);
-        eval(d, th, &mut s.cur, &mut s.dth_cur, &mut s.shifted);
+        eval(d, th, &mut s.cur);
         let mut cur_sse = sse(&s.spectrum, &s.weight, &s.cur.r);
         let mut mu = 1e-4;
         for _ in 0..iters {
@@ -967,7 +1143,7 @@ impl Solver {
                 let w = s.weight[k];
                 let e = s.spectrum[k] - s.cur.r[k];
                 let jd = s.cur.dr_dd[k];
-                let jt = if free_theta { s.dth_cur[k] } else { 0.0 };
+                let jt = if free_theta { s.cur.dr_dth[k] } else { 0.0 };
                 a += w * jd * jd;
                 b += w * jd * jt;
                 c += w * jt * jt;
@@ -992,7 +1168,7 @@ impl Solver {
                 let max_dd = 0.25 * 400.0 / (2.0 * model.n2_mid());
                 let nd = (d + sd.clamp(-max_dd, max_dd)).clamp(0.0, self.d_max);
                 let nt = (th + st.clamp(-0.1, 0.1)).clamp(lo, hi);
-                eval(nd, nt, &mut s.trial, &mut s.dth_trial, &mut s.shifted);
+                eval(nd, nt, &mut s.trial);
                 let new_sse = sse(&s.spectrum, &s.weight, &s.trial.r);
                 if new_sse <= cur_sse {
                     let small = (nd - d).abs() < 1e-4 && (nt - th).abs() < 1e-7;
@@ -1000,7 +1176,6 @@ impl Solver {
                     th = nt;
                     cur_sse = new_sse;
                     std::mem::swap(&mut s.cur, &mut s.trial);
-                    std::mem::swap(&mut s.dth_cur, &mut s.dth_trial);
                     mu = (mu * 0.3).max(1e-9);
                     accepted = !small;
                     break;
@@ -1015,7 +1190,7 @@ impl Solver {
         for k in 0..s.spectrum.len() {
             let w = s.weight[k];
             let jd = s.cur.dr_dd[k];
-            let jt = if free_theta { s.dth_cur[k] } else { 0.0 };
+            let jt = if free_theta { s.cur.dr_dth[k] } else { 0.0 };
             a += w * jd * jd;
             b += w * jd * jt;
             c += w * jt * jt;
@@ -1031,8 +1206,10 @@ impl Solver {
 
 /// The angle whose model envelopes best match the fitted half-wave and
 /// quarter-wave levels, refined by a parabola through the best table entry.
-fn angle_start(table: &[(f64, f64, f64)], half: f64, quarter: f64) -> f64 {
-    let cost = |e: &(f64, f64, f64)| (e.1 - half).powi(2) + (e.2 - quarter).powi(2);
+fn angle_start(table: &[(f64, f64, f64)], half: Option<f64>, quarter: Option<f64>) -> f64 {
+    let cost = |e: &(f64, f64, f64)| {
+        half.map_or(0.0, |h| (e.1 - h).powi(2)) + quarter.map_or(0.0, |q| (e.2 - q).powi(2))
+    };
     let Some((i, _)) = table
         .iter()
         .enumerate()
