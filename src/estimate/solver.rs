@@ -133,12 +133,7 @@ impl FringeBasis {
             }
             g.push(gj);
         }
-        FringeBasis {
-            g,
-            basis,
-            minv,
-            nb,
-        }
+        FringeBasis { g, basis, minv, nb }
     }
 }
 
@@ -512,7 +507,9 @@ impl Solver {
             )));
         }
         if cube.data.len() != cube.plane_len() * cube.bands.len() {
-            return Err(EstimateError::Shape("cube data length does not match its size".into()));
+            return Err(EstimateError::Shape(
+                "cube data length does not match its size".into(),
+            ));
         }
         if let AngleKnowledge::Map { width, height, .. } = self.scene.angle {
             if (width, height) != (cube.width, cube.height) {
@@ -544,7 +541,9 @@ impl Solver {
                 est.noise_sigma = (sse / (n_obs - n_par).max(1.0)).sqrt();
                 est
             }
-            FilmKnowledge::Unknown { search, prior } => self.search_index(&sample, search, prior)?,
+            FilmKnowledge::Unknown { search, prior } => {
+                self.search_index(&sample, search, prior)?
+            }
         };
         self.set_film_index(est.clone())?;
         Ok(est)
@@ -561,7 +560,10 @@ impl Solver {
         while i < total {
             let (x, y) = (i % cube.width, i / cube.width);
             cube.spectrum_into(x, y, &mut spec);
-            if spec.iter().all(|v| v.is_finite() && (-0.5..=1.5).contains(v)) {
+            if spec
+                .iter()
+                .all(|v| v.is_finite() && (-0.5..=1.5).contains(v))
+            {
                 out.push((spec.clone(), self.scene.angle.known_at(x, y)));
             }
             i += stride;
@@ -584,13 +586,14 @@ impl Solver {
                     (0.0, 0.0, 0.0)
                 }
             })
-            .reduce(
-                || (0.0, 0.0, 0.0),
-                |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2),
-            )
+            .reduce(|| (0.0, 0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2))
     }
 
-    fn profile_at(&self, n: f64, sample: &[(Vec<f64>, Option<f64>)]) -> Result<(f64, f64, f64), EstimateError> {
+    fn profile_at(
+        &self,
+        n: f64,
+        sample: &[(Vec<f64>, Option<f64>)],
+    ) -> Result<(f64, f64, f64), EstimateError> {
         let prep = self.prepare(&Dispersion::constant(n))?;
         Ok(self.sample_sse(&prep, sample))
     }
@@ -630,12 +633,15 @@ impl Solver {
         // Local minima of the coarse profile, best first.
         let mut minima: Vec<usize> = (0..prof.len())
             .filter(|&i| {
-                (i == 0 || prof[i] <= prof[i - 1]) && (i + 1 == prof.len() || prof[i] <= prof[i + 1])
+                (i == 0 || prof[i] <= prof[i - 1])
+                    && (i + 1 == prof.len() || prof[i] <= prof[i + 1])
             })
             .collect();
         minima.sort_by(|&a, &b| prof[a].total_cmp(&prof[b]));
         if minima.is_empty() || !prof[minima[0]].is_finite() {
-            return Err(EstimateError::FilmIndex("the index profile has no minimum".into()));
+            return Err(EstimateError::FilmIndex(
+                "the index profile has no minimum".into(),
+            ));
         }
         // Refine the best two well-separated minima with a local quadratic.
         let mut refined: Vec<(f64, f64, f64)> = Vec::new(); // (n, sse, curvature)
@@ -780,8 +786,7 @@ impl Solver {
         }
         scratch.ensure(nb);
         let mut n_ok = 0usize;
-        for k in 0..nb {
-            let v = spectrum[k];
+        for (k, &v) in spectrum.iter().enumerate() {
             if v.is_finite() {
                 if !(-0.2..=1.2).contains(&v) {
                     return (PixelEstimate::invalid(Reason::OutOfModel), f64::NAN);
@@ -830,7 +835,7 @@ impl Solver {
                 // the full search worth its cost.
                 let good = noise.is_some_and(|n| rms <= 2.0 * n);
                 if good && !effort.verify_order {
-                    return self.finish(&[fit], n_ok, theta_known, noise, prep, lam_min);
+                    return self.finish(&[fit], n_ok, theta_known, noise, prep, lam_min, scratch);
                 }
                 if good {
                     // Refine the best other order the fringe search offers.
@@ -845,10 +850,19 @@ impl Solver {
                     let mut fits = [fit, fit];
                     let mut n_fits = 1;
                     if let Some(d_alt) = alt {
-                        fits[1] = self.refine(prep, d_alt, fit.theta, theta_known.is_none(), 5, scratch);
+                        fits[1] =
+                            self.refine(prep, d_alt, fit.theta, theta_known.is_none(), 5, scratch);
                         n_fits = 2;
                     }
-                    return self.finish(&fits[..n_fits], n_ok, theta_known, noise, prep, lam_min);
+                    return self.finish(
+                        &fits[..n_fits],
+                        n_ok,
+                        theta_known,
+                        noise,
+                        prep,
+                        lam_min,
+                        scratch,
+                    );
                 }
             }
         }
@@ -874,7 +888,8 @@ impl Solver {
         let q2 = prep.model.q2_mid(theta0);
         // Starts: the fringe candidates, plus a bare substrate and a thin
         // film below the first fringe.
-        let mut starts: [(f64, f64); MAX_CANDIDATES + 2] = [(0.0, f64::INFINITY); MAX_CANDIDATES + 2];
+        let mut starts: [(f64, f64); MAX_CANDIDATES + 2] =
+            [(0.0, f64::INFINITY); MAX_CANDIDATES + 2];
         let mut n_starts = 0;
         for c in &cands[..n_cands] {
             starts[n_starts] = (c.g / q2, 0.0);
@@ -898,10 +913,19 @@ impl Solver {
             fits[n_fits] = self.refine(prep, st.0, theta0, theta_known.is_none(), iters, scratch);
             n_fits += 1;
         }
-        self.finish(&fits[..n_fits], n_ok, theta_known, noise, prep, lam_min)
+        self.finish(
+            &fits[..n_fits],
+            n_ok,
+            theta_known,
+            noise,
+            prep,
+            lam_min,
+            scratch,
+        )
     }
 
     /// From refined fits to an estimate: best fit, covariance, flags.
+    #[allow(clippy::too_many_arguments)]
     fn finish(
         &self,
         fits: &[Fit],
@@ -910,6 +934,7 @@ impl Solver {
         noise: Option<f64>,
         prep: &Prepared,
         lam_min: f64,
+        scratch: &mut Scratch,
     ) -> (PixelEstimate, f64) {
         let n_par = if theta_known.is_some() { 1 } else { 2 };
         let mut order = [0usize, 1, 2];
@@ -940,6 +965,14 @@ impl Solver {
             } else {
                 (f64::INFINITY, (hi - lo) / 12f64.sqrt())
             }
+        };
+        // Near d = 0 the reflectance is even in d (dR/dd = 0 at d = 0), so
+        // the linearised σ is meaningless: take the one-sided profile bound
+        // instead, the d at which the residual grows by one variance.
+        let sig_d = if best.d < 0.1 * lam_min && (sig_d.is_nan() || sig_d >= 0.05 * lam_min) {
+            self.profile_sigma_d(prep, best, var, scratch)
+        } else {
+            sig_d
         };
         let rms = (best.sse / n_ok as f64).sqrt();
         let mut reason = Reason::Ok;
@@ -978,6 +1011,35 @@ impl Solver {
         } else {
             (PixelEstimate::invalid(reason), best.sse)
         }
+    }
+
+    /// One-sided profile bound on the thickness near zero: the smallest
+    /// `δ > d` whose residual (angle held) exceeds the best by one variance,
+    /// minus `d`.
+    fn profile_sigma_d(&self, prep: &Prepared, best: Fit, var: f64, s: &mut Scratch) -> f64 {
+        let target = best.sse + var;
+        let mut lo = best.d;
+        let mut hi = best.d + 1.0;
+        let mut grow = 0;
+        loop {
+            prep.model.eval(hi, best.theta, &mut s.trial, false);
+            if sse(&s.spectrum, &s.weight, &s.trial.r) > target || grow > 12 {
+                break;
+            }
+            lo = hi;
+            hi = best.d + 2.0 * (hi - best.d);
+            grow += 1;
+        }
+        for _ in 0..20 {
+            let mid = 0.5 * (lo + hi);
+            prep.model.eval(mid, best.theta, &mut s.trial, false);
+            if sse(&s.spectrum, &s.weight, &s.trial.r) > target {
+                hi = mid;
+            } else {
+                lo = mid;
+            }
+        }
+        0.5 * (lo + hi) - best.d
     }
 
     /// The closed-form path: fringe extrema located between bands (a
@@ -1042,16 +1104,17 @@ impl Solver {
             // samples (u in units of 1e-4 nm⁻¹ for conditioning).
             let x0 = x(i);
             let (mut t0, mut t1, mut t2, mut tvv) = (0.0, 0.0, 0.0, 0.0);
-            for j in i - 2..=i + 2 {
+            for (j, &v) in ys.iter().enumerate().take(i + 3).skip(i - 2) {
                 let u = (x(j) - x0) * 1e4;
-                let v = ys[j];
                 t2 += v * u * u;
                 t1 += v * u;
                 t0 += v;
                 tvv += v * v;
             }
             i += 2;
-            let Some(minv) = self.parabola[i - 2] else { continue };
+            let Some(minv) = self.parabola[i - 2] else {
+                continue;
+            };
             let t = [t2, t1, t0];
             let q: [f64; 3] = std::array::from_fn(|r| (0..3).map(|c| minv[r][c] * t[c]).sum());
             let (qa, qb, qc) = (q[0], q[1], q[2]);
@@ -1109,7 +1172,11 @@ impl Solver {
         // 2gσ = m + ½; which kind is the half-wave point follows the sign.
         let (mut wsum, mut gsum) = (0.0, 0.0);
         for e in ext {
-            let off = if f64::from(e.kind) * prep.sign > 0.0 { 0.0 } else { 0.5 };
+            let off = if f64::from(e.kind) * prep.sign > 0.0 {
+                0.0
+            } else {
+                0.5
+            };
             let m = (2.0 * g0 * e.pos - off).round().max(0.0);
             let gi = (m + off) / (2.0 * e.pos);
             let var_g = gi * gi * (e.var_pos * var_r).max(1e-30) / (e.pos * e.pos);
@@ -1121,7 +1188,11 @@ impl Solver {
         // Every extremum must sit on the same lattice: one that implies a
         // different order means the spacing estimate was off.
         for e in ext {
-            let off = if f64::from(e.kind) * prep.sign > 0.0 { 0.0 } else { 0.5 };
+            let off = if f64::from(e.kind) * prep.sign > 0.0 {
+                0.0
+            } else {
+                0.5
+            };
             let m = (2.0 * g * e.pos - off).round();
             if (m - (2.0 * g0 * e.pos - off).round()).abs() > 0.0 || m < 0.0 {
                 return None;
@@ -1432,7 +1503,9 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
 
 /// Slope dR/dθ of the half-wave envelope at `theta`, from the table.
 fn table_slope(table: &[(f64, f64, f64)], theta: f64) -> f64 {
-    let i = table.partition_point(|e| e.0 < theta).clamp(1, table.len().saturating_sub(1).max(1));
+    let i = table
+        .partition_point(|e| e.0 < theta)
+        .clamp(1, table.len().saturating_sub(1).max(1));
     if table.len() < 2 {
         return 0.0;
     }
@@ -1442,7 +1515,8 @@ fn table_slope(table: &[(f64, f64, f64)], theta: f64) -> f64 {
 
 /// Inverse of a 3×3 matrix by cofactors; `None` if singular.
 fn inv3(m: [[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
-    let c = |r0: usize, r1: usize, c0: usize, c1: usize| m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0];
+    let c =
+        |r0: usize, r1: usize, c0: usize, c1: usize| m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0];
     let cof = [
         [c(1, 2, 1, 2), -c(1, 2, 0, 2), c(1, 2, 0, 1)],
         [-c(0, 2, 1, 2), c(0, 2, 0, 2), -c(0, 2, 0, 1)],
@@ -1453,7 +1527,9 @@ fn inv3(m: [[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
         return None;
     }
     // inverse = adjugate / det, adjugate = cofactor transposed.
-    Some(std::array::from_fn(|r| std::array::from_fn(|c| cof[c][r] / det)))
+    Some(std::array::from_fn(|r| {
+        std::array::from_fn(|c| cof[c][r] / det)
+    }))
 }
 
 /// Solve a 3×3 linear system by Cramer's rule; `None` if singular.
