@@ -1452,13 +1452,21 @@ fn angle_start(table: &[(f64, f64, f64)], half: Option<f64>, quarter: Option<f64
     let cost = |e: &(f64, f64, f64)| {
         half.map_or(0.0, |h| (e.1 - h).powi(2)) + quarter.map_or(0.0, |q| (e.2 - q).powi(2))
     };
-    let Some((i, _)) = table
-        .iter()
-        .enumerate()
-        .filter(|(_, e)| e.1.is_finite() && e.2.is_finite())
-        .min_by(|a, b| cost(a.1).total_cmp(&cost(b.1)))
-    else {
+    // Coarse to fine: every fourth entry, then the neighbourhood of the best
+    // (the cost is smooth on the 0.5° table, so its minimum is not skipped).
+    let best_in = |range: std::ops::Range<usize>, step: usize| {
+        range
+            .step_by(step)
+            .filter(|&i| table[i].1.is_finite() && table[i].2.is_finite())
+            .min_by(|&a, &b| cost(&table[a]).total_cmp(&cost(&table[b])))
+    };
+    let Some(coarse) = best_in(0..table.len(), 4) else {
         return 0.0;
+    };
+    let lo = coarse.saturating_sub(4);
+    let hi = (coarse + 5).min(table.len());
+    let Some(i) = best_in(lo..hi, 1) else {
+        return table[coarse].0;
     };
     if i == 0 || i + 1 >= table.len() {
         return table[i].0;
