@@ -316,8 +316,8 @@ impl FilmModel {
     /// [`THETA_STEP`], with `q2` and `dq2/dθ`.
     #[inline]
     fn coeffs_with_slope(&self, n: &Node, theta: f64) -> CoeffSet {
-        let (s, c) = theta.sin_cos();
-        let (sh, ch) = (theta + THETA_STEP).sin_cos();
+        let (s, c) = sin_cos(theta);
+        let (sh, ch) = sin_cos(theta + THETA_STEP);
         let (cs, cp, q2) = self.coeffs(n, s, c);
         let (cs_h, cp_h, q2_h) = self.coeffs(n, sh, ch);
         CoeffSet {

@@ -55,6 +55,12 @@ pub struct IndexEstimate {
     pub note: String,
 }
 
+/// Pixels sampled (on a regular lattice) for the global film-index search.
+pub const INDEX_SAMPLE_PIXELS: usize = 400;
+
+/// Step of the coarse film-index profile.
+const INDEX_GRID_STEP: f64 = 0.02;
+
 /// Largest number of bands a pixel may have.
 pub const MAX_BANDS: usize = 512;
 
@@ -200,6 +206,17 @@ impl Effort {
         iters: 10,
         verify_order: false,
     };
+}
+
+/// A pixel of the global index search, with its fringe candidates for
+/// both fringe signs precomputed (they do not depend on the film index).
+#[derive(Clone, Debug)]
+struct SamplePixel {
+    spectrum: Vec<f64>,
+    theta: Option<f64>,
+    /// Candidates for sign +1 (index 0) and −1 (index 1).
+    cands: [[Candidate; MAX_CANDIDATES]; 2],
+    n_cands: [usize; 2],
 }
 
 /// Result of refining one start.
@@ -424,7 +441,8 @@ impl Solver {
             None
         };
         let effort = Effort::of(self.mode);
-        let (mut est, _) = self.solve_with(prep, spectrum, theta_known, noise, effort, scratch);
+        let (mut est, _) =
+            self.solve_with(prep, spectrum, theta_known, noise, effort, None, scratch);
         if est.is_valid() {
             est.n_film = index.n;
             // The global index's own error moves the thickness at fixed
@@ -527,7 +545,7 @@ impl Solver {
     /// the index is known). The result is kept for later pixels and sweeps.
     pub fn estimate_film_index(&mut self, cube: &Cube) -> Result<IndexEstimate, EstimateError> {
         self.check_cube(cube)?;
-        let sample = self.sample_pixels(cube, 600);
+        let sample = self.sample_pixels(cube, INDEX_SAMPLE_PIXELS);
         if sample.is_empty() {
             return Err(EstimateError::FilmIndex(
                 "no pixel has a complete, finite spectrum".into(),
@@ -551,20 +569,35 @@ impl Solver {
 
     /// Up to `max` pixels on a regular lattice with complete spectra, with
     /// their known angles.
-    fn sample_pixels(&self, cube: &Cube, max: usize) -> Vec<(Vec<f64>, Option<f64>)> {
+    fn sample_pixels(&self, cube: &Cube, max: usize) -> Vec<SamplePixel> {
         let total = cube.plane_len();
         let stride = (total / max.max(1)).max(1);
         let mut out = Vec::new();
-        let mut spec = vec![0.0; cube.bands.len()];
+        let nb = cube.bands.len();
+        let mut spec = vec![0.0; nb];
+        let mut scratch = Scratch::default();
+        scratch.ensure(nb);
         let mut i = stride / 2;
         while i < total {
             let (x, y) = (i % cube.width, i / cube.width);
             cube.spectrum_into(x, y, &mut spec);
             if spec
                 .iter()
-                .all(|v| v.is_finite() && (-0.5..=1.5).contains(v))
+                .all(|v| v.is_finite() && (-0.2..=1.2).contains(v))
             {
-                out.push((spec.clone(), self.scene.angle.known_at(x, y)));
+                scratch.spectrum.copy_from_slice(&spec);
+                scratch.weight.fill(1.0);
+                let mut cands = [[Candidate::default(); MAX_CANDIDATES]; 2];
+                let mut n_cands = [0; 2];
+                for (k, sign) in [1.0, -1.0].into_iter().enumerate() {
+                    n_cands[k] = self.fringe_search(&scratch, sign, true, &mut cands[k]);
+                }
+                out.push(SamplePixel {
+                    spectrum: spec.clone(),
+                    theta: self.scene.angle.known_at(x, y),
+                    cands,
+                    n_cands,
+                });
             }
             i += stride;
         }
@@ -573,12 +606,20 @@ impl Solver {
 
     /// Summed residual of the sample under a prepared index, with the
     /// number of observations and of fitted parameters.
-    fn sample_sse(&self, prep: &Prepared, sample: &[(Vec<f64>, Option<f64>)]) -> (f64, f64, f64) {
+    fn sample_sse(&self, prep: &Prepared, sample: &[SamplePixel]) -> (f64, f64, f64) {
         sample
             .par_iter()
-            .map_init(Scratch::default, |scratch, (spec, th)| {
-                let (est, sse) =
-                    self.solve_with(prep, spec, *th, None, Effort::INDEX_SEARCH, scratch);
+            .map_init(Scratch::default, |scratch, px| {
+                let (spec, th) = (&px.spectrum, &px.theta);
+                let (est, sse) = self.solve_with(
+                    prep,
+                    spec,
+                    *th,
+                    None,
+                    Effort::INDEX_SEARCH,
+                    Some(px),
+                    scratch,
+                );
                 if est.is_valid() && sse.is_finite() {
                     let p = if th.is_some() { 1.0 } else { 2.0 };
                     (sse, spec.len() as f64, p)
@@ -589,40 +630,39 @@ impl Solver {
             .reduce(|| (0.0, 0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2))
     }
 
-    fn profile_at(
-        &self,
-        n: f64,
-        sample: &[(Vec<f64>, Option<f64>)],
-    ) -> Result<(f64, f64, f64), EstimateError> {
+    fn profile_at(&self, n: f64, sample: &[SamplePixel]) -> Result<(f64, f64, f64), EstimateError> {
         let prep = self.prepare(&Dispersion::constant(n))?;
         Ok(self.sample_sse(&prep, sample))
     }
 
     fn search_index(
         &self,
-        sample: &[(Vec<f64>, Option<f64>)],
+        sample: &[SamplePixel],
         search: (f64, f64),
         prior: Option<f64>,
     ) -> Result<IndexEstimate, EstimateError> {
-        // Coarse profile on the paper's 0.01 grid; pixels a trial index
+        // Coarse profile on a 0.02 grid (twice the paper's step: the
+        // profile's basin is wider, and the local fit below refines it far
+        // past 0.01); pixels a trial index
         // cannot fit at all are charged their total sum of squares so that
         // dropping them never looks like a better fit.
         let (lo, hi) = search;
         let lo = lo.max(1.0 + 1e-3);
-        let steps = ((hi - lo) / 0.01).round().max(2.0) as usize;
+        let steps = ((hi - lo) / INDEX_GRID_STEP).round().max(2.0) as usize;
         let grid: Vec<f64> = (0..=steps)
             .map(|i| lo + (hi - lo) * i as f64 / steps as f64)
             .collect();
         let total_ss: f64 = sample
             .iter()
-            .map(|(s, _)| {
+            .map(|px| {
+                let s = &px.spectrum;
                 let m = s.iter().sum::<f64>() / s.len() as f64;
                 s.iter().map(|v| (v - m) * (v - m)).sum::<f64>()
             })
             .sum();
         let cost = |n: f64| -> Result<f64, EstimateError> {
             let (sse, n_obs, _) = self.profile_at(n, sample)?;
-            let covered = n_obs / sample[0].0.len() as f64;
+            let covered = n_obs / sample[0].spectrum.len() as f64;
             let missing = sample.len() as f64 - covered;
             Ok(sse + missing * total_ss / sample.len() as f64)
         };
@@ -717,11 +757,11 @@ impl Solver {
         cost: &dyn Fn(f64) -> Result<f64, EstimateError>,
     ) -> Result<(f64, f64, f64), EstimateError> {
         let mut center = n_start;
-        let mut half = 0.01;
+        let mut half = INDEX_GRID_STEP;
         let mut result = (center, f64::INFINITY, 0.0);
         for _ in 0..3 {
-            let pts: Vec<f64> = (-4..=4)
-                .map(|i| (center + half * i as f64 / 4.0).clamp(bounds.0, bounds.1))
+            let pts: Vec<f64> = (-3..=3)
+                .map(|i| (center + half * i as f64 / 3.0).clamp(bounds.0, bounds.1))
                 .collect();
             let mut vals = Vec::with_capacity(pts.len());
             for &p in &pts {
@@ -751,7 +791,7 @@ impl Solver {
                 .enumerate()
                 .min_by(|x, y| x.1.total_cmp(y.1))
                 .map(|(i, v)| (i, *v))
-                .unwrap_or((4, f64::INFINITY));
+                .unwrap_or((3, f64::INFINITY));
             if a > 0.0 {
                 let u = (-b / (2.0 * a)).clamp(-half, half);
                 let n0 = (center + u).clamp(bounds.0, bounds.1);
@@ -762,7 +802,7 @@ impl Solver {
                 center = pts[imin];
                 result = (center, vmin, 0.0);
             }
-            half *= 0.25;
+            half *= 0.3;
         }
         // The value at the vertex itself, not the parabola's.
         let s = cost(result.0)?;
@@ -778,6 +818,7 @@ impl Solver {
         theta_known: Option<f64>,
         noise: Option<f64>,
         effort: Effort,
+        pre: Option<&SamplePixel>,
         scratch: &mut Scratch,
     ) -> (PixelEstimate, f64) {
         let nb = self.bands.len();
@@ -867,7 +908,14 @@ impl Solver {
             }
         }
         let mut cands = [Candidate::default(); MAX_CANDIDATES];
-        let n_cands = self.fringe_search(scratch, prep.sign, n_ok == nb, &mut cands);
+        let n_cands = match pre {
+            Some(px) => {
+                let k = usize::from(prep.sign < 0.0);
+                cands = px.cands[k];
+                px.n_cands[k]
+            }
+            None => self.fringe_search(scratch, prep.sign, n_ok == nb, &mut cands),
+        };
 
         // Angle start.
         let theta0 = match theta_known {
