@@ -219,6 +219,20 @@ struct SamplePixel {
     n_cands: [usize; 2],
 }
 
+/// One pixel's solve request.
+#[derive(Clone, Copy)]
+struct Job<'a> {
+    /// Reflectance per band (NaN: missing).
+    spectrum: &'a [f64],
+    /// Known angle, radians.
+    theta_known: Option<f64>,
+    /// Reflectance noise σ of the image, once known.
+    noise: Option<f64>,
+    effort: Effort,
+    /// Precomputed fringe candidates (index search).
+    pre: Option<&'a SamplePixel>,
+}
+
 /// Result of refining one start.
 #[derive(Clone, Copy, Debug, Default)]
 struct Fit {
@@ -441,8 +455,17 @@ impl Solver {
             None
         };
         let effort = Effort::of(self.mode);
-        let (mut est, _) =
-            self.solve_with(prep, spectrum, theta_known, noise, effort, None, scratch);
+        let (mut est, _) = self.solve_with(
+            prep,
+            Job {
+                spectrum,
+                theta_known,
+                noise,
+                effort,
+                pre: None,
+            },
+            scratch,
+        );
         if est.is_valid() {
             est.n_film = index.n;
             // The global index's own error moves the thickness at fixed
@@ -611,15 +634,14 @@ impl Solver {
             .par_iter()
             .map_init(Scratch::default, |scratch, px| {
                 let (spec, th) = (&px.spectrum, &px.theta);
-                let (est, sse) = self.solve_with(
-                    prep,
-                    spec,
-                    *th,
-                    None,
-                    Effort::INDEX_SEARCH,
-                    Some(px),
-                    scratch,
-                );
+                let job = Job {
+                    spectrum: spec,
+                    theta_known: *th,
+                    noise: None,
+                    effort: Effort::INDEX_SEARCH,
+                    pre: Some(px),
+                };
+                let (est, sse) = self.solve_with(prep, job, scratch);
                 if est.is_valid() && sse.is_finite() {
                     let p = if th.is_some() { 1.0 } else { 2.0 };
                     (sse, spec.len() as f64, p)
@@ -814,13 +836,16 @@ impl Solver {
     fn solve_with(
         &self,
         prep: &Prepared,
-        spectrum: &[f64],
-        theta_known: Option<f64>,
-        noise: Option<f64>,
-        effort: Effort,
-        pre: Option<&SamplePixel>,
+        job: Job<'_>,
         scratch: &mut Scratch,
     ) -> (PixelEstimate, f64) {
+        let Job {
+            spectrum,
+            theta_known,
+            noise,
+            effort,
+            pre,
+        } = job;
         let nb = self.bands.len();
         if spectrum.len() != nb {
             return (PixelEstimate::invalid(Reason::MissingBands), f64::NAN);
