@@ -12,6 +12,7 @@
 //! material is used as given and the cheaper path is taken.
 #![forbid(unsafe_code)]
 
+pub mod angle;
 pub mod cube;
 pub mod fastmath;
 pub mod maps;

@@ -248,6 +248,15 @@ impl FilmModel {
         self.n_bands
     }
 
+    /// Ambient and substrate indices at the middle band.
+    pub fn ambient_substrate_mid(&self) -> (Complex64, Complex64) {
+        let mid = self.n_bands / 2;
+        self.nodes
+            .iter()
+            .find(|n| n.band == mid)
+            .map_or((Complex64::new(1.0, 0.0), Complex64::new(1.5, 0.0)), |n| (n.n1, n.n3))
+    }
+
     /// Ambient index at the middle band.
     pub fn n1_mid(&self) -> f64 {
         self.n1_mid

@@ -28,7 +28,9 @@
 //! the χ² difference between them is reported; a prior breaks a tie the data
 //! cannot.
 
+use super::angle::half_wave_angles;
 use super::model::{FilmModel, ModelOut};
+use crate::optics::Polarization;
 use super::{Cube, EstimateError, Mode, ParamMaps, PixelEstimate, Reason};
 use crate::optics::band::Band;
 use crate::optics::dispersion::Dispersion;
@@ -251,6 +253,9 @@ struct Prepared {
     sign: f64,
     /// Angle table for the start: (θ, R(cos Δ = 1), R(cos Δ = −1)).
     table: Vec<(f64, f64, f64)>,
+    /// Real ambient and substrate indices at the middle band, when the
+    /// half-wave level can be inverted in closed form (lossless, s or p).
+    closed_form: Option<(f64, f64, Polarization)>,
 }
 
 /// Solves pixels for the scene's unknowns.
@@ -408,7 +413,18 @@ impl Solver {
         };
         let (h, l) = model.envelopes(mid_th);
         let sign = if h >= l { 1.0 } else { -1.0 };
-        Ok(Prepared { model, sign, table })
+        let (n1, n3) = model.ambient_substrate_mid();
+        let pol = self.scene.polarization;
+        let closed_form = (n1.im == 0.0
+            && n3.im == 0.0
+            && matches!(pol, Polarization::S | Polarization::P))
+        .then_some((n1.re, n3.re, pol));
+        Ok(Prepared {
+            model,
+            sign,
+            table,
+            closed_form,
+        })
     }
 
     /// The mode.
@@ -472,7 +488,8 @@ impl Solver {
             // optical thickness: ∂d/∂n2 = −d·n2/q2².
             let q2 = prep.model.q2_mid(est.theta_deg.to_radians());
             let dd_dn = est.thickness_nm * index.n / (q2 * q2);
-            est.sigma_thickness_nm = est.sigma_thickness_nm.hypot(dd_dn * index.sigma);
+            let (a, b) = (est.sigma_thickness_nm, dd_dn * index.sigma);
+            est.sigma_thickness_nm = (a * a + b * b).sqrt();
         }
         est
     }
@@ -1250,7 +1267,7 @@ impl Solver {
             } else {
                 0.5
             };
-            let m = (2.0 * g0 * e.pos - off).round().max(0.0);
+            let m = round(2.0 * g0 * e.pos - off).max(0.0);
             let gi = (m + off) / (2.0 * e.pos);
             let var_g = gi * gi * (e.var_pos * var_r).max(1e-30) / (e.pos * e.pos);
             wsum += 1.0 / var_g;
@@ -1266,8 +1283,8 @@ impl Solver {
             } else {
                 0.5
             };
-            let m = (2.0 * g * e.pos - off).round();
-            if (m - (2.0 * g0 * e.pos - off).round()).abs() > 0.0 || m < 0.0 {
+            let m = round(2.0 * g * e.pos - off);
+            if m != round(2.0 * g0 * e.pos - off) || m < 0.0 {
                 return None;
             }
             let phase_err = 2.0 * g * e.pos - off - m;
@@ -1294,11 +1311,32 @@ impl Solver {
                         nq += 1.0;
                     }
                 }
-                let t = angle_start(
-                    &prep.table,
-                    (nh > 0.0).then(|| hw / nh),
-                    (nq > 0.0).then(|| qw / nq),
-                );
+                let (lo, hi) = self.theta_range;
+                let half = (nh > 0.0).then(|| hw / nh);
+                let quarter = (nq > 0.0).then(|| qw / nq);
+                let exact = match (prep.closed_form, half) {
+                    (Some((n1, n3, pol)), Some(h)) => {
+                        let sols = half_wave_angles(h, n1, n3, pol);
+                        match sols {
+                            [Some(a), None] | [None, Some(a)] => Some(a),
+                            // Both sides of Brewster's angle: the quarter-wave
+                            // level (through the table) decides.
+                            [Some(a), Some(b)] => {
+                                let t = angle_start(&prep.table, half, quarter);
+                                Some(if (a - t).abs() <= (b - t).abs() { a } else { b })
+                            }
+                            // Below the normal-incidence level: noise on a
+                            // near-normal pixel.
+                            [None, None] if h < prep.table[0].1 && pol == Polarization::S => Some(lo),
+                            [None, None] => None,
+                        }
+                    }
+                    _ => None,
+                };
+                let t = match exact {
+                    Some(a) => a.clamp(lo, hi),
+                    None => angle_start(&prep.table, half, quarter),
+                };
                 // σ_R / |dR/dθ| of the half-wave level (Eq. 10's slope).
                 let slope = table_slope(&prep.table, t);
                 let sig = if nh > 0.0 && slope != 0.0 {
@@ -1306,7 +1344,6 @@ impl Solver {
                 } else {
                     f64::INFINITY
                 };
-                let (lo, hi) = self.theta_range;
                 (t, sig.min((hi - lo) / 12f64.sqrt()))
             }
         };
@@ -1580,6 +1617,17 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
         s += x * y;
     }
     s
+}
+
+/// Round to nearest for |x| < 2⁵¹ without a libm call.
+#[inline(always)]
+fn round(x: f64) -> f64 {
+    const SHIFT: f64 = 6_755_399_441_055_744.0;
+    if x.abs() < 4.0e15 {
+        (x + SHIFT) - SHIFT
+    } else {
+        x
+    }
 }
 
 /// Slope dR/dθ of the half-wave envelope at `theta`, from the table.
