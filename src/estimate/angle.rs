@@ -87,7 +87,10 @@ mod tests {
                 .into_iter()
                 .flatten()
                 .collect();
-            assert!(sols.iter().any(|s| (s - th).abs() < 1e-8), "{deg}: {sols:?}");
+            assert!(
+                sols.iter().any(|s| (s - th).abs() < 1e-8),
+                "{deg}: {sols:?}"
+            );
             // Any second solution lies on the other side of Brewster's angle
             // and reproduces the same reflectance.
             for s in &sols {
@@ -103,8 +106,17 @@ mod tests {
     fn impossible_levels_give_no_angle() {
         // Below the normal-incidence value no s angle exists.
         let r0 = forward(0.0, 1.0, 1.6, Polarization::S);
-        assert_eq!(half_wave_angles(r0 * 0.5, 1.0, 1.6, Polarization::S), [None, None]);
-        assert_eq!(half_wave_angles(f64::NAN, 1.0, 1.6, Polarization::S), [None, None]);
-        assert_eq!(half_wave_angles(0.05, 1.0, 1.6, Polarization::Unpolarized), [None, None]);
+        assert_eq!(
+            half_wave_angles(r0 * 0.5, 1.0, 1.6, Polarization::S),
+            [None, None]
+        );
+        assert_eq!(
+            half_wave_angles(f64::NAN, 1.0, 1.6, Polarization::S),
+            [None, None]
+        );
+        assert_eq!(
+            half_wave_angles(0.05, 1.0, 1.6, Polarization::Unpolarized),
+            [None, None]
+        );
     }
 }

@@ -254,7 +254,9 @@ impl FilmModel {
         self.nodes
             .iter()
             .find(|n| n.band == mid)
-            .map_or((Complex64::new(1.0, 0.0), Complex64::new(1.5, 0.0)), |n| (n.n1, n.n3))
+            .map_or((Complex64::new(1.0, 0.0), Complex64::new(1.5, 0.0)), |n| {
+                (n.n1, n.n3)
+            })
     }
 
     /// Ambient index at the middle band.

@@ -30,10 +30,10 @@
 
 use super::angle::half_wave_angles;
 use super::model::{FilmModel, ModelOut};
-use crate::optics::Polarization;
 use super::{Cube, EstimateError, Mode, ParamMaps, PixelEstimate, Reason};
 use crate::optics::band::Band;
 use crate::optics::dispersion::Dispersion;
+use crate::optics::Polarization;
 use crate::scene::{AngleKnowledge, FilmKnowledge, Scene};
 use rayon::prelude::*;
 use std::f64::consts::PI;
@@ -271,6 +271,8 @@ pub struct Solver {
     d_max: f64,
     /// Bands by increasing wavelength: (plane index, λ, wavenumber 1/λ).
     sorted: Vec<(usize, f64, f64)>,
+    /// Centre of the band range in wavenumber, nm⁻¹.
+    sigma_center: f64,
     /// Inverse normal matrices of the five-point parabola centred on each
     /// sorted band (`None` at the ends or if singular).
     parabola: Vec<Option<[[f64; 3]; 3]>>,
@@ -336,7 +338,15 @@ impl Solver {
                 v
             },
             parabola: Vec::new(),
+            sigma_center: 0.0,
         };
+        let (s_lo, s_hi) = solver
+            .sorted
+            .iter()
+            .fold((f64::INFINITY, 0.0f64), |(a, b), x| {
+                (a.min(x.2), b.max(x.2))
+            });
+        solver.sigma_center = 0.5 * (s_lo + s_hi);
         solver.parabola = (0..solver.sorted.len())
             .map(|i| {
                 if i < 2 || i + 2 >= solver.sorted.len() {
@@ -415,10 +425,9 @@ impl Solver {
         let sign = if h >= l { 1.0 } else { -1.0 };
         let (n1, n3) = model.ambient_substrate_mid();
         let pol = self.scene.polarization;
-        let closed_form = (n1.im == 0.0
-            && n3.im == 0.0
-            && matches!(pol, Polarization::S | Polarization::P))
-        .then_some((n1.re, n3.re, pol));
+        let closed_form =
+            (n1.im == 0.0 && n3.im == 0.0 && matches!(pol, Polarization::S | Polarization::P))
+                .then_some((n1.re, n3.re, pol));
         Ok(Prepared {
             model,
             sign,
@@ -921,20 +930,39 @@ impl Solver {
                     return self.finish(&[fit], n_ok, theta_known, noise, prep, lam_min, scratch);
                 }
                 if good {
-                    // Refine the best other order the fringe search offers.
-                    let mut cands = [Candidate::default(); MAX_CANDIDATES];
-                    let n_cands = self.fringe_search(scratch, prep.sign, true, &mut cands);
+                    // The neighbouring orders on the lattice: the same fringe
+                    // phase at the band-range centre, one fringe more or
+                    // fewer. The better one is refined; if it fits as well,
+                    // the order is ambiguous.
                     let q2 = prep.model.q2_mid(fit.theta);
-                    let quarter = 0.25 * lam_min / (2.0 * q2);
-                    let alt = cands[..n_cands]
-                        .iter()
-                        .map(|c| c.g / q2)
-                        .find(|d| (d - fit.d).abs() > quarter);
+                    let g = fit.d * q2;
+                    let dg = 0.5 / self.sigma_center;
+                    let mut alt = None;
+                    let mut alt_sse = f64::INFINITY;
+                    for ga in [g - dg, g + dg] {
+                        if ga < 0.0 || ga / q2 > self.d_max {
+                            continue;
+                        }
+                        prep.model
+                            .eval(ga / q2, fit.theta, &mut scratch.trial, false);
+                        let e = sse(&scratch.spectrum, &scratch.weight, &scratch.trial.r);
+                        if e < alt_sse {
+                            alt_sse = e;
+                            alt = Some(ga / q2);
+                        }
+                    }
                     let mut fits = [fit, fit];
                     let mut n_fits = 1;
                     if let Some(d_alt) = alt {
-                        fits[1] =
-                            self.refine(prep, d_alt, fit.theta, theta_known.is_none(), 5, scratch);
+                        // Two steps tell a clearly worse order; only a close
+                        // one is refined to convergence.
+                        let free = theta_known.is_none();
+                        let mut f = self.refine(prep, d_alt, fit.theta, free, 2, scratch);
+                        let var = fit.sse / (n_ok.saturating_sub(2).max(1)) as f64;
+                        if f.sse < fit.sse + 25.0 * var {
+                            f = self.refine(prep, f.d, f.theta, free, effort.iters, scratch);
+                        }
+                        fits[1] = f;
                         n_fits = 2;
                     }
                     return self.finish(
@@ -1327,7 +1355,9 @@ impl Solver {
                             }
                             // Below the normal-incidence level: noise on a
                             // near-normal pixel.
-                            [None, None] if h < prep.table[0].1 && pol == Polarization::S => Some(lo),
+                            [None, None] if h < prep.table[0].1 && pol == Polarization::S => {
+                                Some(lo)
+                            }
                             [None, None] => None,
                         }
                     }
@@ -1522,8 +1552,8 @@ impl Solver {
                     // Converged once a step is far below the statistical error
                     // (σ_d ~ 0.3 nm, σ_θ ~ 1e-3 rad at the paper's noise) or
                     // the residual no longer moves.
-                    let small = ((nd - d).abs() < 2e-3 && (nt - th).abs() < 2e-6)
-                        || cur_sse - new_sse <= 1e-10 * cur_sse;
+                    let small = ((nd - d).abs() < 5e-3 && (nt - th).abs() < 2e-5)
+                        || cur_sse - new_sse <= 1e-8 * cur_sse;
                     d = nd;
                     th = nt;
                     cur_sse = new_sse;
