@@ -17,6 +17,7 @@ use crate::optics::airy;
 use crate::optics::band::Band;
 use crate::optics::dispersion::Dispersion;
 use crate::optics::{Complex64, Media, Polarization};
+use multiversion::multiversion;
 use std::f64::consts::PI;
 
 /// Angle step of the finite differences of the Fresnel coefficients, rad.
@@ -33,7 +34,6 @@ struct CoeffSet {
     dq2: f64,
 }
 
-pub static EVALS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
 /// The polarisation mix of the real path, with each coefficient's change
 /// per radian of incidence angle.
 #[derive(Clone, Copy, Debug)]
@@ -101,6 +101,74 @@ impl Pol {
     }
 }
 
+/// Scalars of [`uniform_kernel`].
+#[derive(Clone, Copy)]
+struct UniformArgs {
+    d: f64,
+    q2: f64,
+    dq2: f64,
+    pol: Pol,
+    deriv: bool,
+}
+
+/// The band loop of the uniform real path, compiled for the best vector
+/// unit the CPU offers (chosen once at run time; the baseline build runs
+/// everywhere).
+#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+fn uniform_kernel(w: &[f64], a: UniformArgs, r: &mut [f64], dd: &mut [f64], dth: &mut [f64]) {
+    let UniformArgs {
+        d,
+        q2,
+        dq2,
+        pol,
+        deriv,
+    } = a;
+    let kd = q2 * d;
+    let n = w.len().min(r.len()).min(dd.len()).min(dth.len());
+    let (w, r, dd, dth) = (&w[..n], &mut r[..n], &mut dd[..n], &mut dth[..n]);
+    if !deriv {
+        for i in 0..n {
+            let (_, c) = sin_cos_bounded(w[i] * kd);
+            r[i] = pol.value(c);
+        }
+        return;
+    }
+    // One polarisation (the common case) gets its own loop so it vectorises
+    // without per-band branches.
+    let single = if pol.wp == 0.0 {
+        Some((pol.s, pol.ds))
+    } else if pol.ws == 0.0 {
+        Some((pol.p, pol.dp))
+    } else {
+        None
+    };
+    match single {
+        Some((cf, dc)) => {
+            for i in 0..n {
+                let (sn, x) = sin_cos_bounded(w[i] * kd);
+                let inv = 1.0 / (cf.c + cf.b * x);
+                let rv = (cf.a + cf.b * x) * inv;
+                let dx = cf.b * (cf.c - cf.a) * inv * inv;
+                let dcoef = (dc.a + x * dc.b - rv * (dc.c + x * dc.b)) * inv;
+                r[i] = rv;
+                let dphase = -sn * w[i];
+                dd[i] = dx * dphase * q2;
+                dth[i] = dcoef + dx * dphase * d * dq2;
+            }
+        }
+        None => {
+            for i in 0..n {
+                let (sn, x) = sin_cos_bounded(w[i] * kd);
+                let (rv, dx, dcoef) = pol.value_slopes(x);
+                r[i] = rv;
+                let dphase = -sn * w[i];
+                dd[i] = dx * dphase * q2;
+                dth[i] = dcoef + dx * dphase * d * dq2;
+            }
+        }
+    }
+}
+
 /// One quadrature node of a band.
 #[derive(Clone, Copy, Debug)]
 struct Node {
@@ -152,6 +220,8 @@ pub struct FilmModel {
     nodes: Vec<Node>,
     /// `4π/λ` per band, for the uniform path.
     w: Vec<f64>,
+    /// Largest sin θ1 below every critical angle (film and substrate).
+    sin_critical: f64,
     n_bands: usize,
     /// All media lossless and real at every node.
     real: bool,
@@ -173,8 +243,6 @@ pub struct ModelOut {
     pub dr_dd: Vec<f64>,
     /// dR/dθ per band (per radian).
     pub dr_dth: Vec<f64>,
-    sin: Vec<f64>,
-    cos: Vec<f64>,
 }
 
 impl ModelOut {
@@ -184,8 +252,6 @@ impl ModelOut {
             r: vec![0.0; n],
             dr_dd: vec![0.0; n],
             dr_dth: vec![0.0; n],
-            sin: vec![0.0; n],
-            cos: vec![0.0; n],
         }
     }
 }
@@ -231,7 +297,12 @@ impl FilmModel {
         });
         let mid = bands.len() / 2;
         let mid_node = nodes.iter().find(|n| n.band == mid).copied().or(first);
+        let sin_critical = nodes
+            .iter()
+            .map(|n| (n.n2.re / n.n1.re).min(n.n3.re / n.n1.re))
+            .fold(f64::INFINITY, f64::min);
         Ok(FilmModel {
+            sin_critical,
             w: nodes.iter().map(|n| n.w).collect(),
             n_bands: bands.len(),
             real,
@@ -278,31 +349,26 @@ impl FilmModel {
 
     /// Whether the fast real path applies at angle `theta`.
     fn real_at(&self, theta: f64) -> bool {
-        if !self.real {
-            return false;
-        }
-        let s = theta.sin();
-        self.nodes.iter().all(|n| {
-            let kx = n.n1.re * s;
-            n.n2.re > kx && n.n3.re > kx
-        })
+        self.real && sin_cos(theta).0 < self.sin_critical
     }
 
     /// Model reflectance per band at thickness `d` (nm) and angle `theta`
     /// (rad); with `with_derivative`, also dR/dd and dR/dθ.
     pub fn eval(&self, d: f64, theta: f64, out: &mut ModelOut, with_derivative: bool) {
-        EVALS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        if self.real_at(theta) && self.real_at(theta + THETA_STEP) {
+            if self.uniform && self.nodes.len() == self.n_bands {
+                // Overwrites every band: no clearing needed.
+                self.eval_real_uniform(d, theta, out, with_derivative);
+                return;
+            }
+        }
         out.r[..self.n_bands].fill(0.0);
         if with_derivative {
             out.dr_dd[..self.n_bands].fill(0.0);
             out.dr_dth[..self.n_bands].fill(0.0);
         }
         if self.real_at(theta) && self.real_at(theta + THETA_STEP) {
-            if self.uniform && self.nodes.len() == self.n_bands {
-                self.eval_real_uniform(d, theta, out, with_derivative);
-            } else {
-                self.eval_real(d, theta, out, with_derivative);
-            }
+            self.eval_real(d, theta, out, with_derivative);
         } else {
             self.eval_complex(d, theta, out, with_derivative);
         }
@@ -366,36 +432,23 @@ impl FilmModel {
     fn eval_real_uniform(&self, d: f64, theta: f64, out: &mut ModelOut, deriv: bool) {
         let k = self.coeffs_with_slope(&self.nodes[0], theta);
         let nb = self.n_bands;
-        let w = &self.w[..nb];
-        let (sn, cs) = (&mut out.sin[..nb], &mut out.cos[..nb]);
-        let kd = k.q2 * d;
-        for i in 0..nb {
-            let (s, c) = sin_cos_bounded(w[i] * kd);
-            sn[i] = s;
-            cs[i] = c;
-        }
-        let ws = self.s_weight;
-        let pol = Pol::new(ws, &k);
-        let (r, dd, dth) = (
-            &mut out.r[..nb],
-            &mut out.dr_dd[..nb],
-            &mut out.dr_dth[..nb],
+        let pol = Pol::new(self.s_weight, &k);
+        let ModelOut {
+            r, dr_dd, dr_dth, ..
+        } = out;
+        uniform_kernel(
+            &self.w[..nb],
+            UniformArgs {
+                d,
+                q2: k.q2,
+                dq2: k.dq2,
+                pol,
+                deriv,
+            },
+            &mut r[..nb],
+            &mut dr_dd[..nb],
+            &mut dr_dth[..nb],
         );
-        let (sn, cs) = (&out.sin[..nb], &out.cos[..nb]);
-        let (q2, dq2) = (k.q2, k.dq2);
-        if !deriv {
-            for i in 0..nb {
-                r[i] = pol.value(cs[i]);
-            }
-            return;
-        }
-        for i in 0..nb {
-            let (rv, dx, dcoef) = pol.value_slopes(cs[i]);
-            r[i] = rv;
-            let dphase = -sn[i] * w[i];
-            dd[i] = dx * dphase * q2;
-            dth[i] = dcoef + dx * dphase * d * dq2;
-        }
     }
 
     fn eval_real(&self, d: f64, theta: f64, out: &mut ModelOut, deriv: bool) {
