@@ -355,19 +355,18 @@ impl FilmModel {
     /// Model reflectance per band at thickness `d` (nm) and angle `theta`
     /// (rad); with `with_derivative`, also dR/dd and dR/dθ.
     pub fn eval(&self, d: f64, theta: f64, out: &mut ModelOut, with_derivative: bool) {
-        if self.real_at(theta) && self.real_at(theta + THETA_STEP) {
-            if self.uniform && self.nodes.len() == self.n_bands {
-                // Overwrites every band: no clearing needed.
-                self.eval_real_uniform(d, theta, out, with_derivative);
-                return;
-            }
+        let real = self.real_at(theta) && self.real_at(theta + THETA_STEP);
+        if real && self.uniform && self.nodes.len() == self.n_bands {
+            // Overwrites every band: no clearing needed.
+            self.eval_real_uniform(d, theta, out, with_derivative);
+            return;
         }
         out.r[..self.n_bands].fill(0.0);
         if with_derivative {
             out.dr_dd[..self.n_bands].fill(0.0);
             out.dr_dth[..self.n_bands].fill(0.0);
         }
-        if self.real_at(theta) && self.real_at(theta + THETA_STEP) {
+        if real {
             self.eval_real(d, theta, out, with_derivative);
         } else {
             self.eval_complex(d, theta, out, with_derivative);
