@@ -343,7 +343,7 @@ impl FilmModel {
     /// `n2 cos θ2` at the middle band: the factor between thickness and
     /// optical thickness `g = d·n2·cos θ2`.
     pub fn q2_mid(&self, theta: f64) -> f64 {
-        let kx = self.n1_mid * theta.sin();
+        let kx = self.n1_mid * sin_cos(theta).0;
         (self.n2_mid * self.n2_mid - kx * kx).max(1e-12).sqrt()
     }
 

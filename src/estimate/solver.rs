@@ -1384,7 +1384,8 @@ impl Solver {
         }
         // d = g/q2(θ): the angle's error moves d through q2.
         let n1 = prep.model.n1_mid();
-        let dq2 = n1 * n1 * theta.sin() * theta.cos() / q2;
+        let (sin_t, cos_t) = super::fastmath::sin_cos(theta);
+        let dq2 = n1 * n1 * sin_t * cos_t / q2;
         let sigma_d = ((var_g / (q2 * q2)) + (d * dq2 / q2 * sigma_theta).powi(2)).sqrt();
         let reason = if theta_known.is_none() && sigma_theta.to_degrees() > ANGLE_SIGMA_LIMIT_DEG {
             Reason::AngleNotIdentifiable
@@ -1662,12 +1663,16 @@ fn round(x: f64) -> f64 {
 
 /// Slope dR/dθ of the half-wave envelope at `theta`, from the table.
 fn table_slope(table: &[(f64, f64, f64)], theta: f64) -> f64 {
-    let i = table
-        .partition_point(|e| e.0 < theta)
-        .clamp(1, table.len().saturating_sub(1).max(1));
     if table.len() < 2 {
         return 0.0;
     }
+    // The table is uniform in θ: index directly.
+    let (t0, step) = (table[0].0, table[1].0 - table[0].0);
+    let i = if step > 0.0 {
+        (((theta - t0) / step).max(0.0) as usize + 1).clamp(1, table.len() - 1)
+    } else {
+        1
+    };
     let (a, b) = (table[i - 1], table[i]);
     (b.1 - a.1) / (b.0 - a.0)
 }
