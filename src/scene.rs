@@ -119,8 +119,16 @@ impl MediumSpec {
                         "`k` goes with `n`, not with `material`",
                     ));
                 }
+                let lower = name.to_ascii_lowercase();
+                let is_path = lower.ends_with(".yml") || lower.ends_with(".yaml") || name.contains(['/', '\\']);
+                let spec = if is_path && Path::new(name).is_relative() {
+                    base.join(name).display().to_string()
+                } else {
+                    name.clone()
+                };
                 MaterialLibrary::builtin()
-                    .resolve_relative(name, base)
+                    .with_dir(base)
+                    .resolve(&spec)
                     .map(|m| m.dispersion)
                     .map_err(|e| invalid(&format!("{field}.material"), e.to_string()))
             }

@@ -212,3 +212,70 @@ mod tests {
         );
     }
 }
+
+/// Accuracy of fitted maps against the truth.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Accuracy {
+    /// Pixels compared.
+    pub pixels: usize,
+    /// Fraction of pixels valid.
+    pub valid_fraction: f64,
+    /// Mean absolute thickness error over valid pixels, nm.
+    pub thickness_mae_nm: f64,
+    /// 99th percentile of the absolute thickness error, nm.
+    pub thickness_p99_nm: f64,
+    /// Largest absolute thickness error, nm.
+    pub thickness_max_nm: f64,
+    /// Mean absolute angle error over valid pixels with θ ≥ 20°, degrees.
+    pub theta_mae_ge20_deg: f64,
+    /// Largest absolute angle error over valid pixels with θ < 20° that
+    /// were not flagged "angle not identifiable", degrees.
+    pub theta_max_lt20_unflagged_deg: f64,
+    /// Fraction of valid pixels with |thickness error| ≤ 2σ.
+    pub coverage_2sigma: f64,
+}
+
+/// Compare fitted maps with the truth.
+pub fn compare(maps: &crate::estimate::ParamMaps, truth: &TruthMaps) -> Accuracy {
+    use crate::estimate::Reason;
+    let n = maps.width * maps.height;
+    let mut errs = Vec::with_capacity(n);
+    let (mut th_sum, mut th_n, mut th_max_lt20, mut covered) = (0.0, 0usize, 0.0f64, 0usize);
+    for i in 0..n {
+        if maps.valid[i] < 0.5 {
+            continue;
+        }
+        let e = (f64::from(maps.thickness_nm[i]) - f64::from(truth.thickness_nm[i])).abs();
+        errs.push(e);
+        if e <= 2.0 * f64::from(maps.sigma_thickness_nm[i]) {
+            covered += 1;
+        }
+        let t = f64::from(truth.theta_deg[i]);
+        let te = (f64::from(maps.theta_deg[i]) - t).abs();
+        if t >= 20.0 {
+            th_sum += te;
+            th_n += 1;
+        } else if maps.reason[i] as u8 != Reason::AngleNotIdentifiable as u8 {
+            th_max_lt20 = th_max_lt20.max(te);
+        }
+    }
+    let valid = errs.len();
+    errs.sort_by(f64::total_cmp);
+    let pct = |p: f64| {
+        if errs.is_empty() {
+            f64::NAN
+        } else {
+            errs[((errs.len() - 1) as f64 * p).round() as usize]
+        }
+    };
+    Accuracy {
+        pixels: n,
+        valid_fraction: valid as f64 / n.max(1) as f64,
+        thickness_mae_nm: errs.iter().sum::<f64>() / valid.max(1) as f64,
+        thickness_p99_nm: pct(0.99),
+        thickness_max_nm: errs.last().copied().unwrap_or(f64::NAN),
+        theta_mae_ge20_deg: if th_n > 0 { th_sum / th_n as f64 } else { f64::NAN },
+        theta_max_lt20_unflagged_deg: th_max_lt20,
+        coverage_2sigma: covered as f64 / valid.max(1) as f64,
+    }
+}

@@ -13,7 +13,9 @@
 #![forbid(unsafe_code)]
 
 pub mod cube;
+pub mod fastmath;
 pub mod maps;
+pub mod model;
 pub mod solver;
 
 pub use cube::Cube;

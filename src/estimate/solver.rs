@@ -1,9 +1,40 @@
-//! The per-pixel solver and the global film-index search (placeholder API;
-//! the implementation follows).
+//! The per-pixel solver and the global film-index search.
+//!
+//! Per pixel, in every mode but `fast`:
+//!
+//! 1. **Fringe search** (independent of the film index): the spectrum is
+//!    projected on `A + B·cos(4π g / λ)` for a grid of optical thicknesses
+//!    `g = d·n2·cos θ2` (basis and normal equations precomputed per band
+//!    set, so a grid point costs one dot product). Local minima of the
+//!    residual whose `B` has the sign the scene's indices allow (half-wave
+//!    points are peaks for `n1 < n2 < n3`, valleys for `n2 > n3`) are the
+//!    candidate fringe orders: the interference lattice of Eq. 12–15
+//!    without a film-index grid.
+//! 2. **Angle start** (only when unknown): the fitted `A ± B` are the
+//!    half- and quarter-wave envelopes; the angle whose model envelopes
+//!    match them best (Eq. 8–11 generalised to both envelopes, peaks or
+//!    valleys) starts the refinement.
+//! 3. **Refinement**: Levenberg–Marquardt on the unknowns (thickness, and the
+//!    angle when unknown) with the exact model ([`super::model`]); standard
+//!    errors from the Jacobian scaled by the residual variance.
+//! 4. **Checks**: a second candidate order refined too; if it fits as well
+//!    the pixel is flagged "ambiguous order". A weak angle is flagged "angle
+//!    not identifiable" with its (large) σ.
+//!
+//! The film index, uniform over an object, is estimated once from a sample
+//! of pixels by profiling the summed per-pixel residual over the index
+//! (coarse grid, then a local quadratic fit), which also gives its standard
+//! error. Both branches of the n2 ↔ n1·n3/n2 near-symmetry are located and
+//! the χ² difference between them is reported; a prior breaks a tie the data
+//! cannot.
 
+use super::model::{FilmModel, ModelOut};
 use super::{Cube, EstimateError, Mode, ParamMaps, PixelEstimate, Reason};
 use crate::optics::band::Band;
-use crate::scene::Scene;
+use crate::optics::dispersion::Dispersion;
+use crate::scene::{AngleKnowledge, FilmKnowledge, Scene};
+use rayon::prelude::*;
+use std::f64::consts::PI;
 
 /// The film index used for a fit: estimated once from the image, or known.
 #[derive(Clone, Debug, PartialEq)]
@@ -18,14 +49,126 @@ pub struct IndexEstimate {
     pub twin: Option<f64>,
     /// χ² by which the twin fits worse (large: resolved; small: ambiguous).
     pub twin_delta_chi2: f64,
+    /// Reflectance noise σ estimated from the fit residuals.
+    pub noise_sigma: f64,
     /// A human-readable note (e.g. "twin not resolved; prior used").
     pub note: String,
 }
 
+/// Largest number of bands a pixel may have.
+pub const MAX_BANDS: usize = 512;
+
+/// Angle σ above which the angle is reported as not identifiable, degrees.
+pub const ANGLE_SIGMA_LIMIT_DEG: f64 = 0.5;
+
 /// Reusable per-thread working memory of the solver.
 #[derive(Clone, Debug, Default)]
 pub struct Scratch {
+    /// The caller's gathered spectrum (solve_row).
+    pixel: Vec<f64>,
     spectrum: Vec<f64>,
+    weight: Vec<f64>,
+    cur: ModelOut,
+    trial: ModelOut,
+}
+
+impl Scratch {
+    fn ensure(&mut self, n: usize) {
+        if self.spectrum.len() != n {
+            self.spectrum = vec![0.0; n];
+            self.weight = vec![0.0; n];
+            self.cur = ModelOut::new(n);
+            self.trial = ModelOut::new(n);
+        }
+    }
+}
+
+/// The fringe-search basis: `cos(4π g_j / λ_k)` for a grid of optical
+/// thicknesses, with the inverse normal equations of `[1, cos]` per grid
+/// point for a complete spectrum.
+#[derive(Clone, Debug)]
+struct FringeBasis {
+    g: Vec<f64>,
+    /// `basis[j * nb + k]`.
+    basis: Vec<f32>,
+    /// Inverse of `[[N, Σc], [Σc, Σc²]]`, as `(a, b, c)` of a symmetric 2×2;
+    /// NaN where the basis is too close to constant to separate.
+    minv: Vec<[f64; 3]>,
+    nb: usize,
+}
+
+impl FringeBasis {
+    fn new(bands: &[Band], g_max: f64) -> FringeBasis {
+        let nb = bands.len();
+        let lam_min = bands
+            .iter()
+            .map(|b| b.center_nm)
+            .fold(f64::INFINITY, f64::min);
+        // Phase step at the shortest wavelength ≤ 0.35 rad: the residual's
+        // minimum is never missed between grid points.
+        let step = 0.35 * lam_min / (4.0 * PI);
+        let n = (g_max / step).ceil() as usize + 1;
+        let mut g = Vec::with_capacity(n);
+        let mut basis = Vec::with_capacity(n * nb);
+        let mut minv = Vec::with_capacity(n);
+        for j in 0..n {
+            let gj = j as f64 * step;
+            let (mut s1, mut s2) = (0.0, 0.0);
+            for b in bands {
+                let c = (4.0 * PI * gj / b.center_nm).cos();
+                basis.push(c as f32);
+                s1 += c;
+                s2 += c * c;
+            }
+            let nf = nb as f64;
+            let det = nf * s2 - s1 * s1;
+            // Relative spread of the cosine across bands: below this the
+            // fringe term is indistinguishable from the constant.
+            if det > 0.02 * nf * nf {
+                minv.push([s2 / det, -s1 / det, nf / det]);
+            } else {
+                minv.push([f64::NAN; 3]);
+            }
+            g.push(gj);
+        }
+        FringeBasis {
+            g,
+            basis,
+            minv,
+            nb,
+        }
+    }
+}
+
+/// A candidate from the fringe search.
+#[derive(Clone, Copy, Debug, Default)]
+struct Candidate {
+    g: f64,
+    a: f64,
+    b: f64,
+    sse: f64,
+}
+
+const MAX_CANDIDATES: usize = 4;
+
+/// Result of refining one start.
+#[derive(Clone, Copy, Debug, Default)]
+struct Fit {
+    d: f64,
+    theta: f64,
+    sse: f64,
+    /// `JᵀJ` entries (dd, dθ, θθ).
+    jtj: [f64; 3],
+}
+
+/// Everything that depends on the film index.
+#[derive(Clone, Debug)]
+struct Prepared {
+    model: FilmModel,
+    /// Expected sign of the fringe term (+1: half-wave points are peaks).
+    sign: f64,
+    /// Angle table for the start: (θ, R(cos Δ = 1), R(cos Δ = −1)).
+    table: Vec<(f64, f64, f64)>,
 }
 
 /// Solves pixels for the scene's unknowns.
@@ -35,22 +178,142 @@ pub struct Solver {
     bands: Vec<Band>,
     mode: Mode,
     index: Option<IndexEstimate>,
+    prepared: Option<Prepared>,
+    basis: FringeBasis,
+    theta_range: (f64, f64),
+    d_max: f64,
+    /// Bands by increasing wavelength: (plane index, λ, wavenumber 1/λ).
+    sorted: Vec<(usize, f64, f64)>,
 }
+
+/// Largest film thickness the solver considers, nm.
+pub const DEFAULT_D_MAX_NM: f64 = 2000.0;
 
 impl Solver {
     /// A solver for `scene` observed in `bands` (cube plane order).
     pub fn new(scene: &Scene, bands: &[Band], mode: Mode) -> Result<Solver, EstimateError> {
-        Ok(Solver {
+        if bands.len() < 4 {
+            return Err(EstimateError::Bands(format!(
+                "need at least 4 bands, got {}",
+                bands.len()
+            )));
+        }
+        if bands.len() > MAX_BANDS {
+            return Err(EstimateError::Bands(format!(
+                "at most {MAX_BANDS} bands, got {}",
+                bands.len()
+            )));
+        }
+        if let Some(b) = bands
+            .iter()
+            .find(|b| !(b.center_nm.is_finite() && b.center_nm > 0.0 && b.fwhm_nm >= 0.0))
+        {
+            return Err(EstimateError::Bands(format!(
+                "band centre {} nm / FWHM {} nm is not usable",
+                b.center_nm, b.fwhm_nm
+            )));
+        }
+        let n2_hi = match &scene.film {
+            FilmKnowledge::Known(d) => bands
+                .iter()
+                .filter_map(|b| d.index_at(b.center_nm).ok())
+                .map(|n| n.re)
+                .fold(1.0, f64::max),
+            FilmKnowledge::Unknown { search, .. } => search.1,
+        };
+        let d_max = DEFAULT_D_MAX_NM;
+        let basis = FringeBasis::new(bands, d_max * n2_hi);
+        let theta_range = match scene.angle {
+            AngleKnowledge::Unknown { search } => search,
+            _ => (0.0, 89f64.to_radians()),
+        };
+        let mut solver = Solver {
             scene: scene.clone(),
             bands: bands.to_vec(),
             mode,
             index: None,
-        })
+            prepared: None,
+            basis,
+            theta_range,
+            d_max,
+            sorted: {
+                let mut v: Vec<(usize, f64, f64)> = bands
+                    .iter()
+                    .enumerate()
+                    .map(|(i, b)| (i, b.center_nm, 1.0 / b.center_nm))
+                    .collect();
+                v.sort_by(|a, b| a.1.total_cmp(&b.1));
+                v
+            },
+        };
+        if let FilmKnowledge::Known(film) = &scene.film {
+            let film = film.clone();
+            let prepared = solver.prepare(&film)?;
+            let n = prepared.model.n2_mid();
+            solver.prepared = Some(prepared);
+            solver.index = Some(IndexEstimate {
+                n,
+                sigma: 0.0,
+                estimated: false,
+                twin: None,
+                twin_delta_chi2: f64::NAN,
+                noise_sigma: f64::NAN,
+                note: "known".into(),
+            });
+        }
+        Ok(solver)
+    }
+
+    fn integrate(&self) -> bool {
+        self.mode == Mode::Accurate
+            && self.bands.iter().any(|b| {
+                // Attenuation of the fastest fringe the solver considers by
+                // the Gaussian passband (see optics::band): integrate when
+                // point sampling would err by more than 1e-4 of reflectance
+                // on a fringe of amplitude ~0.05.
+                let g = self.d_max.min(1000.0) * 1.5;
+                let x = PI * b.fwhm_nm * 2.0 * g / (b.center_nm * b.center_nm);
+                let att = (-x * x / (4.0 * std::f64::consts::LN_2)).exp();
+                (1.0 - att) * 0.05 > 1e-4
+            })
+    }
+
+    fn prepare(&self, film: &Dispersion) -> Result<Prepared, EstimateError> {
+        let model = FilmModel::new(
+            &self.bands,
+            &self.scene.ambient,
+            film,
+            &self.scene.substrate,
+            self.scene.polarization,
+            self.integrate(),
+        )
+        .map_err(|(medium, source)| EstimateError::Optics { medium, source })?;
+        let (lo, hi) = self.theta_range;
+        let steps = (((hi - lo).to_degrees() / 0.5).ceil() as usize).max(1);
+        let table: Vec<(f64, f64, f64)> = (0..=steps)
+            .map(|i| {
+                let th = lo + (hi - lo) * i as f64 / steps as f64;
+                let (h, l) = model.envelopes(th);
+                (th, h, l)
+            })
+            .collect();
+        let mid_th = match self.scene.angle {
+            AngleKnowledge::Uniform(t) => t,
+            _ => 0.5 * (lo + hi),
+        };
+        let (h, l) = model.envelopes(mid_th);
+        let sign = if h >= l { 1.0 } else { -1.0 };
+        Ok(Prepared { model, sign, table })
     }
 
     /// The mode.
     pub fn mode(&self) -> Mode {
         self.mode
+    }
+
+    /// The bands, in cube plane order.
+    pub fn bands(&self) -> &[Band] {
+        &self.bands
     }
 
     /// The film index in use, once known or estimated.
@@ -59,27 +322,43 @@ impl Solver {
     }
 
     /// Use this film index from now on (e.g. one estimated on an earlier sweep).
-    pub fn set_film_index(&mut self, est: IndexEstimate) {
+    pub fn set_film_index(&mut self, est: IndexEstimate) -> Result<(), EstimateError> {
+        if let FilmKnowledge::Unknown { .. } = self.scene.film {
+            self.prepared = Some(self.prepare(&Dispersion::constant(est.n))?);
+        }
         self.index = Some(est);
-    }
-
-    /// Estimate the film index from the cube when the scene leaves it
-    /// unknown (a no-op returning the known value otherwise).
-    pub fn estimate_film_index(&mut self, cube: &Cube) -> Result<IndexEstimate, EstimateError> {
-        let _ = cube;
-        Err(EstimateError::FilmIndex("not implemented yet".into()))
+        Ok(())
     }
 
     /// Solve one pixel. `spectrum` is in band order (NaN marks a missing
     /// band); `theta_known` is the pixel's known angle in radians.
+    ///
+    /// Before the film index is known (or estimated) every pixel is
+    /// invalid ([`Reason::Masked`]).
     pub fn solve_pixel(
         &self,
         spectrum: &[f64],
         theta_known: Option<f64>,
         scratch: &mut Scratch,
     ) -> PixelEstimate {
-        let _ = (spectrum, theta_known, &scratch.spectrum);
-        PixelEstimate::invalid(Reason::PoorFit)
+        let (Some(prep), Some(index)) = (&self.prepared, &self.index) else {
+            return PixelEstimate::invalid(Reason::Masked);
+        };
+        let noise = if index.noise_sigma.is_finite() {
+            Some(index.noise_sigma)
+        } else {
+            None
+        };
+        let (mut est, _) = self.solve_with(prep, spectrum, theta_known, noise, scratch);
+        if est.is_valid() {
+            est.n_film = index.n;
+            // The global index's own error moves the thickness at fixed
+            // optical thickness: ∂d/∂n2 = −d·n2/q2².
+            let q2 = prep.model.q2_mid(est.theta_deg.to_radians());
+            let dd_dn = est.thickness_nm * index.n / (q2 * q2);
+            est.sigma_thickness_nm = est.sigma_thickness_nm.hypot(dd_dn * index.sigma);
+        }
+        est
     }
 
     /// Solve row `y` of the cube into `out` (length `cube.width`).
@@ -90,19 +369,914 @@ impl Solver {
         out: &mut [PixelEstimate],
         scratch: &mut Scratch,
     ) {
-        let mut spec = std::mem::take(&mut scratch.spectrum);
-        spec.resize(cube.bands.len(), 0.0);
+        let mut pixel = std::mem::take(&mut scratch.pixel);
+        pixel.resize(cube.bands.len(), 0.0);
         for (x, o) in out.iter_mut().enumerate().take(cube.width) {
-            cube.spectrum_into(x, y, &mut spec);
-            *o = self.solve_pixel(&spec, self.scene.angle.known_at(x, y), scratch);
+            cube.spectrum_into(x, y, &mut pixel);
+            *o = self.solve_pixel(&pixel, self.scene.angle.known_at(x, y), scratch);
         }
-        scratch.spectrum = spec;
+        scratch.pixel = pixel;
     }
 
     /// Fit a whole cube: the film index first where unknown, then every
     /// pixel, rows in parallel on the current rayon pool.
     pub fn fit_cube(&mut self, cube: &Cube) -> Result<ParamMaps, EstimateError> {
-        let _ = cube;
-        Err(EstimateError::FilmIndex("not implemented yet".into()))
+        self.check_cube(cube)?;
+        if self
+            .index
+            .as_ref()
+            .is_none_or(|i| !i.noise_sigma.is_finite())
+        {
+            self.estimate_film_index(cube)?;
+        }
+        let mut maps = ParamMaps::new(cube.width, cube.height);
+        let w = cube.width;
+        let rows: Vec<Vec<PixelEstimate>> = (0..cube.height)
+            .into_par_iter()
+            .map_init(Scratch::default, |scratch, y| {
+                let mut row = vec![PixelEstimate::invalid(Reason::Masked); w];
+                self.solve_row(cube, y, &mut row, scratch);
+                row
+            })
+            .collect();
+        for (y, row) in rows.iter().enumerate() {
+            for (x, e) in row.iter().enumerate() {
+                maps.set(x, y, e);
+            }
+        }
+        maps.meta = self.map_meta();
+        Ok(maps)
     }
+
+    /// Metadata for maps produced by this solver.
+    pub fn map_meta(&self) -> super::maps::MapMeta {
+        let idx = self.index.clone();
+        super::maps::MapMeta {
+            mode: self.mode.name().into(),
+            wavelengths_nm: self.bands.iter().map(|b| b.center_nm).collect(),
+            fwhm_nm: self.bands.iter().map(|b| b.fwhm_nm).collect(),
+            n_film: idx.as_ref().map_or(f64::NAN, |i| i.n),
+            n_film_sigma: idx.as_ref().map_or(f64::NAN, |i| i.sigma),
+            n_film_estimated: idx.as_ref().is_some_and(|i| i.estimated),
+            n_film_note: idx.map(|i| i.note).unwrap_or_default(),
+            polarization: self.scene.polarization.name(),
+        }
+    }
+
+    fn check_cube(&self, cube: &Cube) -> Result<(), EstimateError> {
+        if cube.bands.len() != self.bands.len() {
+            return Err(EstimateError::Shape(format!(
+                "the cube has {} bands, the solver {}",
+                cube.bands.len(),
+                self.bands.len()
+            )));
+        }
+        if cube.data.len() != cube.plane_len() * cube.bands.len() {
+            return Err(EstimateError::Shape("cube data length does not match its size".into()));
+        }
+        if let AngleKnowledge::Map { width, height, .. } = self.scene.angle {
+            if (width, height) != (cube.width, cube.height) {
+                return Err(EstimateError::Shape(format!(
+                    "the angle map is {width}×{height}, the cube {}×{}",
+                    cube.width, cube.height
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// Estimate the film index from the cube when the scene leaves it
+    /// unknown, and the reflectance noise from the fit residuals (also when
+    /// the index is known). The result is kept for later pixels and sweeps.
+    pub fn estimate_film_index(&mut self, cube: &Cube) -> Result<IndexEstimate, EstimateError> {
+        self.check_cube(cube)?;
+        let sample = self.sample_pixels(cube, 600);
+        if sample.is_empty() {
+            return Err(EstimateError::FilmIndex(
+                "no pixel has a complete, finite spectrum".into(),
+            ));
+        }
+        let est = match self.scene.film.clone() {
+            FilmKnowledge::Known(_) => {
+                let mut est = self.index.clone().expect("known index set at construction");
+                let prep = self.prepared.clone().expect("known index prepared");
+                let (sse, n_obs, n_par) = self.sample_sse(&prep, &sample);
+                est.noise_sigma = (sse / (n_obs - n_par).max(1.0)).sqrt();
+                est
+            }
+            FilmKnowledge::Unknown { search, prior } => self.search_index(&sample, search, prior)?,
+        };
+        self.set_film_index(est.clone())?;
+        Ok(est)
+    }
+
+    /// Up to `max` pixels on a regular lattice with complete spectra, with
+    /// their known angles.
+    fn sample_pixels(&self, cube: &Cube, max: usize) -> Vec<(Vec<f64>, Option<f64>)> {
+        let total = cube.plane_len();
+        let stride = (total / max.max(1)).max(1);
+        let mut out = Vec::new();
+        let mut spec = vec![0.0; cube.bands.len()];
+        let mut i = stride / 2;
+        while i < total {
+            let (x, y) = (i % cube.width, i / cube.width);
+            cube.spectrum_into(x, y, &mut spec);
+            if spec.iter().all(|v| v.is_finite() && (-0.5..=1.5).contains(v)) {
+                out.push((spec.clone(), self.scene.angle.known_at(x, y)));
+            }
+            i += stride;
+        }
+        out
+    }
+
+    /// Summed residual of the sample under a prepared index, with the
+    /// number of observations and of fitted parameters.
+    fn sample_sse(&self, prep: &Prepared, sample: &[(Vec<f64>, Option<f64>)]) -> (f64, f64, f64) {
+        sample
+            .par_iter()
+            .map_init(Scratch::default, |scratch, (spec, th)| {
+                let (est, sse) = self.solve_with(prep, spec, *th, None, scratch);
+                if est.is_valid() && sse.is_finite() {
+                    let p = if th.is_some() { 1.0 } else { 2.0 };
+                    (sse, spec.len() as f64, p)
+                } else {
+                    (0.0, 0.0, 0.0)
+                }
+            })
+            .reduce(
+                || (0.0, 0.0, 0.0),
+                |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2),
+            )
+    }
+
+    fn profile_at(&self, n: f64, sample: &[(Vec<f64>, Option<f64>)]) -> Result<(f64, f64, f64), EstimateError> {
+        let prep = self.prepare(&Dispersion::constant(n))?;
+        Ok(self.sample_sse(&prep, sample))
+    }
+
+    fn search_index(
+        &self,
+        sample: &[(Vec<f64>, Option<f64>)],
+        search: (f64, f64),
+        prior: Option<f64>,
+    ) -> Result<IndexEstimate, EstimateError> {
+        // Coarse profile on the paper's 0.01 grid; pixels a trial index
+        // cannot fit at all are charged their total sum of squares so that
+        // dropping them never looks like a better fit.
+        let (lo, hi) = search;
+        let lo = lo.max(1.0 + 1e-3);
+        let steps = ((hi - lo) / 0.01).round().max(2.0) as usize;
+        let grid: Vec<f64> = (0..=steps)
+            .map(|i| lo + (hi - lo) * i as f64 / steps as f64)
+            .collect();
+        let total_ss: f64 = sample
+            .iter()
+            .map(|(s, _)| {
+                let m = s.iter().sum::<f64>() / s.len() as f64;
+                s.iter().map(|v| (v - m) * (v - m)).sum::<f64>()
+            })
+            .sum();
+        let cost = |n: f64| -> Result<f64, EstimateError> {
+            let (sse, n_obs, _) = self.profile_at(n, sample)?;
+            let covered = n_obs / sample[0].0.len() as f64;
+            let missing = sample.len() as f64 - covered;
+            Ok(sse + missing * total_ss / sample.len() as f64)
+        };
+        let mut prof = Vec::with_capacity(grid.len());
+        for &n in &grid {
+            prof.push(cost(n)?);
+        }
+        // Local minima of the coarse profile, best first.
+        let mut minima: Vec<usize> = (0..prof.len())
+            .filter(|&i| {
+                (i == 0 || prof[i] <= prof[i - 1]) && (i + 1 == prof.len() || prof[i] <= prof[i + 1])
+            })
+            .collect();
+        minima.sort_by(|&a, &b| prof[a].total_cmp(&prof[b]));
+        if minima.is_empty() || !prof[minima[0]].is_finite() {
+            return Err(EstimateError::FilmIndex("the index profile has no minimum".into()));
+        }
+        // Refine the best two well-separated minima with a local quadratic.
+        let mut refined: Vec<(f64, f64, f64)> = Vec::new(); // (n, sse, curvature)
+        for &i in minima.iter().take(4) {
+            if refined.iter().any(|r| (r.0 - grid[i]).abs() < 0.04) {
+                continue;
+            }
+            let r = self.refine_index(grid[i], (lo, hi), &cost)?;
+            refined.push(r);
+            if refined.len() == 2 {
+                break;
+            }
+        }
+        refined.sort_by(|a, b| a.1.total_cmp(&b.1));
+        let (_, n_obs, n_par) = self.profile_at(refined[0].0, sample)?;
+        let dof = (n_obs - n_par - 1.0).max(1.0);
+        let var = refined[0].1 / dof;
+        let noise_sigma = var.sqrt();
+        let mut best = refined[0];
+        let mut note = String::new();
+        let (twin, dchi2) = match refined.get(1) {
+            Some(t) => (Some(t.0), (t.1 - best.1) / var),
+            None => (None, f64::INFINITY),
+        };
+        if let Some(tn) = twin {
+            if dchi2 < 9.0 {
+                if let Some(p) = prior {
+                    if (tn - p).abs() < (best.0 - p).abs() {
+                        let other = best;
+                        best = refined[1];
+                        note = format!(
+                            "twin branches {:.4} and {:.4} not resolved by the data (Δχ² = {:.1}); the prior chose",
+                            best.0, other.0, dchi2
+                        );
+                    } else {
+                        note = format!(
+                            "twin at {:.4} not resolved by the data (Δχ² = {:.1}); the prior chose",
+                            tn, dchi2
+                        );
+                    }
+                } else {
+                    note = format!(
+                        "AMBIGUOUS: twin at {:.4} fits almost as well (Δχ² = {:.1}); give a prior or the index",
+                        tn, dchi2
+                    );
+                }
+            } else {
+                note = format!("twin at {:.4} rejected (Δχ² = {:.0})", tn, dchi2);
+            }
+        }
+        let sigma = if best.2 > 0.0 {
+            (var / best.2).sqrt()
+        } else {
+            f64::NAN
+        };
+        Ok(IndexEstimate {
+            n: best.0,
+            sigma,
+            estimated: true,
+            twin,
+            twin_delta_chi2: dchi2,
+            noise_sigma,
+            note,
+        })
+    }
+
+    /// Fit `sse ≈ s0 + κ (n − n0)²` on a fine local grid around `n_start`;
+    /// returns `(n0, s0, κ)`.
+    fn refine_index(
+        &self,
+        n_start: f64,
+        bounds: (f64, f64),
+        cost: &dyn Fn(f64) -> Result<f64, EstimateError>,
+    ) -> Result<(f64, f64, f64), EstimateError> {
+        let mut center = n_start;
+        let mut half = 0.01;
+        let mut result = (center, f64::INFINITY, 0.0);
+        for _ in 0..3 {
+            let pts: Vec<f64> = (-4..=4)
+                .map(|i| (center + half * i as f64 / 4.0).clamp(bounds.0, bounds.1))
+                .collect();
+            let mut vals = Vec::with_capacity(pts.len());
+            for &p in &pts {
+                vals.push(cost(p)?);
+            }
+            // Least-squares parabola in u = n − center.
+            let (mut s0, mut s1, mut s2, mut s3, mut s4) = (0.0, 0.0, 0.0, 0.0, 0.0);
+            let (mut t0, mut t1, mut t2) = (0.0, 0.0, 0.0);
+            for (&p, &v) in pts.iter().zip(&vals) {
+                let u = p - center;
+                let u2 = u * u;
+                s0 += 1.0;
+                s1 += u;
+                s2 += u2;
+                s3 += u2 * u;
+                s4 += u2 * u2;
+                t0 += v;
+                t1 += v * u;
+                t2 += v * u2;
+            }
+            let m = [[s4, s3, s2], [s3, s2, s1], [s2, s1, s0]];
+            let Some([a, b, c]) = solve3(m, [t2, t1, t0]) else {
+                break;
+            };
+            let (imin, vmin) = vals
+                .iter()
+                .enumerate()
+                .min_by(|x, y| x.1.total_cmp(y.1))
+                .map(|(i, v)| (i, *v))
+                .unwrap_or((4, f64::INFINITY));
+            if a > 0.0 {
+                let u = (-b / (2.0 * a)).clamp(-half, half);
+                let n0 = (center + u).clamp(bounds.0, bounds.1);
+                let s = c - b * b / (4.0 * a);
+                result = (n0, s.max(0.0).min(vmin), a);
+                center = n0;
+            } else {
+                center = pts[imin];
+                result = (center, vmin, 0.0);
+            }
+            half *= 0.25;
+        }
+        // The value at the vertex itself, not the parabola's.
+        let s = cost(result.0)?;
+        Ok((result.0, s, result.2))
+    }
+
+    /// Solve one pixel against a prepared index; returns the estimate (with
+    /// σ from the fit alone) and its residual sum of squares.
+    fn solve_with(
+        &self,
+        prep: &Prepared,
+        spectrum: &[f64],
+        theta_known: Option<f64>,
+        noise: Option<f64>,
+        scratch: &mut Scratch,
+    ) -> (PixelEstimate, f64) {
+        let nb = self.bands.len();
+        if spectrum.len() != nb {
+            return (PixelEstimate::invalid(Reason::MissingBands), f64::NAN);
+        }
+        scratch.ensure(nb);
+        let mut n_ok = 0usize;
+        for k in 0..nb {
+            let v = spectrum[k];
+            if v.is_finite() {
+                if !(-0.2..=1.2).contains(&v) {
+                    return (PixelEstimate::invalid(Reason::OutOfModel), f64::NAN);
+                }
+                scratch.spectrum[k] = v;
+                scratch.weight[k] = 1.0;
+                n_ok += 1;
+            } else {
+                scratch.spectrum[k] = 0.0;
+                scratch.weight[k] = 0.0;
+            }
+        }
+        if n_ok == 0 {
+            return (PixelEstimate::invalid(Reason::NonFinite), f64::NAN);
+        }
+        let n_par = if theta_known.is_some() { 1 } else { 2 };
+        if n_ok < nb.div_ceil(2).max(n_par + 3) {
+            let reason = if spectrum.iter().any(|v| v.is_infinite()) {
+                Reason::NonFinite
+            } else {
+                Reason::MissingBands
+            };
+            return (PixelEstimate::invalid(reason), f64::NAN);
+        }
+        if let Some(t) = theta_known {
+            if !(t.is_finite() && (0.0..PI / 2.0).contains(&t)) {
+                return (PixelEstimate::invalid(Reason::OutOfModel), f64::NAN);
+            }
+        }
+        let lam_min = self.sorted.first().map_or(400.0, |b| b.1);
+        if self.mode != Mode::Accurate && n_ok == nb {
+            if let Some(fe) = self.extrema_estimate(prep, theta_known, scratch) {
+                if self.mode == Mode::Fast {
+                    return (fe, f64::NAN);
+                }
+                let fit = self.refine(
+                    prep,
+                    fe.thickness_nm,
+                    fe.theta_deg.to_radians(),
+                    theta_known.is_none(),
+                    5,
+                    scratch,
+                );
+                let rms = (fit.sse / n_ok as f64).sqrt();
+                // A wrong order leaves fringe-sized residuals; only then is
+                // the full search worth its cost.
+                if noise.is_some_and(|n| rms <= 2.0 * n) {
+                    return self.finish(&[fit], n_ok, theta_known, noise, prep, lam_min);
+                }
+            }
+        }
+        let mut cands = [Candidate::default(); MAX_CANDIDATES];
+        let n_cands = self.fringe_search(scratch, prep.sign, n_ok == nb, &mut cands);
+
+        // Angle start.
+        let theta0 = match theta_known {
+            Some(t) => t,
+            None => {
+                let c = if n_cands > 0 {
+                    cands[0]
+                } else {
+                    let mean = scratch.spectrum.iter().sum::<f64>() / n_ok as f64;
+                    Candidate {
+                        a: mean,
+                        ..Default::default()
+                    }
+                };
+                angle_start(&prep.table, Some(c.a + c.b), Some(c.a - c.b))
+            }
+        };
+        let q2 = prep.model.q2_mid(theta0);
+        // Starts: the fringe candidates, plus a bare substrate and a thin
+        // film below the first fringe.
+        let mut starts: [(f64, f64); MAX_CANDIDATES + 2] = [(0.0, f64::INFINITY); MAX_CANDIDATES + 2];
+        let mut n_starts = 0;
+        for c in &cands[..n_cands] {
+            starts[n_starts] = (c.g / q2, 0.0);
+            n_starts += 1;
+        }
+        starts[n_starts] = (0.0, 0.0);
+        starts[n_starts + 1] = (lam_min / (8.0 * q2), 0.0);
+        n_starts += 2;
+        for s in &mut starts[..n_starts] {
+            prep.model.eval(s.0, theta0, &mut scratch.cur, false);
+            s.1 = sse(&scratch.spectrum, &scratch.weight, &scratch.cur.r);
+        }
+        starts[..n_starts].sort_by(|a, b| a.1.total_cmp(&b.1));
+        let (n_refine, iters) = match self.mode {
+            Mode::Fast => (1, 2),
+            Mode::Balanced => (2, 6),
+            Mode::Accurate => (3, 25),
+        };
+        let mut fits = [Fit::default(); 3];
+        let mut n_fits = 0;
+        for st in starts[..n_starts.min(n_refine)].iter() {
+            if !st.1.is_finite() {
+                continue;
+            }
+            fits[n_fits] = self.refine(prep, st.0, theta0, theta_known.is_none(), iters, scratch);
+            n_fits += 1;
+        }
+        self.finish(&fits[..n_fits], n_ok, theta_known, noise, prep, lam_min)
+    }
+
+    /// From refined fits to an estimate: best fit, covariance, flags.
+    fn finish(
+        &self,
+        fits: &[Fit],
+        n_ok: usize,
+        theta_known: Option<f64>,
+        noise: Option<f64>,
+        prep: &Prepared,
+        lam_min: f64,
+    ) -> (PixelEstimate, f64) {
+        let n_par = if theta_known.is_some() { 1 } else { 2 };
+        let mut order = [0usize, 1, 2];
+        let order = &mut order[..fits.len().min(3)];
+        order.sort_by(|&a, &b| fits[a].sse.total_cmp(&fits[b].sse));
+        let Some(best) = order.first().map(|&i| fits[i]) else {
+            return (PixelEstimate::invalid(Reason::PoorFit), f64::NAN);
+        };
+        if !(best.sse.is_finite() && best.d.is_finite() && best.theta.is_finite()) {
+            return (PixelEstimate::invalid(Reason::PoorFit), f64::NAN);
+        }
+        let q2 = prep.model.q2_mid(best.theta);
+        let dof = (n_ok - n_par).max(1) as f64;
+        let var = (best.sse / dof).max(1e-14);
+        // Covariance with a weak prior on the angle (its search range as a
+        // uniform distribution) so a flat direction gives a large, finite σ.
+        let (sig_d, sig_th) = if theta_known.is_some() {
+            ((var / best.jtj[0].max(1e-300)).sqrt(), 0.0)
+        } else {
+            let (lo, hi) = self.theta_range;
+            let prior = 12.0 / ((hi - lo) * (hi - lo)).max(1e-6);
+            let a = best.jtj[0];
+            let b = best.jtj[1];
+            let c = best.jtj[2] + prior * var;
+            let det = a * c - b * b;
+            if det > 0.0 {
+                ((var * c / det).sqrt(), (var * a / det).sqrt())
+            } else {
+                (f64::INFINITY, (hi - lo) / 12f64.sqrt())
+            }
+        };
+        let rms = (best.sse / n_ok as f64).sqrt();
+        let mut reason = Reason::Ok;
+        // A second order that fits as well as the best is an ambiguity.
+        if let Some(second) = order.get(1).map(|&i| fits[i]) {
+            let apart = (second.d - best.d).abs() > 0.25 * lam_min / (2.0 * q2);
+            if apart && second.sse - best.sse < 4.0 * var {
+                reason = Reason::AmbiguousOrder;
+            }
+        }
+        if let Some(noise) = noise {
+            if rms > 4.0 * noise && rms > 1e-4 {
+                reason = Reason::PoorFit;
+            }
+        }
+        if reason == Reason::Ok && !sig_d.is_finite() {
+            reason = Reason::NoFringe;
+        }
+        if reason == Reason::Ok
+            && theta_known.is_none()
+            && sig_th.to_degrees() > ANGLE_SIGMA_LIMIT_DEG
+        {
+            reason = Reason::AngleNotIdentifiable;
+        }
+        let est = PixelEstimate {
+            thickness_nm: best.d,
+            n_film: prep.model.n2_mid(),
+            theta_deg: best.theta.to_degrees(),
+            sigma_thickness_nm: sig_d,
+            sigma_theta_deg: sig_th.to_degrees(),
+            residual_rms: rms,
+            reason,
+        };
+        if est.is_valid() {
+            (est, best.sse)
+        } else {
+            (PixelEstimate::invalid(reason), best.sse)
+        }
+    }
+
+    /// The closed-form path: fringe extrema located between bands (a
+    /// least-squares parabola in wavenumber through five samples), the order
+    /// from their spacing and the interference lattice, the angle from the
+    /// extrema levels, the thickness from Eq. 14. `None` when fewer than two
+    /// consistent extrema are in range (the caller then searches).
+    fn extrema_estimate(
+        &self,
+        prep: &Prepared,
+        theta_known: Option<f64>,
+        scratch: &Scratch,
+    ) -> Option<PixelEstimate> {
+        let nb = self.sorted.len();
+        let y = |i: usize| scratch.spectrum[self.sorted[i].0];
+        let x = |i: usize| self.sorted[i].2;
+        // Extrema of the [1 2 1]-smoothed spectrum, alternating in type.
+        const MAX_EXT: usize = 16;
+        let mut ext = [(0.0f64, 0.0f64, 0i8); MAX_EXT]; // (wavenumber, value, +1 max / −1 min)
+        let mut n_ext = 0usize;
+        let sm = |i: usize| 0.25 * y(i - 1) + 0.5 * y(i) + 0.25 * y(i + 1);
+        let mut i = 2;
+        while i + 2 < nb && n_ext < MAX_EXT {
+            let (a, b, c) = (sm(i - 1), sm(i), sm(i + 1));
+            let kind: i8 = if b > a && b >= c {
+                1
+            } else if b < a && b <= c {
+                -1
+            } else {
+                0
+            };
+            if kind != 0 {
+                // Least-squares parabola through five raw samples.
+                let x0 = x(i);
+                let (mut s0, mut s1, mut s2, mut s3, mut s4, mut t0, mut t1, mut t2) =
+                    (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+                for j in i - 2..=i + 2 {
+                    let u = (x(j) - x0) * 1e4;
+                    let v = y(j);
+                    let u2 = u * u;
+                    s0 += 1.0;
+                    s1 += u;
+                    s2 += u2;
+                    s3 += u2 * u;
+                    s4 += u2 * u2;
+                    t0 += v;
+                    t1 += v * u;
+                    t2 += v * u2;
+                }
+                if let Some([qa, qb, qc]) = solve3([[s4, s3, s2], [s3, s2, s1], [s2, s1, s0]], [t2, t1, t0]) {
+                    if qa * f64::from(kind) < 0.0 {
+                        let u = -qb / (2.0 * qa);
+                        let span = (x(i + 2) - x(i - 2)).abs() * 1e4;
+                        if u.abs() <= span {
+                            let pos = x0 + u * 1e-4;
+                            let val = qc - qb * qb / (4.0 * qa);
+                            if n_ext > 0 && ext[n_ext - 1].2 == kind {
+                                // Two of a kind in a row: noise; keep the more extreme.
+                                if (val - ext[n_ext - 1].1) * f64::from(kind) > 0.0 {
+                                    ext[n_ext - 1] = (pos, val, kind);
+                                }
+                            } else {
+                                ext[n_ext] = (pos, val, kind);
+                                n_ext += 1;
+                            }
+                        }
+                    }
+                }
+                i += 2;
+            } else {
+                i += 1;
+            }
+        }
+        if n_ext < 2 {
+            return None;
+        }
+        let ext = &ext[..n_ext];
+        // Adjacent extrema are a quarter wave apart in phase: Δσ = 1/(4g).
+        let span = (ext[n_ext - 1].0 - ext[0].0).abs();
+        if span <= 0.0 {
+            return None;
+        }
+        let g0 = (n_ext - 1) as f64 / (4.0 * span);
+        // Lattice: at a half-wave point 2gσ = m, at a quarter-wave point
+        // 2gσ = m + ½. Which kind is the half-wave point follows the sign.
+        let mut g_sum = 0.0;
+        for e in ext {
+            let half_wave = f64::from(e.2) * prep.sign > 0.0;
+            let off = if half_wave { 0.0 } else { 0.5 };
+            let m = (2.0 * g0 * e.0 - off).round().max(0.0);
+            g_sum += (m + off) / (2.0 * e.0);
+        }
+        let g = g_sum / n_ext as f64;
+        // Adjacent extrema must agree on the order they imply.
+        if ((g - g0) / g0).abs() > 0.25 {
+            return None;
+        }
+        let theta = match theta_known {
+            Some(t) => t,
+            None => {
+                let (mut hw, mut qw, mut nh, mut nq) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+                for e in ext {
+                    if f64::from(e.2) * prep.sign > 0.0 {
+                        hw += e.1;
+                        nh += 1.0;
+                    } else {
+                        qw += e.1;
+                        nq += 1.0;
+                    }
+                }
+                angle_start(
+                    &prep.table,
+                    (nh > 0.0).then(|| hw / nh),
+                    (nq > 0.0).then(|| qw / nq),
+                )
+            }
+        };
+        let q2 = prep.model.q2_mid(theta);
+        let d = g / q2;
+        if !(d.is_finite() && d >= 0.0 && d <= self.d_max) {
+            return None;
+        }
+        // σ from the spread of the per-extremum lattice values.
+        let mut var = 0.0;
+        for e in ext {
+            let half_wave = f64::from(e.2) * prep.sign > 0.0;
+            let off = if half_wave { 0.0 } else { 0.5 };
+            let m = (2.0 * g * e.0 - off).round();
+            let gi = (m + off) / (2.0 * e.0);
+            var += (gi - g) * (gi - g);
+        }
+        let sigma_g = (var / (n_ext as f64 - 1.0).max(1.0)).sqrt().max(0.5);
+        Some(PixelEstimate {
+            thickness_nm: d,
+            n_film: prep.model.n2_mid(),
+            theta_deg: theta.to_degrees(),
+            sigma_thickness_nm: sigma_g / q2,
+            sigma_theta_deg: if theta_known.is_some() { 0.0 } else { f64::NAN },
+            residual_rms: f64::NAN,
+            reason: Reason::Ok,
+        })
+    }
+
+    /// Candidate optical thicknesses: local minima of the projection
+    /// residual with the allowed fringe sign, best first.
+    fn fringe_search(
+        &self,
+        scratch: &Scratch,
+        sign: f64,
+        complete: bool,
+        out: &mut [Candidate; MAX_CANDIDATES],
+    ) -> usize {
+        let fb = &self.basis;
+        let nb = fb.nb;
+        let y = &scratch.spectrum;
+        let wgt = &scratch.weight;
+        let n_ok: f64 = wgt.iter().sum();
+        let s_r: f64 = y.iter().sum();
+        let s_rr: f64 = y.iter().map(|v| v * v).sum();
+        let yf: [f32; MAX_BANDS] = {
+            let mut a = [0f32; MAX_BANDS];
+            for (d, s) in a.iter_mut().zip(y) {
+                *d = *s as f32;
+            }
+            a
+        };
+        let yf = &yf[..nb];
+        let mut prev2 = f64::INFINITY;
+        let mut prev = f64::INFINITY;
+        let mut prev_c = Candidate::default();
+        let mut n = 0usize;
+        let push = |c: Candidate, out: &mut [Candidate; MAX_CANDIDATES], n: &mut usize| {
+            // Keep the best MAX_CANDIDATES by residual.
+            if *n < MAX_CANDIDATES {
+                out[*n] = c;
+                *n += 1;
+            } else if let Some(worst) = out
+                .iter_mut()
+                .max_by(|a, b| a.sse.total_cmp(&b.sse))
+                .filter(|w| w.sse > c.sse)
+            {
+                *worst = c;
+            }
+        };
+        for j in 0..fb.g.len() {
+            let basis = &fb.basis[j * nb..(j + 1) * nb];
+            let s_rc = f64::from(dot(yf, basis));
+            let [a, b, c] = if complete {
+                fb.minv[j]
+            } else {
+                let (mut s1, mut s2) = (0.0, 0.0);
+                for k in 0..nb {
+                    let cv = f64::from(basis[k]) * wgt[k];
+                    s1 += cv;
+                    s2 += cv * f64::from(basis[k]);
+                }
+                let det = n_ok * s2 - s1 * s1;
+                if det > 0.02 * n_ok * n_ok {
+                    [s2 / det, -s1 / det, n_ok / det]
+                } else {
+                    [f64::NAN; 3]
+                }
+            };
+            let (cur, cand) = if a.is_nan() {
+                (f64::INFINITY, Candidate::default())
+            } else {
+                let amp_a = a * s_r + b * s_rc;
+                let amp_b = b * s_r + c * s_rc;
+                let e = s_rr - (amp_a * s_r + amp_b * s_rc);
+                if amp_b * sign < 0.0 {
+                    (f64::INFINITY, Candidate::default())
+                } else {
+                    (
+                        e,
+                        Candidate {
+                            g: fb.g[j],
+                            a: amp_a,
+                            b: amp_b,
+                            sse: e,
+                        },
+                    )
+                }
+            };
+            if prev.is_finite() && prev <= prev2 && prev < cur {
+                push(prev_c, out, &mut n);
+            }
+            prev2 = prev;
+            prev = cur;
+            prev_c = cand;
+        }
+        if prev.is_finite() && prev <= prev2 {
+            push(prev_c, out, &mut n);
+        }
+        out[..n].sort_by(|a, b| a.sse.total_cmp(&b.sse));
+        n
+    }
+
+    /// Levenberg–Marquardt on thickness (and angle when `free_theta`).
+    fn refine(
+        &self,
+        prep: &Prepared,
+        d0: f64,
+        theta0: f64,
+        free_theta: bool,
+        iters: usize,
+        s: &mut Scratch,
+    ) -> Fit {
+        let model = &prep.model;
+        let (lo, hi) = self.theta_range;
+        let eval = |d: f64, th: f64, out: &mut ModelOut| {
+            model.eval(d, th, out, true);
+        };
+        let (mut d, mut th) = (d0.clamp(0.0, self.d_max), theta0);
+        eval(d, th, &mut s.cur);
+        let mut cur_sse = sse(&s.spectrum, &s.weight, &s.cur.r);
+        let mut mu = 1e-4;
+        for _ in 0..iters {
+            let (mut a, mut b, mut c, mut gd, mut gt) = (0.0, 0.0, 0.0, 0.0, 0.0);
+            for k in 0..s.spectrum.len() {
+                let w = s.weight[k];
+                let e = s.spectrum[k] - s.cur.r[k];
+                let jd = s.cur.dr_dd[k];
+                let jt = if free_theta { s.cur.dr_dth[k] } else { 0.0 };
+                a += w * jd * jd;
+                b += w * jd * jt;
+                c += w * jt * jt;
+                gd += w * jd * e;
+                gt += w * jt * e;
+            }
+            let mut accepted = false;
+            for _ in 0..6 {
+                let (sd, st) = if free_theta {
+                    let aa = a * (1.0 + mu) + 1e-12;
+                    let cc = c * (1.0 + mu) + 1e-12;
+                    let det = aa * cc - b * b;
+                    if det <= 0.0 {
+                        (gd / aa, 0.0)
+                    } else {
+                        ((cc * gd - b * gt) / det, (aa * gt - b * gd) / det)
+                    }
+                } else {
+                    (gd / (a * (1.0 + mu) + 1e-12), 0.0)
+                };
+                // Never jump more than a quarter fringe in one step.
+                let max_dd = 0.25 * 400.0 / (2.0 * model.n2_mid());
+                let nd = (d + sd.clamp(-max_dd, max_dd)).clamp(0.0, self.d_max);
+                let nt = (th + st.clamp(-0.1, 0.1)).clamp(lo, hi);
+                eval(nd, nt, &mut s.trial);
+                let new_sse = sse(&s.spectrum, &s.weight, &s.trial.r);
+                if new_sse <= cur_sse {
+                    let small = (nd - d).abs() < 1e-4 && (nt - th).abs() < 1e-7;
+                    d = nd;
+                    th = nt;
+                    cur_sse = new_sse;
+                    std::mem::swap(&mut s.cur, &mut s.trial);
+                    mu = (mu * 0.3).max(1e-9);
+                    accepted = !small;
+                    break;
+                }
+                mu = (mu * 10.0).max(1e-3);
+            }
+            if !accepted {
+                break;
+            }
+        }
+        let (mut a, mut b, mut c) = (0.0, 0.0, 0.0);
+        for k in 0..s.spectrum.len() {
+            let w = s.weight[k];
+            let jd = s.cur.dr_dd[k];
+            let jt = if free_theta { s.cur.dr_dth[k] } else { 0.0 };
+            a += w * jd * jd;
+            b += w * jd * jt;
+            c += w * jt * jt;
+        }
+        Fit {
+            d,
+            theta: th,
+            sse: cur_sse,
+            jtj: [a, b, c],
+        }
+    }
+}
+
+/// The angle whose model envelopes best match the fitted half-wave and
+/// quarter-wave levels, refined by a parabola through the best table entry.
+fn angle_start(table: &[(f64, f64, f64)], half: Option<f64>, quarter: Option<f64>) -> f64 {
+    let cost = |e: &(f64, f64, f64)| {
+        half.map_or(0.0, |h| (e.1 - h).powi(2)) + quarter.map_or(0.0, |q| (e.2 - q).powi(2))
+    };
+    let Some((i, _)) = table
+        .iter()
+        .enumerate()
+        .filter(|(_, e)| e.1.is_finite() && e.2.is_finite())
+        .min_by(|a, b| cost(a.1).total_cmp(&cost(b.1)))
+    else {
+        return 0.0;
+    };
+    if i == 0 || i + 1 >= table.len() {
+        return table[i].0;
+    }
+    let (c0, c1, c2) = (cost(&table[i - 1]), cost(&table[i]), cost(&table[i + 1]));
+    let den = c0 - 2.0 * c1 + c2;
+    let step = table[i + 1].0 - table[i].0;
+    if den > 0.0 {
+        table[i].0 + 0.5 * step * (c0 - c2) / den
+    } else {
+        table[i].0
+    }
+}
+
+#[inline]
+fn sse(y: &[f64], w: &[f64], r: &[f64]) -> f64 {
+    y.iter()
+        .zip(w)
+        .zip(r)
+        .map(|((y, w), r)| w * (y - r) * (y - r))
+        .sum()
+}
+
+/// f32 dot product with independent accumulators so it vectorises.
+#[inline]
+fn dot(a: &[f32], b: &[f32]) -> f32 {
+    let mut acc = [0f32; 8];
+    let ca = a.chunks_exact(8);
+    let cb = b.chunks_exact(8);
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for i in 0..8 {
+            acc[i] += x[i] * y[i];
+        }
+    }
+    let mut s: f32 = acc.iter().sum();
+    for (x, y) in ra.iter().zip(rb) {
+        s += x * y;
+    }
+    s
+}
+
+/// Solve a 3×3 linear system by Cramer's rule; `None` if singular.
+fn solve3(m: [[f64; 3]; 3], v: [f64; 3]) -> Option<[f64; 3]> {
+    let det3 = |m: [[f64; 3]; 3]| {
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+    };
+    let d = det3(m);
+    if d.abs() < 1e-300 || !d.is_finite() {
+        return None;
+    }
+    let mut out = [0.0; 3];
+    for (i, o) in out.iter_mut().enumerate() {
+        let mut mi = m;
+        for r in 0..3 {
+            mi[r][i] = v[r];
+        }
+        *o = det3(mi) / d;
+    }
+    Some(out)
 }

@@ -1,0 +1,114 @@
+//! Speed and accuracy of every mode on the paper's simulated cylinder
+//! (140 × 14 pixels, 31 bands, σ = 0.001), with the angle unknown and known.
+//! Prints one line per case and the machine it ran on. Not a test: it
+//! asserts nothing.
+//!
+//! `cargo bench --bench paper_scene` (add `-- --repeat N` to tile the scene
+//! N×N times for steadier speed numbers).
+
+use irid::estimate::{Mode, Solver};
+use irid::scene::{AngleKnowledge, Scene};
+use irid::synth::{compare, scene_bands, Renderer};
+use std::time::Instant;
+
+fn machine() -> String {
+    let cpu = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("model name"))
+                .map(|l| l.split(':').nth(1).unwrap_or("").trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown CPU".into());
+    format!("{cpu}, {} threads", rayon::current_num_threads())
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let repeat: usize = args
+        .iter()
+        .position(|a| a == "--repeat")
+        .and_then(|i| args.get(i + 1))
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(1);
+    println!("machine: {}", machine());
+    let scene = Scene::paper_cylinder();
+    let bands = scene_bands(&scene).unwrap();
+    let renderer = Renderer::new(&scene).unwrap();
+    let truth = renderer.truth_maps(&bands);
+    let mut cube = renderer.render_cube(&bands).unwrap();
+    let mut truth_t = truth.clone();
+    if repeat > 1 {
+        let (w, h) = (cube.width * repeat, cube.height * repeat);
+        let mut big = irid::estimate::Cube::zeros(w, h, bands.clone());
+        for b in 0..bands.len() {
+            for y in 0..h {
+                for x in 0..w {
+                    let v = cube.plane(b)[(y % cube.height) * cube.width + x % cube.width];
+                    big.plane_mut(b)[y * w + x] = v;
+                }
+            }
+        }
+        truth_t.thickness_nm = (0..w * h)
+            .map(|i| truth.thickness_nm[(i / w % truth.height) * truth.width + i % w % truth.width])
+            .collect();
+        truth_t.theta_deg = (0..w * h)
+            .map(|i| truth.theta_deg[(i / w % truth.height) * truth.width + i % w % truth.width])
+            .collect();
+        truth_t.width = w;
+        truth_t.height = h;
+        cube = big;
+    }
+    println!(
+        "scene: paper cylinder {}x{} px, {} bands, sigma {}",
+        cube.width,
+        cube.height,
+        bands.len(),
+        renderer.noise().0
+    );
+    for angle_known in [false, true] {
+        let mut sc = scene.clone();
+        if angle_known {
+            sc.angle = AngleKnowledge::Map {
+                width: truth_t.width,
+                height: truth_t.height,
+                deg: truth_t.theta_deg.clone(),
+            };
+        }
+        for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
+            if let Some(i) = args.iter().position(|a| a == "--mode") {
+                if args.get(i + 1).map(String::as_str) != Some(mode.name()) {
+                    continue;
+                }
+            }
+            let mut solver = Solver::new(&sc, &bands, mode).unwrap();
+            let t0 = Instant::now();
+            let idx = solver.estimate_film_index(&cube).unwrap();
+            let t_index = t0.elapsed().as_secs_f64();
+            let t1 = Instant::now();
+            irid::estimate::model::EVALS.store(0, std::sync::atomic::Ordering::Relaxed);
+            let maps = solver.fit_cube(&cube).unwrap();
+            println!("evals/px {}", irid::estimate::model::EVALS.load(std::sync::atomic::Ordering::Relaxed) as f64 / (cube.width * cube.height) as f64);
+            let t_fit = t1.elapsed().as_secs_f64();
+            let acc = compare(&maps, &truth_t);
+            println!(
+                "{:9} angle {:7} n2 {:.5}±{:.5} (err {:+.5}) index {:.2}s | {:>9.0} px/s | valid {:5.1}% MAE {:.3} nm p99 {:.3} max {:.2} | theta MAE(>=20) {:.3} max(<20,unflagged) {:.2} | |e|<=2σ {:.1}%  {}",
+                mode.name(),
+                if angle_known { "known" } else { "unknown" },
+                idx.n,
+                idx.sigma,
+                idx.n - truth.n_film,
+                t_index,
+                (cube.width * cube.height) as f64 / t_fit,
+                100.0 * acc.valid_fraction,
+                acc.thickness_mae_nm,
+                acc.thickness_p99_nm,
+                acc.thickness_max_nm,
+                acc.theta_mae_ge20_deg,
+                acc.theta_max_lt20_unflagged_deg,
+                100.0 * acc.coverage_2sigma,
+                idx.note
+            );
+        }
+    }
+}

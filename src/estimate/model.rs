@@ -1,0 +1,495 @@
+//! The forward model the estimators fit: reflectance of one film at every
+//! band for a thickness and an angle, with its thickness derivative.
+//!
+//! Two paths share one interface. For lossless media below every critical
+//! angle the Fresnel coefficients are real and thickness enters only through
+//! `cos Δ` (the paper's "cost structure"): coefficients are computed once per
+//! angle (once per band only if a medium disperses) and each band then costs
+//! one `sin_cos`. Anything else — an absorbing film or substrate, total
+//! internal reflection — takes the general complex Airy form.
+//!
+//! A band is a set of nodes (wavelength, weight): one node for a point
+//! sample, several when the passband has to be integrated. The model value
+//! of a band is the weighted sum over its nodes.
+
+use super::fastmath::{sin_cos, sin_cos_bounded};
+use crate::optics::airy;
+use crate::optics::band::Band;
+use crate::optics::dispersion::Dispersion;
+use crate::optics::{Complex64, Media, Polarization};
+use std::f64::consts::PI;
+
+/// Angle step of the finite differences of the Fresnel coefficients, rad.
+const THETA_STEP: f64 = 1e-6;
+
+/// Coefficients of both polarisations at an angle and a step beyond it.
+#[derive(Clone, Copy, Debug)]
+struct CoeffSet {
+    cs: Coeffs,
+    cp: Coeffs,
+    cs_h: Coeffs,
+    cp_h: Coeffs,
+    q2: f64,
+    dq2: f64,
+}
+
+pub static EVALS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+/// The polarisation mix of the real path, with each coefficient's change
+/// per radian of incidence angle.
+#[derive(Clone, Copy, Debug)]
+struct Pol {
+    ws: f64,
+    wp: f64,
+    s: Coeffs,
+    p: Coeffs,
+    ds: Coeffs,
+    dp: Coeffs,
+}
+
+impl Pol {
+    fn new(ws: f64, k: &CoeffSet) -> Pol {
+        let slope = |a: Coeffs, b: Coeffs| Coeffs {
+            a: (b.a - a.a) / THETA_STEP,
+            b: (b.b - a.b) / THETA_STEP,
+            c: (b.c - a.c) / THETA_STEP,
+        };
+        Pol {
+            ws,
+            wp: 1.0 - ws,
+            s: k.cs,
+            p: k.cp,
+            ds: slope(k.cs, k.cs_h),
+            dp: slope(k.cp, k.cp_h),
+        }
+    }
+
+    #[inline(always)]
+    fn value(&self, x: f64) -> f64 {
+        let one = |c: Coeffs| (c.a + c.b * x) / (c.c + c.b * x);
+        if self.wp == 0.0 {
+            one(self.s)
+        } else if self.ws == 0.0 {
+            one(self.p)
+        } else {
+            self.ws * one(self.s) + self.wp * one(self.p)
+        }
+    }
+
+    /// R, dR/dx at fixed coefficients, and dR/dθ through the coefficients.
+    #[inline(always)]
+    fn value_slopes(&self, x: f64) -> (f64, f64, f64) {
+        let one = |c: Coeffs, dc: Coeffs| {
+            let inv = 1.0 / (c.c + c.b * x);
+            let r = (c.a + c.b * x) * inv;
+            let dx = c.b * (c.c - c.a) * inv * inv;
+            let dth = (dc.a + x * dc.b - r * (dc.c + x * dc.b)) * inv;
+            (r, dx, dth)
+        };
+        if self.wp == 0.0 {
+            one(self.s, self.ds)
+        } else if self.ws == 0.0 {
+            one(self.p, self.dp)
+        } else {
+            let (r1, x1, t1) = one(self.s, self.ds);
+            let (r2, x2, t2) = one(self.p, self.dp);
+            (
+                self.ws * r1 + self.wp * r2,
+                self.ws * x1 + self.wp * x2,
+                self.ws * t1 + self.wp * t2,
+            )
+        }
+    }
+}
+
+/// One quadrature node of a band.
+#[derive(Clone, Copy, Debug)]
+struct Node {
+    /// Index of the band (cube plane) it contributes to.
+    band: usize,
+    /// Weight (a band's weights sum to 1).
+    weight: f64,
+    /// Wavelength, nm.
+    lambda: f64,
+    /// `4π / λ`.
+    w: f64,
+    n1: Complex64,
+    n2: Complex64,
+    n3: Complex64,
+}
+
+/// Fresnel pair of one polarisation for the real path.
+#[derive(Clone, Copy, Debug, Default)]
+struct Coeffs {
+    a: f64,
+    b: f64,
+    c: f64,
+}
+
+impl Coeffs {
+    fn new(r12: f64, r23: f64) -> Self {
+        Coeffs {
+            a: r12 * r12 + r23 * r23,
+            b: 2.0 * r12 * r23,
+            c: 1.0 + r12 * r12 * r23 * r23,
+        }
+    }
+
+    /// R and dR/d(cos Δ).
+    #[inline(always)]
+    fn eval(self, x: f64) -> (f64, f64) {
+        let den = self.c + self.b * x;
+        let inv = 1.0 / den;
+        ((self.a + self.b * x) * inv, self.b * (self.c - self.a) * inv * inv)
+    }
+}
+
+/// The forward model for one film index (known or trial) and one band set.
+#[derive(Clone, Debug)]
+pub struct FilmModel {
+    nodes: Vec<Node>,
+    /// `4π/λ` per band, for the uniform path.
+    w: Vec<f64>,
+    n_bands: usize,
+    /// All media lossless and real at every node.
+    real: bool,
+    /// Every node has the same indices (no dispersion).
+    uniform: bool,
+    s_weight: f64,
+    /// Film index at the middle band (real part).
+    n2_mid: f64,
+    /// Ambient index (real part), for the Snell invariant.
+    n1_mid: f64,
+}
+
+/// Per-band model values and derivatives.
+#[derive(Clone, Debug, Default)]
+pub struct ModelOut {
+    /// Reflectance per band.
+    pub r: Vec<f64>,
+    /// dR/dd per band (per nm).
+    pub dr_dd: Vec<f64>,
+    /// dR/dθ per band (per radian).
+    pub dr_dth: Vec<f64>,
+    sin: Vec<f64>,
+    cos: Vec<f64>,
+}
+
+impl ModelOut {
+    /// Buffers for `n` bands.
+    pub fn new(n: usize) -> Self {
+        ModelOut {
+            r: vec![0.0; n],
+            dr_dd: vec![0.0; n],
+            dr_dth: vec![0.0; n],
+            sin: vec![0.0; n],
+            cos: vec![0.0; n],
+        }
+    }
+}
+
+impl FilmModel {
+    /// Build the model. `integrate` selects passband integration for bands
+    /// with a width; otherwise every band is point-sampled at its centre.
+    pub fn new(
+        bands: &[Band],
+        ambient: &Dispersion,
+        film: &Dispersion,
+        substrate: &Dispersion,
+        pol: Polarization,
+        integrate: bool,
+    ) -> Result<FilmModel, (&'static str, crate::optics::dispersion::OpticsError)> {
+        let mut nodes = Vec::new();
+        for (i, band) in bands.iter().enumerate() {
+            let pts: Vec<(f64, f64)> = if integrate && band.fwhm_nm > 0.0 {
+                band.nodes().to_vec()
+            } else {
+                vec![(band.center_nm, 1.0)]
+            };
+            for (lambda, weight) in pts {
+                nodes.push(Node {
+                    band: i,
+                    weight,
+                    lambda,
+                    w: 4.0 * PI / lambda,
+                    n1: ambient.index_at(lambda).map_err(|e| ("ambient", e))?,
+                    n2: film.index_at(lambda).map_err(|e| ("film", e))?,
+                    n3: substrate.index_at(lambda).map_err(|e| ("substrate", e))?,
+                });
+            }
+        }
+        let real = nodes
+            .iter()
+            .all(|n| n.n1.im == 0.0 && n.n2.im == 0.0 && n.n3.im == 0.0);
+        let first = nodes.first().copied();
+        let uniform = first.is_some_and(|f| {
+            nodes
+                .iter()
+                .all(|n| n.n1 == f.n1 && n.n2 == f.n2 && n.n3 == f.n3)
+        });
+        let mid = bands.len() / 2;
+        let mid_node = nodes.iter().find(|n| n.band == mid).copied().or(first);
+        Ok(FilmModel {
+            w: nodes.iter().map(|n| n.w).collect(),
+            n_bands: bands.len(),
+            real,
+            uniform,
+            s_weight: pol.s_weight(),
+            n2_mid: mid_node.map_or(1.0, |n| n.n2.re),
+            n1_mid: mid_node.map_or(1.0, |n| n.n1.re),
+            nodes,
+        })
+    }
+
+    /// Number of bands.
+    pub fn n_bands(&self) -> usize {
+        self.n_bands
+    }
+
+    /// Film index at the middle band.
+    pub fn n2_mid(&self) -> f64 {
+        self.n2_mid
+    }
+
+    /// `n2 cos θ2` at the middle band: the factor between thickness and
+    /// optical thickness `g = d·n2·cos θ2`.
+    pub fn q2_mid(&self, theta: f64) -> f64 {
+        let kx = self.n1_mid * theta.sin();
+        (self.n2_mid * self.n2_mid - kx * kx).max(1e-12).sqrt()
+    }
+
+    /// Whether the fast real path applies at angle `theta`.
+    fn real_at(&self, theta: f64) -> bool {
+        if !self.real {
+            return false;
+        }
+        let s = theta.sin();
+        self.nodes.iter().all(|n| {
+            let kx = n.n1.re * s;
+            n.n2.re > kx && n.n3.re > kx
+        })
+    }
+
+    /// Model reflectance per band at thickness `d` (nm) and angle `theta`
+    /// (rad); with `with_derivative`, also dR/dd and dR/dθ.
+    pub fn eval(&self, d: f64, theta: f64, out: &mut ModelOut, with_derivative: bool) {
+        EVALS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        out.r[..self.n_bands].fill(0.0);
+        if with_derivative {
+            out.dr_dd[..self.n_bands].fill(0.0);
+            out.dr_dth[..self.n_bands].fill(0.0);
+        }
+        if self.real_at(theta) && self.real_at(theta + THETA_STEP) {
+            if self.uniform && self.nodes.len() == self.n_bands {
+                self.eval_real_uniform(d, theta, out, with_derivative);
+            } else {
+                self.eval_real(d, theta, out, with_derivative);
+            }
+        } else {
+            self.eval_complex(d, theta, out, with_derivative);
+        }
+    }
+
+    fn coeffs(&self, n: &Node, s: f64, c: f64) -> (Coeffs, Coeffs, f64) {
+        let (n1, n2, n3) = (n.n1.re, n.n2.re, n.n3.re);
+        let kx = n1 * s;
+        let q1 = n1 * c;
+        let q2 = (n2 * n2 - kx * kx).sqrt();
+        let q3 = (n3 * n3 - kx * kx).sqrt();
+        let cs = Coeffs::new((q1 - q2) / (q1 + q2), (q2 - q3) / (q2 + q3));
+        let (n1s, n2s, n3s) = (n1 * n1, n2 * n2, n3 * n3);
+        let cp = Coeffs::new(
+            (n2s * q1 - n1s * q2) / (n2s * q1 + n1s * q2),
+            (n3s * q2 - n2s * q3) / (n3s * q2 + n2s * q3),
+        );
+        (cs, cp, q2)
+    }
+
+    /// Both polarisations' coefficients at `theta` and their change over
+    /// [`THETA_STEP`], with `q2` and `dq2/dθ`.
+    #[inline]
+    fn coeffs_with_slope(&self, n: &Node, theta: f64) -> CoeffSet {
+        let (s, c) = theta.sin_cos();
+        let (sh, ch) = (theta + THETA_STEP).sin_cos();
+        let (cs, cp, q2) = self.coeffs(n, s, c);
+        let (cs_h, cp_h, q2_h) = self.coeffs(n, sh, ch);
+        CoeffSet {
+            cs,
+            cp,
+            cs_h,
+            cp_h,
+            q2,
+            dq2: (q2_h - q2) / THETA_STEP,
+        }
+    }
+
+    #[inline(always)]
+    fn node_value(&self, k: &CoeffSet, w: f64, d: f64, deriv: bool) -> (f64, f64, f64) {
+        let ws = self.s_weight;
+        let wp = 1.0 - ws;
+        let kq = w * k.q2;
+        let (sin_d, cos_d) = sin_cos(kq * d);
+        let (rs, dxs) = k.cs.eval(cos_d);
+        let (rp, dxp) = k.cp.eval(cos_d);
+        let r = ws * rs + wp * rp;
+        if !deriv {
+            return (r, 0.0, 0.0);
+        }
+        let dx = ws * dxs + wp * dxp;
+        let r_h = ws * k.cs_h.eval(cos_d).0 + wp * k.cp_h.eval(cos_d).0;
+        let dr_dd = dx * (-sin_d) * kq;
+        let dr_dth = (r_h - r) / THETA_STEP + dx * (-sin_d) * w * d * k.dq2;
+        (r, dr_dd, dr_dth)
+    }
+
+    /// The common case: lossless, non-dispersive media, one node per band.
+    /// Written as straight loops over bands (phases, then `sin_cos`, then
+    /// the rational function) so the compiler vectorises them.
+    fn eval_real_uniform(&self, d: f64, theta: f64, out: &mut ModelOut, deriv: bool) {
+        let k = self.coeffs_with_slope(&self.nodes[0], theta);
+        let nb = self.n_bands;
+        let w = &self.w[..nb];
+        let (sn, cs) = (&mut out.sin[..nb], &mut out.cos[..nb]);
+        let kd = k.q2 * d;
+        for i in 0..nb {
+            let (s, c) = sin_cos_bounded(w[i] * kd);
+            sn[i] = s;
+            cs[i] = c;
+        }
+        let ws = self.s_weight;
+        let pol = Pol::new(ws, &k);
+        let (r, dd, dth) = (&mut out.r[..nb], &mut out.dr_dd[..nb], &mut out.dr_dth[..nb]);
+        let (sn, cs) = (&out.sin[..nb], &out.cos[..nb]);
+        let (q2, dq2) = (k.q2, k.dq2);
+        if !deriv {
+            for i in 0..nb {
+                r[i] = pol.value(cs[i]);
+            }
+            return;
+        }
+        for i in 0..nb {
+            let (rv, dx, dcoef) = pol.value_slopes(cs[i]);
+            r[i] = rv;
+            let dphase = -sn[i] * w[i];
+            dd[i] = dx * dphase * q2;
+            dth[i] = dcoef + dx * dphase * d * dq2;
+        }
+    }
+
+    fn eval_real(&self, d: f64, theta: f64, out: &mut ModelOut, deriv: bool) {
+        for n in &self.nodes {
+            let k = self.coeffs_with_slope(n, theta);
+            let (rv, a, b) = self.node_value(&k, n.w, d, deriv);
+            out.r[n.band] += n.weight * rv;
+            if deriv {
+                out.dr_dd[n.band] += n.weight * a;
+                out.dr_dth[n.band] += n.weight * b;
+            }
+        }
+    }
+
+    fn eval_complex(&self, d: f64, theta: f64, out: &mut ModelOut, deriv: bool) {
+        let pol = Polarization::Mixed {
+            s_weight: self.s_weight,
+        };
+        // A thickness step small against every fringe but far above rounding.
+        let h = 1e-3;
+        for n in &self.nodes {
+            let m = Media {
+                n1: n.n1,
+                n2: n.n2,
+                n3: n.n3,
+            };
+            let r = airy::reflectance(m, d, theta, n.lambda, pol);
+            out.r[n.band] += n.weight * r;
+            if deriv {
+                let rp = airy::reflectance(m, d + h, theta, n.lambda, pol);
+                out.dr_dd[n.band] += n.weight * (rp - r) / h;
+                let rt = airy::reflectance(m, d, theta + THETA_STEP, n.lambda, pol);
+                out.dr_dth[n.band] += n.weight * (rt - r) / THETA_STEP;
+            }
+        }
+    }
+
+    /// Reflectance at the half-wave (`cos Δ = 1`) and quarter-wave
+    /// (`cos Δ = −1`) points at the middle band: the two envelopes the
+    /// fringes swing between.
+    pub fn envelopes(&self, theta: f64) -> (f64, f64) {
+        let mid = self.n_bands / 2;
+        let Some(n) = self.nodes.iter().find(|n| n.band == mid) else {
+            return (f64::NAN, f64::NAN);
+        };
+        if self.real_at(theta) {
+            let (s, c) = theta.sin_cos();
+            let (cs, cp, _) = self.coeffs(n, s, c);
+            let ws = self.s_weight;
+            let hi = ws * cs.eval(1.0).0 + (1.0 - ws) * cp.eval(1.0).0;
+            let lo = ws * cs.eval(-1.0).0 + (1.0 - ws) * cp.eval(-1.0).0;
+            (hi, lo)
+        } else {
+            let m = Media {
+                n1: n.n1,
+                n2: n.n2,
+                n3: n.n3,
+            };
+            let pol = Polarization::Mixed {
+                s_weight: self.s_weight,
+            };
+            let q2 = self.q2_mid(theta);
+            let half = n.lambda / (2.0 * q2);
+            (
+                airy::reflectance(m, half, theta, n.lambda, pol),
+                airy::reflectance(m, half / 2.0, theta, n.lambda, pol),
+            )
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn bands() -> Vec<Band> {
+        (0..31)
+            .map(|i| Band {
+                center_nm: 400.0 + 10.0 * i as f64,
+                fwhm_nm: 0.0,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn real_path_matches_complex_airy_and_derivative_matches_difference() {
+        for pol in [Polarization::S, Polarization::P, Polarization::Unpolarized] {
+            let m = FilmModel::new(
+                &bands(),
+                &Dispersion::constant(1.0),
+                &Dispersion::constant(1.37),
+                &Dispersion::constant(1.6),
+                pol,
+                false,
+            )
+            .unwrap();
+            let mut out = ModelOut::new(31);
+            let mut out2 = ModelOut::new(31);
+            let (d, th) = (487.0, 0.5);
+            m.eval(d, th, &mut out, true);
+            m.eval_complex(d, th, &mut out2, false);
+            for k in 0..31 {
+                assert!((out.r[k] - out2.r[k]).abs() < 1e-13);
+            }
+            m.eval(d + 1e-4, th, &mut out2, false);
+            for k in 0..31 {
+                let fd = (out2.r[k] - out.r[k]) / 1e-4;
+                assert!((fd - out.dr_dd[k]).abs() < 1e-6, "{fd} {}", out.dr_dd[k]);
+            }
+            // Central difference in θ: error O(h²) ~ 1e-8 · R''' .
+            m.eval(d, th + 1e-4, &mut out2, false);
+            let mut lo = ModelOut::new(31);
+            m.eval(d, th - 1e-4, &mut lo, false);
+            for k in 0..31 {
+                let fd = (out2.r[k] - lo.r[k]) / 2e-4;
+                assert!((fd - out.dr_dth[k]).abs() < 1e-5, "{fd} {}", out.dr_dth[k]);
+            }
+        }
+    }
+}
