@@ -88,7 +88,11 @@ fn main() {
             let t1 = Instant::now();
             irid::estimate::model::EVALS.store(0, std::sync::atomic::Ordering::Relaxed);
             let maps = solver.fit_cube(&cube).unwrap();
-            println!("evals/px {}", irid::estimate::model::EVALS.load(std::sync::atomic::Ordering::Relaxed) as f64 / (cube.width * cube.height) as f64);
+            println!(
+                "evals/px {}",
+                irid::estimate::model::EVALS.load(std::sync::atomic::Ordering::Relaxed) as f64
+                    / (cube.width * cube.height) as f64
+            );
             let t_fit = t1.elapsed().as_secs_f64();
             let acc = compare(&maps, &truth_t);
             println!(

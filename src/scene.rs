@@ -120,7 +120,9 @@ impl MediumSpec {
                     ));
                 }
                 let lower = name.to_ascii_lowercase();
-                let is_path = lower.ends_with(".yml") || lower.ends_with(".yaml") || name.contains(['/', '\\']);
+                let is_path = lower.ends_with(".yml")
+                    || lower.ends_with(".yaml")
+                    || name.contains(['/', '\\']);
                 let spec = if is_path && Path::new(name).is_relative() {
                     base.join(name).display().to_string()
                 } else {

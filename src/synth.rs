@@ -274,7 +274,11 @@ pub fn compare(maps: &crate::estimate::ParamMaps, truth: &TruthMaps) -> Accuracy
         thickness_mae_nm: errs.iter().sum::<f64>() / valid.max(1) as f64,
         thickness_p99_nm: pct(0.99),
         thickness_max_nm: errs.last().copied().unwrap_or(f64::NAN),
-        theta_mae_ge20_deg: if th_n > 0 { th_sum / th_n as f64 } else { f64::NAN },
+        theta_mae_ge20_deg: if th_n > 0 {
+            th_sum / th_n as f64
+        } else {
+            f64::NAN
+        },
         theta_max_lt20_unflagged_deg: th_max_lt20,
         coverage_2sigma: covered as f64 / valid.max(1) as f64,
     }

@@ -10,7 +10,6 @@ use crate::optics::material::MaterialLibrary;
 use crate::optics::{airy, Complex64, Media, Polarization};
 use anyhow::Context;
 use std::io::Write;
-use std::path::Path;
 
 /// Arguments of `irid model`.
 #[derive(Debug, clap::Args)]
@@ -72,7 +71,7 @@ fn medium(
 ) -> anyhow::Result<Dispersion> {
     match (n, material) {
         (_, Some(m)) => MaterialLibrary::builtin()
-            .resolve_relative(m, Path::new("."))
+            .resolve(m)
             .map(|m| m.dispersion)
             .with_context(|| format!("{name} material {m:?}")),
         (Some(n), None) => {

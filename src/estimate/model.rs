@@ -139,7 +139,10 @@ impl Coeffs {
     fn eval(self, x: f64) -> (f64, f64) {
         let den = self.c + self.b * x;
         let inv = 1.0 / den;
-        ((self.a + self.b * x) * inv, self.b * (self.c - self.a) * inv * inv)
+        (
+            (self.a + self.b * x) * inv,
+            self.b * (self.c - self.a) * inv * inv,
+        )
     }
 }
 
@@ -357,7 +360,11 @@ impl FilmModel {
         }
         let ws = self.s_weight;
         let pol = Pol::new(ws, &k);
-        let (r, dd, dth) = (&mut out.r[..nb], &mut out.dr_dd[..nb], &mut out.dr_dth[..nb]);
+        let (r, dd, dth) = (
+            &mut out.r[..nb],
+            &mut out.dr_dd[..nb],
+            &mut out.dr_dth[..nb],
+        );
         let (sn, cs) = (&out.sin[..nb], &out.cos[..nb]);
         let (q2, dq2) = (k.q2, k.dq2);
         if !deriv {

@@ -131,12 +131,7 @@ impl FringeBasis {
             }
             g.push(gj);
         }
-        FringeBasis {
-            g,
-            basis,
-            minv,
-            nb,
-        }
+        FringeBasis { g, basis, minv, nb }
     }
 }
 
@@ -432,7 +427,9 @@ impl Solver {
             )));
         }
         if cube.data.len() != cube.plane_len() * cube.bands.len() {
-            return Err(EstimateError::Shape("cube data length does not match its size".into()));
+            return Err(EstimateError::Shape(
+                "cube data length does not match its size".into(),
+            ));
         }
         if let AngleKnowledge::Map { width, height, .. } = self.scene.angle {
             if (width, height) != (cube.width, cube.height) {
@@ -464,7 +461,9 @@ impl Solver {
                 est.noise_sigma = (sse / (n_obs - n_par).max(1.0)).sqrt();
                 est
             }
-            FilmKnowledge::Unknown { search, prior } => self.search_index(&sample, search, prior)?,
+            FilmKnowledge::Unknown { search, prior } => {
+                self.search_index(&sample, search, prior)?
+            }
         };
         self.set_film_index(est.clone())?;
         Ok(est)
@@ -481,7 +480,10 @@ impl Solver {
         while i < total {
             let (x, y) = (i % cube.width, i / cube.width);
             cube.spectrum_into(x, y, &mut spec);
-            if spec.iter().all(|v| v.is_finite() && (-0.5..=1.5).contains(v)) {
+            if spec
+                .iter()
+                .all(|v| v.is_finite() && (-0.5..=1.5).contains(v))
+            {
                 out.push((spec.clone(), self.scene.angle.known_at(x, y)));
             }
             i += stride;
@@ -503,13 +505,14 @@ impl Solver {
                     (0.0, 0.0, 0.0)
                 }
             })
-            .reduce(
-                || (0.0, 0.0, 0.0),
-                |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2),
-            )
+            .reduce(|| (0.0, 0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2))
     }
 
-    fn profile_at(&self, n: f64, sample: &[(Vec<f64>, Option<f64>)]) -> Result<(f64, f64, f64), EstimateError> {
+    fn profile_at(
+        &self,
+        n: f64,
+        sample: &[(Vec<f64>, Option<f64>)],
+    ) -> Result<(f64, f64, f64), EstimateError> {
         let prep = self.prepare(&Dispersion::constant(n))?;
         Ok(self.sample_sse(&prep, sample))
     }
@@ -549,12 +552,15 @@ impl Solver {
         // Local minima of the coarse profile, best first.
         let mut minima: Vec<usize> = (0..prof.len())
             .filter(|&i| {
-                (i == 0 || prof[i] <= prof[i - 1]) && (i + 1 == prof.len() || prof[i] <= prof[i + 1])
+                (i == 0 || prof[i] <= prof[i - 1])
+                    && (i + 1 == prof.len() || prof[i] <= prof[i + 1])
             })
             .collect();
         minima.sort_by(|&a, &b| prof[a].total_cmp(&prof[b]));
         if minima.is_empty() || !prof[minima[0]].is_finite() {
-            return Err(EstimateError::FilmIndex("the index profile has no minimum".into()));
+            return Err(EstimateError::FilmIndex(
+                "the index profile has no minimum".into(),
+            ));
         }
         // Refine the best two well-separated minima with a local quadratic.
         let mut refined: Vec<(f64, f64, f64)> = Vec::new(); // (n, sse, curvature)
@@ -773,7 +779,8 @@ impl Solver {
         let q2 = prep.model.q2_mid(theta0);
         // Starts: the fringe candidates, plus a bare substrate and a thin
         // film below the first fringe.
-        let mut starts: [(f64, f64); MAX_CANDIDATES + 2] = [(0.0, f64::INFINITY); MAX_CANDIDATES + 2];
+        let mut starts: [(f64, f64); MAX_CANDIDATES + 2] =
+            [(0.0, f64::INFINITY); MAX_CANDIDATES + 2];
         let mut n_starts = 0;
         for c in &cands[..n_cands] {
             starts[n_starts] = (c.g / q2, 0.0);
@@ -930,7 +937,9 @@ impl Solver {
                     t1 += v * u;
                     t2 += v * u2;
                 }
-                if let Some([qa, qb, qc]) = solve3([[s4, s3, s2], [s3, s2, s1], [s2, s1, s0]], [t2, t1, t0]) {
+                if let Some([qa, qb, qc]) =
+                    solve3([[s4, s3, s2], [s3, s2, s1], [s2, s1, s0]], [t2, t1, t0])
+                {
                     if qa * f64::from(kind) < 0.0 {
                         let u = -qb / (2.0 * qa);
                         let span = (x(i + 2) - x(i - 2)).abs() * 1e4;

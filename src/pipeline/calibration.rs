@@ -50,6 +50,14 @@ pub enum CalibrationError {
         /// What is wrong.
         message: String,
     },
+    /// Capturing a reference failed.
+    #[error("capturing the {reference} reference: {message}")]
+    Capture {
+        /// `dark` or `white`.
+        reference: &'static str,
+        /// What went wrong.
+        message: String,
+    },
     /// The calibration does not fit this run.
     #[error("calibration {origin} does not fit this run: {message}; capture a new one with `irid calibrate`")]
     Mismatch {
@@ -350,6 +358,52 @@ impl Calibration {
             meta,
         })
     }
+}
+
+/// Capture one reference: `frames` settled frames per band, stepping the
+/// filter through `order` with the same sequencer the run uses (so frames
+/// exposed while the filter settles are never averaged in).
+pub fn capture_reference(
+    reference: &'static str,
+    source: &mut dyn crate::device::camera::FrameSource,
+    tuner: &mut dyn super::sequencer::BandTuner,
+    bands_nm: &[f64],
+    order: &[usize],
+    frames: u32,
+    timeout: std::time::Duration,
+) -> Result<Accumulator, CalibrationError> {
+    use super::sequencer::{SeqMode, Sequencer, Verdict};
+    let err = |message: String| CalibrationError::Capture { reference, message };
+    let info = source.info();
+    let n = info.width as usize * info.height as usize;
+    let mut acc = Accumulator::new(n, bands_nm.len());
+    let mut seq = Sequencer::new(
+        SeqMode::Stepped,
+        bands_nm.to_vec(),
+        order.to_vec(),
+        Some(u64::from(frames.max(1))),
+    )
+    .map_err(|e| err(e.to_string()))?;
+    let mut frame = Frame::with_size(info.width, info.height, info.format);
+    // Bound the work: a camera that only ever delivers unusable frames
+    // ends in an error, not a hang.
+    let limit = 64 * u64::from(frames.max(1)) * bands_nm.len() as u64 + 64;
+    for _ in 0..limit {
+        if seq.finished() {
+            return Ok(acc);
+        }
+        source
+            .next_frame(&mut frame, timeout)
+            .map_err(|e| err(e.to_string()))?;
+        let valid = frame.pixels().map(|p| p.len() == n).unwrap_or(false);
+        let v = seq
+            .on_frame(&frame.meta, valid, tuner, &mut |_| {})
+            .map_err(|e| err(e.to_string()))?;
+        if let Verdict::Accept { band, .. } = v {
+            acc.add(band, &frame).map_err(err)?;
+        }
+    }
+    Err(err(format!("no usable frames after {limit} tries")))
 }
 
 fn fmt_bands(b: &[f64]) -> String {

@@ -1,8 +1,8 @@
 //! Per-sweep outputs: the map as OpenEXR (`DIR/sweep-NNNNNN.exr`, the same
 //! f32 channels as `irid fit`) and one summary line (human or JSON).
 //!
-//! The EXR writer here is a small private helper over the `exr` crate; it
-//! gives way to the io layer's writer once that lands.
+//! Maps are written by the io layer's EXR writer
+//! ([`crate::io::exr_maps::write_maps`]).
 
 use crate::estimate::ParamMaps;
 use std::path::{Path, PathBuf};
@@ -130,61 +130,11 @@ pub fn sweep_path(dir: &Path, sweep: u64) -> PathBuf {
 }
 
 /// Write `maps` as an OpenEXR file with the `irid fit` channels and
-/// header attributes (units, mode, wavelengths, film index, version).
-pub fn write_exr(
-    path: &Path,
-    maps: &ParamMaps,
-    extra: &[(&str, String)],
-) -> Result<(), OutputError> {
-    use exr::prelude::*;
-    let err = |message: String| OutputError::Write {
+/// header attributes (the io layer's writer, so `irid fit` and `irid run`
+/// maps are the same format).
+pub fn write_map(path: &Path, maps: &ParamMaps) -> Result<(), OutputError> {
+    crate::io::exr_maps::write_maps(path, maps).map_err(|e| OutputError::Write {
         path: path.to_path_buf(),
-        message,
-    };
-    let size = (maps.width, maps.height);
-    let channels: SmallVec<[AnyChannel<FlatSamples>; 4]> = maps
-        .channels()
-        .iter()
-        .map(|(name, data)| AnyChannel::new(*name, FlatSamples::F32(data.to_vec())))
-        .collect();
-    let mut attrs = LayerAttributes::named("irid");
-    let mut put = |k: &str, v: &str| {
-        if let (Some(k), Some(v)) = (Text::new_or_none(k), Text::new_or_none(v)) {
-            attrs.other.insert(k, AttributeValue::Text(v));
-        }
-    };
-    let m = &maps.meta;
-    put("irid_version", crate::VERSION);
-    put(
-        "units",
-        "thickness_nm: nm; theta_deg, sigma_theta_deg: degrees; residual_rms: reflectance",
-    );
-    put("mode", &m.mode);
-    put("polarization", &m.polarization);
-    put("wavelengths_nm", &join(&m.wavelengths_nm));
-    put("fwhm_nm", &join(&m.fwhm_nm));
-    put("n_film", &format!("{}", m.n_film));
-    put("n_film_sigma", &format!("{}", m.n_film_sigma));
-    put("n_film_estimated", &format!("{}", m.n_film_estimated));
-    put("n_film_note", &m.n_film_note);
-    for (k, v) in extra {
-        put(k, v);
-    }
-    let layer = Layer::new(
-        size,
-        attrs,
-        Encoding::SMALL_FAST_LOSSLESS,
-        AnyChannels::sort(channels),
-    );
-    Image::from_layer(layer)
-        .write()
-        .to_file(path)
-        .map_err(|e| err(e.to_string()))
-}
-
-fn join(v: &[f64]) -> String {
-    v.iter()
-        .map(|x| format!("{x}"))
-        .collect::<Vec<_>>()
-        .join(",")
+        message: e.to_string(),
+    })
 }

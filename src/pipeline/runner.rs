@@ -428,7 +428,11 @@ impl Solve {
         if self.solver.film_index().is_none() {
             let _s = tracing::info_span!("solve.index").entered();
             match self.solver.estimate_film_index(cube) {
-                Ok(est) => self.solver.set_film_index(est),
+                Ok(est) => {
+                    if let Err(e) = self.solver.set_film_index(est) {
+                        tracing::warn!(%e, "film index not usable");
+                    }
+                }
                 Err(e) => {
                     if !self.index_tried {
                         tracing::warn!(%e, "film index not estimated on this sweep; trying again on the next");

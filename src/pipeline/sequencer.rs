@@ -152,6 +152,73 @@ impl<F: FnMut(f64) -> Result<Duration, TuneError> + Send> BandTuner for Blocking
     }
 }
 
+/// Drives a real (or emulated, over a pseudo-terminal) VariSpec-protocol
+/// controller through [`crate::device::filter::FilterController`], byte for
+/// byte, and mirrors what it does into a [`FilterView`] when a synthetic
+/// camera looks through it.
+///
+/// The settled time is `now_ns` plus the settle time the controller
+/// reported, converted to device time by `time_scale` (the emulator runs
+/// its clock that many times faster than the wall): the synthetic camera's
+/// clock is device time.
+pub struct ControllerTuner<C> {
+    ctrl: C,
+    view: Option<FilterView>,
+    time_scale: f64,
+    timeout: Duration,
+    label: String,
+}
+
+impl<C: crate::device::filter::FilterController + Send> ControllerTuner<C> {
+    /// Wrap `ctrl`; `view` is the synthetic camera's, if any.
+    pub fn new(mut ctrl: C, view: Option<FilterView>, time_scale: f64, timeout: Duration) -> Self {
+        let label = match ctrl.version() {
+            Ok(v) => format!(
+                "VariSpec-protocol controller rev {} ({}-{} nm, serial {})",
+                v.revision, v.min_nm, v.max_nm, v.serial
+            ),
+            Err(e) => format!("VariSpec-protocol controller (version unknown: {e})"),
+        };
+        ControllerTuner {
+            ctrl,
+            view,
+            time_scale: if time_scale > 0.0 { time_scale } else { 1.0 },
+            timeout,
+            label,
+        }
+    }
+
+    /// The controller.
+    pub fn controller(&mut self) -> &mut C {
+        &mut self.ctrl
+    }
+}
+
+impl<C: crate::device::filter::FilterController + Send> BandTuner for ControllerTuner<C> {
+    fn tune(&mut self, nm: f64, now_ns: u64) -> Result<u64, TuneError> {
+        use crate::device::filter::FilterError;
+        let settle = self.ctrl.tune(nm, self.timeout).map_err(|e| match e {
+            FilterError::Timeout { .. } => TuneError::Timeout {
+                nm,
+                timeout: self.timeout,
+            },
+            other => TuneError::Refused {
+                nm,
+                message: other.to_string(),
+            },
+        })?;
+        let settle_ns = (settle.as_secs_f64() * self.time_scale * 1e9) as u64;
+        if let Some(v) = &self.view {
+            v.tune(nm, now_ns, settle_ns);
+        }
+        Ok(now_ns + settle_ns)
+    }
+
+    fn describe(&self) -> String {
+        self.label.clone()
+    }
+}
+
 /// How frames are paired with bands.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]

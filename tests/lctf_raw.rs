@@ -1,0 +1,54 @@
+//! The emulator speaks the raw protocol byte for byte, as a pyserial client
+//! (or micro-manager's adapter) sees it: echo, then the reply, CR-terminated;
+//! immediate commands answer with echo + one byte.
+
+use std::time::Duration;
+
+use lctf_firmware::emu::{spawn_pty, EmuConfig};
+
+fn exchange(port: &mut dyn serialport::SerialPort, send: &[u8], expect: &[u8]) {
+    port.write_all(send).unwrap();
+    let mut got = vec![0u8; expect.len()];
+    port.read_exact(&mut got).unwrap();
+    assert_eq!(
+        String::from_utf8_lossy(&got),
+        String::from_utf8_lossy(expect),
+        "after sending {:?}",
+        String::from_utf8_lossy(send)
+    );
+}
+
+#[test]
+fn raw_bytes_on_the_line() {
+    let h = spawn_pty(EmuConfig::ready()).unwrap();
+    let mut p = serialport::new(h.path().to_str().unwrap(), 9600)
+        .timeout(Duration::from_secs(2))
+        .open()
+        .unwrap();
+    let p = p.as_mut();
+    exchange(p, b"V?\r", b"V?\rV   1.00    400    720  10001\r");
+    exchange(p, b"@", b"@C");
+    exchange(p, b"!", b"!>");
+    exchange(p, b"W 550.000\r", b"W 550.000\r");
+    exchange(p, b"!", b"!<");
+    exchange(p, b"W?\r", b"W?\rW 550.00\r");
+    exchange(p, b"B1\r", b"B1\r");
+    exchange(p, b"@", b"@K");
+    exchange(p, b"W?\r", b"W?\r550.00\r");
+    exchange(p, b"V ?\r", b"V ?\r1.00 400 720 10001\r");
+    exchange(p, b"B2\r", b"B2\rb      2\r");
+    exchange(p, b"D 500,0\r", b"D 500,0\rd 500.00\r");
+    exchange(p, b"B0\r", b"B0\r");
+    exchange(p, b"W 9000\r", b"W 9000\r");
+    // 0x40 | error 0x20 | palette 0x04 | exercised 0x02 | initialised 0x01
+    exchange(p, b"@", b"@g");
+    exchange(p, b"R?\r", b"R?\rR     12\r");
+    exchange(p, b"R1\r", b"R1\r");
+    exchange(p, b"W?\r", b"W?\rW      *\r");
+    // LF is ignored, so "\r\n" line endings work too.
+    exchange(p, b"P?\r\n", b"P?\rP      0\r");
+    exchange(p, b"Y?\r", b"Y?\rY  25.00\r");
+    exchange(p, b"W 5\x1b", b"W 5\x1b");
+    exchange(p, b"\r", b"\r");
+    exchange(p, b"@", b"@G");
+}
