@@ -40,20 +40,24 @@ pub fn sin_cos(x: f64) -> (f64, f64) {
 /// Branch-free, so loops over it vectorise.
 #[inline(always)]
 pub fn sin_cos_bounded(x: f64) -> (f64, f64) {
-    // Round to nearest by the 1.5·2⁵² trick: `f64::round` is a libm call.
+    // Round to nearest by the 1.5·2⁵² trick (`f64::round` is a libm
+    // call); the low mantissa bits of `t` then hold k mod 4.
     const SHIFT: f64 = 6_755_399_441_055_744.0;
-    let k = (x * FRAC_2_PI + SHIFT) - SHIFT;
+    let t = x * FRAC_2_PI + SHIFT;
+    let k = t - SHIFT;
     let r = (x - k * PIO2_HI) - k * PIO2_LO;
     let z = r * r;
     let s = r + r * z * (S1 + z * (S2 + z * (S3 + z * (S4 + z * (S5 + z * S6)))));
     let c = 1.0 - 0.5 * z + z * z * (C1 + z * (C2 + z * (C3 + z * (C4 + z * (C5 + z * C6)))));
-    let q = (k as i64) & 3;
-    let (sin, cos) = match q {
-        0 => (s, c),
-        1 => (c, -s),
-        2 => (-s, -c),
-        _ => (-c, s),
-    };
+    // Quadrant fix-up with bit operations only (swap on odd k, sign flips
+    // by XOR), so it vectorises even without SSE4.1.
+    let q = t.to_bits();
+    let swap = 0u64.wrapping_sub(q & 1);
+    let (sb, cb) = (s.to_bits(), c.to_bits());
+    let sin_b = (cb & swap) | (sb & !swap);
+    let cos_b = (sb & swap) | (cb & !swap);
+    let sin = f64::from_bits(sin_b ^ ((q & 2) << 62));
+    let cos = f64::from_bits(cos_b ^ ((q.wrapping_add(1) & 2) << 62));
     (sin, cos)
 }
 
