@@ -520,6 +520,7 @@ pub fn capture_calibration(
             name,
             rig.source.as_mut(),
             rig.tuner.as_mut(),
+            rig.seq_mode,
             &nm,
             &rig.order,
             frames,

@@ -360,25 +360,27 @@ impl Calibration {
     }
 }
 
-/// Capture one reference: `frames` settled frames per band, stepping the
-/// filter through `order` with the same sequencer the run uses (so frames
-/// exposed while the filter settles are never averaged in).
+/// Capture one reference: `frames` settled frames per band, pairing frames
+/// with bands by the same sequencer the run uses (so frames exposed while
+/// the filter settles are never averaged in). A band lost to a triggered
+/// gap has fewer frames averaged, never a wrong one.
 pub fn capture_reference(
     reference: &'static str,
     source: &mut dyn crate::device::camera::FrameSource,
     tuner: &mut dyn super::sequencer::BandTuner,
+    mode: super::sequencer::SeqMode,
     bands_nm: &[f64],
     order: &[usize],
     frames: u32,
     timeout: std::time::Duration,
 ) -> Result<Accumulator, CalibrationError> {
-    use super::sequencer::{SeqMode, Sequencer, Verdict};
+    use super::sequencer::{Sequencer, Verdict};
     let err = |message: String| CalibrationError::Capture { reference, message };
     let info = source.info();
     let n = info.width as usize * info.height as usize;
     let mut acc = Accumulator::new(n, bands_nm.len());
     let mut seq = Sequencer::new(
-        SeqMode::Stepped,
+        mode,
         bands_nm.to_vec(),
         order.to_vec(),
         Some(u64::from(frames.max(1))),

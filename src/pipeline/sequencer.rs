@@ -72,8 +72,7 @@ pub struct EmulatedTuner {
     settle_ns: u64,
     jitter_ns: u64,
     rng: rand_chacha::ChaCha8Rng,
-    /// Answer this many commands, then time out.
-    pub answer_limit: Option<u64>,
+    answer_limit: Option<u64>,
     answered: u64,
     timeout: Duration,
 }
@@ -90,6 +89,14 @@ impl EmulatedTuner {
             answered: 0,
             timeout: Duration::from_millis(500),
         }
+    }
+}
+
+impl EmulatedTuner {
+    /// Answer `n` more commands, then never again (a controller that hung
+    /// or was unplugged): every later command times out.
+    pub fn stop_answering_after(&mut self, n: u64) {
+        self.answer_limit = Some(self.answered + n);
     }
 }
 
@@ -449,12 +456,22 @@ impl Sequencer {
     }
 
     fn triggered(&mut self, meta: &FrameMeta, missing: &mut dyn FnMut(Missing)) -> Verdict {
-        let count = meta.trigger.unwrap_or(meta.seq);
-        let slot0 = *self.slot0.get_or_insert(count);
-        let Some(slot) = count.checked_sub(slot0) else {
-            return Verdict::Discard(Discard::Stale);
-        };
         let n = self.order.len() as u64;
+        let count = meta.trigger.unwrap_or(meta.seq);
+        // A trigger count is the palette position since the controller was
+        // armed: the first sweep starts at the next palette start. Without
+        // one, the first frame seen is taken as palette entry 0.
+        let slot0 = *self.slot0.get_or_insert(match meta.trigger {
+            Some(t) => t.div_ceil(n) * n,
+            None => count,
+        });
+        let Some(slot) = count.checked_sub(slot0) else {
+            return Verdict::Discard(if self.next_slot == 0 {
+                Discard::Settling
+            } else {
+                Discard::Stale
+            });
+        };
         let pair = |slot: u64| (slot / n, self.order[(slot % n) as usize]);
         if slot < self.next_slot {
             // Late: only fills a slot given up as missing, within a sweep.
@@ -616,7 +633,7 @@ mod tests {
     #[test]
     fn a_silent_controller_is_an_error_not_a_hang() {
         let mut t = EmulatedTuner::new(FilterView::new(), Duration::ZERO, Duration::ZERO, 1);
-        t.answer_limit = Some(1);
+        t.stop_answering_after(1);
         let mut s = Sequencer::new(
             SeqMode::Stepped,
             vec![400.0, 500.0, 600.0],

@@ -26,6 +26,8 @@ pub struct FaultConfig {
     pub corrupt: f64,
     /// Seed of the schedule.
     pub seed: u64,
+    /// Deliver this many frames untouched first.
+    pub after: u64,
 }
 
 impl FaultConfig {
@@ -86,6 +88,7 @@ pub struct FaultySource<S: FrameSource> {
     pending: Option<Frame>,
     spare: Option<Frame>,
     stats: FaultStats,
+    delivered: u64,
 }
 
 impl<S: FrameSource> FaultySource<S> {
@@ -100,6 +103,7 @@ impl<S: FrameSource> FaultySource<S> {
             pending: None,
             spare: Some(spare),
             stats: FaultStats::default(),
+            delivered: 0,
         }
     }
 
@@ -114,7 +118,7 @@ impl<S: FrameSource> FaultySource<S> {
     }
 
     fn roll(&mut self, p: f64) -> bool {
-        p > 0.0 && self.rng.random::<f64>() < p
+        self.delivered > self.cfg.after && p > 0.0 && self.rng.random::<f64>() < p
     }
 }
 
@@ -139,6 +143,7 @@ impl<S: FrameSource> FrameSource for FaultySource<S> {
         }
         loop {
             self.inner.next_frame(out, timeout)?;
+            self.delivered += 1;
             if self.roll(self.cfg.drop) {
                 self.stats.dropped += 1;
                 continue;

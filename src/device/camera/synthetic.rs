@@ -176,7 +176,8 @@ pub struct SyntheticCamera {
     target: Target,
     rng: ChaCha8Rng,
     seq: u64,
-    started: Option<std::time::Instant>,
+    /// Wall time and virtual time of the first paced frame.
+    started: Option<(std::time::Instant, u64)>,
 }
 
 impl SyntheticCamera {
@@ -216,6 +217,12 @@ impl SyntheticCamera {
     /// The shared filter view this camera looks through.
     pub fn filter_view(&self) -> FilterView {
         self.filter.clone()
+    }
+
+    /// Pace frames to the wall clock (or not).
+    pub fn set_realtime(&mut self, on: bool) {
+        self.cfg.realtime = on;
+        self.started = None;
     }
 
     /// The bands the camera knows how to render.
@@ -314,8 +321,10 @@ impl FrameSource for SyntheticCamera {
         let s = &self.cfg.sensor;
         let t0 = seq * s.frame_period_ns;
         if self.cfg.realtime {
-            let start = *self.started.get_or_insert_with(std::time::Instant::now);
-            let due = start + Duration::from_nanos(t0);
+            let (start, v0) = *self
+                .started
+                .get_or_insert_with(|| (std::time::Instant::now(), t0));
+            let due = start + Duration::from_nanos(t0 - v0);
             let now = std::time::Instant::now();
             if due > now {
                 std::thread::sleep(due - now);
