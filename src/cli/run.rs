@@ -74,11 +74,13 @@ pub struct RunArgs {
     pub in_process_filter: bool,
     /// Demo: the emulated controller's clock runs this many times faster
     /// than a real unit's.
-    #[arg(long, default_value_t = 20.0)]
+    #[arg(long, default_value_t = 10.0)]
     pub time_scale: f64,
-    /// Demo: pace the synthetic camera to the wall clock.
+    /// Demo: let the synthetic camera run as fast as it can instead of at
+    /// its frame rate (sped up by --time-scale); the pipeline will then
+    /// rightly drop sweeps it cannot keep up with.
     #[arg(long)]
-    pub realtime: bool,
+    pub unpaced: bool,
     /// Demo: noise seed.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -322,10 +324,13 @@ pub fn demo_rig(args: &RunArgs) -> anyhow::Result<Rig> {
         )
     })?;
     let view = FilterView::new();
+    let big = file_pixels(&scene) > 100_000;
     let mut cfg = SyntheticConfig {
         sensor: SensorModel::default(),
         seed: args.seed,
-        realtime: args.realtime,
+        // Settled frames of large images come from a per-band cache, so
+        // the camera does not limit the line.
+        noise_cache: usize::from(big),
         ..Default::default()
     };
     let seq_mode = if args.triggered {
@@ -358,6 +363,10 @@ pub fn demo_rig(args: &RunArgs) -> anyhow::Result<Rig> {
         calibration: None,
         _emulator: emulator,
     })
+}
+
+fn file_pixels(scene: &Scene) -> usize {
+    scene.truth.as_ref().map_or(0, |t| t.width * t.height)
 }
 
 /// The VariSpec firmware emulated on a pseudo-terminal, driven by the
@@ -625,7 +634,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
                     max_age_s: (max_age_h * 3600.0) as u64,
                 },
             )?;
-            Calibrator::new(&cal)
+            Calibrator::from_calibration(cal)
         }
         None => {
             if !args.json {
@@ -636,7 +645,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
                     rig.tuner.describe()
                 );
             }
-            Calibrator::new(&capture_calibration(&mut rig, 4, 0.99)?)
+            Calibrator::from_calibration(capture_calibration(&mut rig, 4, 0.99)?)
         }
     };
     let out = if args.no_maps {

@@ -429,20 +429,28 @@ pub struct Calibrator {
 impl Calibrator {
     /// Prepare `cal`.
     pub fn new(cal: &Calibration) -> Calibrator {
+        Calibrator::from_calibration(cal.clone())
+    }
+
+    /// Prepare `cal`, reusing its planes (no second copy of a large
+    /// calibration in memory).
+    pub fn from_calibration(cal: Calibration) -> Calibrator {
         let n = cal.meta.width as usize * cal.meta.height as usize;
         let rw = cal.meta.white_reflectance as f32;
-        let scale = cal
-            .white
-            .iter()
-            .zip(&cal.dark)
-            .zip(&cal.flags)
-            .map(|((w, d), &f)| if f == 0 { rw / (w - d) } else { f32::NAN })
-            .collect();
+        let Calibration {
+            meta,
+            dark,
+            mut white,
+            flags,
+        } = cal;
+        for ((w, d), &f) in white.iter_mut().zip(&dark).zip(&flags) {
+            *w = if f == 0 { rw / (*w - d) } else { f32::NAN };
+        }
         Calibrator {
             n,
-            offset: cal.dark.clone(),
-            scale,
-            exposure_us: cal.meta.exposure_us,
+            offset: dark,
+            scale: white,
+            exposure_us: meta.exposure_us,
         }
     }
 

@@ -118,6 +118,8 @@ pub struct RunConfig {
     pub sweep_buffers: usize,
     /// How long to wait for a frame before giving up.
     pub frame_timeout: Duration,
+    /// Track per-pixel fringe extrema while bands arrive.
+    pub track_extrema: bool,
 }
 
 impl Default for RunConfig {
@@ -130,6 +132,7 @@ impl Default for RunConfig {
             frame_pool: 16,
             sweep_buffers: 2,
             frame_timeout: Duration::from_secs(2),
+            track_extrema: true,
         }
     }
 }
@@ -528,7 +531,7 @@ pub fn run(
         width: info.width,
         height: info.height,
     };
-    let tracker = Tracker::new(w, h, &setup.bands);
+    let tracker = Tracker::new(w, h, &setup.bands).track_extrema(cfg.track_extrema);
     let n_sweep_bufs = cfg.sweep_buffers.max(1);
     let mut sweep_bufs: Vec<SweepBuf> =
         (0..n_sweep_bufs).map(|_| tracker.new_sweep_buf()).collect();

@@ -132,6 +132,9 @@ pub struct Tracker {
     sorted: Vec<usize>,
     /// Position of each band in `sorted`.
     rank: Vec<usize>,
+    /// Whether to track extrema (the solver finds its own; tracking them
+    /// here is what a moving-web mode or an extrema-fed fast path needs).
+    extrema: bool,
 }
 
 impl Tracker {
@@ -149,7 +152,14 @@ impl Tracker {
             bands: bands.to_vec(),
             sorted,
             rank,
+            extrema: true,
         }
+    }
+
+    /// Turn extrema tracking on or off.
+    pub fn track_extrema(mut self, on: bool) -> Tracker {
+        self.extrema = on;
+        self
     }
 
     /// The bands, in plane order.
@@ -240,7 +250,9 @@ impl Tracker {
             buf.done += 1;
         }
         buf.state[band] = BandState::Present;
-        self.update_extrema(buf, band);
+        if self.extrema {
+            self.update_extrema(buf, band);
+        }
         Ok(buf.complete())
     }
 
@@ -281,19 +293,29 @@ impl Tracker {
                 &data[b * n..(b + 1) * n],
                 &data[c * n..(c + 1) * n],
             );
-            for i in 0..n {
-                let (y0, y1, y2) = (pa[i], pb[i], pc[i]);
-                let peak = y1 > y0 && y1 >= y2;
-                let valley = y1 < y0 && y1 <= y2;
-                if !(peak || valley) {
-                    continue;
+            // Two passes per block of 64 pixels: a branch-free, vectorisable
+            // scan for extrema into a bit mask, then the (rare) sub-band fits.
+            for base in (0..n).step_by(64) {
+                let end = (base + 64).min(n);
+                let (qa, qb, qc) = (&pa[base..end], &pb[base..end], &pc[base..end]);
+                let mut mask = 0u64;
+                for j in 0..qa.len() {
+                    let (y0, y1, y2) = (qa[j], qb[j], qc[j]);
+                    let e = (y1 > y0) & (y1 >= y2) | (y1 < y0) & (y1 <= y2);
+                    mask |= u64::from(e) << j;
                 }
-                let (nm, v) = vertex(x, [y0, y1, y2]);
-                let k = usize::from(counts[i]);
-                if k < MAX_EXTREMA {
-                    slots[i * MAX_EXTREMA + k] = (if peak { nm } else { -nm }, v);
+                while mask != 0 {
+                    let j = mask.trailing_zeros() as usize;
+                    mask &= mask - 1;
+                    let i = base + j;
+                    let (y0, y1, y2) = (qa[j], qb[j], qc[j]);
+                    let (nm, v) = vertex(x, [y0, y1, y2]);
+                    let k = usize::from(counts[i]);
+                    if k < MAX_EXTREMA {
+                        slots[i * MAX_EXTREMA + k] = (if y1 > y0 { nm } else { -nm }, v);
+                    }
+                    counts[i] = counts[i].saturating_add(1);
                 }
-                counts[i] = counts[i].saturating_add(1);
             }
         }
     }

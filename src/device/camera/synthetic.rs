@@ -148,6 +148,9 @@ pub struct SyntheticConfig {
     pub noise_cache: usize,
     /// Pace frames to the wall clock at `frame_period_ns`.
     pub realtime: bool,
+    /// When pacing, run the clock this many times faster than the wall
+    /// (to match an emulated controller running faster than a real unit).
+    pub speed: f64,
 }
 
 impl Default for SyntheticConfig {
@@ -158,6 +161,7 @@ impl Default for SyntheticConfig {
             trigger_palette: None,
             noise_cache: 0,
             realtime: false,
+            speed: 1.0,
         }
     }
 }
@@ -240,7 +244,7 @@ impl SyntheticCamera {
             let mut frames = Vec::with_capacity(self.cfg.noise_cache);
             for _ in 0..self.cfg.noise_cache {
                 let mut out = vec![0u16; n];
-                self.render_counts(Some(b), None, 1.0, &mut out);
+                self.render_counts(None, Some(b), 1.0, &mut out);
                 frames.push(out);
             }
             self.cache.push(frames);
@@ -324,7 +328,12 @@ impl FrameSource for SyntheticCamera {
             let (start, v0) = *self
                 .started
                 .get_or_insert_with(|| (std::time::Instant::now(), t0));
-            let due = start + Duration::from_nanos(t0 - v0);
+            let speed = if self.cfg.speed > 0.0 {
+                self.cfg.speed
+            } else {
+                1.0
+            };
+            let due = start + Duration::from_secs_f64((t0 - v0) as f64 / 1e9 / speed);
             let now = std::time::Instant::now();
             if due > now {
                 std::thread::sleep(due - now);
