@@ -15,7 +15,7 @@ use crate::device::camera::{FrameSource, PixelFormat, Target};
 use crate::estimate::{Mode, ParamMaps};
 use crate::optics::band::Band;
 use crate::pipeline::calibration::{
-    capture_reference, CalExpect, CalMeta, Calibration, Calibrator,
+    capture_reference, CalExpect, CalMeta, Calibration, Calibrator, CapturePlan,
 };
 use crate::pipeline::output::{sweep_path, write_map, SweepSummary};
 use crate::pipeline::profile::ProfileLayer;
@@ -525,16 +525,14 @@ pub fn capture_calibration(
             let mut s = String::new();
             std::io::stdin().read_line(&mut s)?;
         }
-        let acc = capture_reference(
-            name,
-            rig.source.as_mut(),
-            rig.tuner.as_mut(),
-            rig.seq_mode,
-            &nm,
-            &rig.order,
+        let plan = CapturePlan {
+            mode: rig.seq_mode,
+            bands_nm: &nm,
+            order: &rig.order,
             frames,
-            Duration::from_secs(2),
-        )?;
+            timeout: Duration::from_secs(2),
+        };
+        let acc = capture_reference(name, rig.source.as_mut(), rig.tuner.as_mut(), &plan)?;
         refs.push(acc);
     }
     rig.source.set_target(Target::Scene)?;

@@ -204,7 +204,7 @@ impl Calibration {
             }
             if w_empty[i] || d_empty[i] {
                 f |= flag::DEAD;
-            } else if !(w[i] - d[i] >= min_contrast) {
+            } else if w[i] - d[i] < min_contrast || (w[i] - d[i]).is_nan() {
                 f |= flag::DARK;
             }
             flags[i] = f;
@@ -360,6 +360,21 @@ impl Calibration {
     }
 }
 
+/// How to capture a reference.
+#[derive(Clone, Copy, Debug)]
+pub struct CapturePlan<'a> {
+    /// Stepped or triggered pairing.
+    pub mode: super::sequencer::SeqMode,
+    /// Band centres, nm, plane order.
+    pub bands_nm: &'a [f64],
+    /// Capture order.
+    pub order: &'a [usize],
+    /// Frames averaged per band.
+    pub frames: u32,
+    /// Longest wait for one frame.
+    pub timeout: std::time::Duration,
+}
+
 /// Capture one reference: `frames` settled frames per band, pairing frames
 /// with bands by the same sequencer the run uses (so frames exposed while
 /// the filter settles are never averaged in). A band lost to a triggered
@@ -368,13 +383,16 @@ pub fn capture_reference(
     reference: &'static str,
     source: &mut dyn crate::device::camera::FrameSource,
     tuner: &mut dyn super::sequencer::BandTuner,
-    mode: super::sequencer::SeqMode,
-    bands_nm: &[f64],
-    order: &[usize],
-    frames: u32,
-    timeout: std::time::Duration,
+    plan: &CapturePlan<'_>,
 ) -> Result<Accumulator, CalibrationError> {
     use super::sequencer::{Sequencer, Verdict};
+    let CapturePlan {
+        mode,
+        bands_nm,
+        order,
+        frames,
+        timeout,
+    } = *plan;
     let err = |message: String| CalibrationError::Capture { reference, message };
     let info = source.info();
     let n = info.width as usize * info.height as usize;

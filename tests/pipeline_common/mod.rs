@@ -6,7 +6,9 @@ use irid::device::camera::synthetic::{FilterView, SensorModel, SyntheticCamera, 
 use irid::device::camera::{FrameSource, Target};
 use irid::estimate::ParamMaps;
 use irid::optics::band::Band;
-use irid::pipeline::calibration::{capture_reference, CalMeta, Calibration, Calibrator};
+use irid::pipeline::calibration::{
+    capture_reference, CalMeta, Calibration, Calibrator, CapturePlan,
+};
 use irid::pipeline::runner::{run, RunConfig, RunError, RunReport, Setup, SweepSink};
 use irid::pipeline::sequencer::{order_for, BandTuner, EmulatedTuner, SeqMode};
 use irid::scene::Scene;
@@ -88,30 +90,17 @@ pub fn calibrate(
     frames: u32,
 ) -> Calibration {
     let info = cam.info();
+    let plan = CapturePlan {
+        mode,
+        bands_nm: nm,
+        order,
+        frames,
+        timeout: Duration::from_secs(1),
+    };
     cam.set_target(Target::Dark).unwrap();
-    let dark = capture_reference(
-        "dark",
-        cam,
-        tuner,
-        mode,
-        nm,
-        order,
-        frames,
-        Duration::from_secs(1),
-    )
-    .unwrap();
+    let dark = capture_reference("dark", cam, tuner, &plan).unwrap();
     cam.set_target(Target::White(0.99)).unwrap();
-    let white = capture_reference(
-        "white",
-        cam,
-        tuner,
-        mode,
-        nm,
-        order,
-        frames,
-        Duration::from_secs(1),
-    )
-    .unwrap();
+    let white = capture_reference("white", cam, tuner, &plan).unwrap();
     cam.set_target(Target::Scene).unwrap();
     let meta = CalMeta {
         version: 1,
