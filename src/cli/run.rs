@@ -74,7 +74,7 @@ pub struct RunArgs {
     pub in_process_filter: bool,
     /// Demo: the emulated controller's clock runs this many times faster
     /// than a real unit's.
-    #[arg(long, default_value_t = 10.0)]
+    #[arg(long, default_value_t = 5.0)]
     pub time_scale: f64,
     /// Demo: let the synthetic camera run as fast as it can instead of at
     /// its frame rate (sped up by --time-scale); the pipeline will then

@@ -2,9 +2,10 @@
 //! into a fixed log-scale histogram per span name, and prints latency
 //! percentiles and throughput per stage at exit.
 //!
-//! Spans the pipeline opens: `capture.frame`, `ingest.frame`,
-//! `solve.sweep`, `solve.index`, `write.sweep`, and `sweep` (first band
-//! ingested → map written). With no subscriber installed (neither
+//! Spans the pipeline opens: `capture.frame` (includes waiting for the
+//! camera), `ingest.frame` (calibrate + track one band), `solve.sweep`
+//! (film index where needed + every row), `solve.index`, `write.sweep`
+//! (the sink: EXR + summary). With no subscriber installed (neither
 //! `--profile` nor `--trace`), a disabled span costs about a nanosecond.
 
 use std::collections::BTreeMap;

@@ -130,7 +130,7 @@ impl Default for RunConfig {
             threads: None,
             single_thread: false,
             frame_pool: 16,
-            sweep_buffers: 2,
+            sweep_buffers: 3,
             frame_timeout: Duration::from_secs(2),
             track_extrema: true,
         }
