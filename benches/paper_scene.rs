@@ -95,6 +95,27 @@ fn main() {
             );
             let t_fit = t1.elapsed().as_secs_f64();
             let acc = compare(&maps, &truth_t);
+            if args.iter().any(|a| a == "--worst") {
+                let mut worst = (0.0f32, 0usize);
+                for i in 0..maps.thickness_nm.len() {
+                    let e = (maps.thickness_nm[i] - truth_t.thickness_nm[i]).abs();
+                    if e > worst.0 {
+                        worst = (e, i);
+                    }
+                }
+                let i = worst.1;
+                println!(
+                    "worst pixel ({}, {}): truth d {} θ {} | est d {} θ {} σd {} rms {}",
+                    i % maps.width,
+                    i / maps.width,
+                    truth_t.thickness_nm[i],
+                    truth_t.theta_deg[i],
+                    maps.thickness_nm[i],
+                    maps.theta_deg[i],
+                    maps.sigma_thickness_nm[i],
+                    maps.residual_rms[i]
+                );
+            }
             println!(
                 "{:9} angle {:7} n2 {:.5}±{:.5} (err {:+.5}) index {:.2}s | {:>9.0} px/s | valid {:5.1}% MAE {:.3} nm p99 {:.3} max {:.2} | theta MAE(>=20) {:.3} max(<20,unflagged) {:.2} | |e|<=2σ {:.1}%  {}",
                 mode.name(),

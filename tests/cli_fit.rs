@@ -251,7 +251,6 @@ fn summary(out: &Output) -> serde_json::Value {
 }
 
 #[test]
-#[ignore = "needs solver"]
 fn synth_then_fit_recovers_the_cylinder() {
     let dir = tempfile::tempdir().unwrap();
     let cube = dir.path().join("cube.hdr");
@@ -301,7 +300,6 @@ fn synth_then_fit_recovers_the_cylinder() {
 }
 
 #[test]
-#[ignore = "needs solver"]
 fn fit_with_known_film_and_angle_map_from_the_truth() {
     let dir = tempfile::tempdir().unwrap();
     let cube = dir.path().join("cube.hdr");
@@ -341,7 +339,6 @@ fn fit_with_known_film_and_angle_map_from_the_truth() {
 }
 
 #[test]
-#[ignore = "needs solver"]
 fn fit_raw_counts_with_dark_and_white() {
     // Raw counts = dark + R · (white − dark) with R the synthetic reflectance.
     use irid::io::envi::{write_cube, DataType, WriteOptions};

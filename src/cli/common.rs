@@ -89,6 +89,18 @@ impl SceneSource {
     }
 }
 
+/// A material named on the command line: a path (`.yml`, or with a
+/// separator) is made absolute, because the scene resolves relative paths
+/// against its own directory; a built-in name is kept.
+fn cli_material(spec: &str) -> String {
+    let lower = spec.to_ascii_lowercase();
+    let is_path = lower.ends_with(".yml") || lower.ends_with(".yaml") || spec.contains(['/', '\\']);
+    match std::path::absolute(spec) {
+        Ok(abs) if is_path => abs.display().to_string(),
+        _ => spec.to_string(),
+    }
+}
+
 /// Command-line overrides of a scene. Each given value replaces the
 /// scene's; a known value replaces an unknown one (so it is never estimated).
 #[derive(Clone, Debug, Default, clap::Args)]
@@ -128,7 +140,7 @@ impl SceneOverrides {
         if self.n2.is_some() || self.material2.is_some() {
             file.film.n = self.n2;
             file.film.k = None;
-            file.film.material = self.material2.clone();
+            file.film.material = self.material2.as_deref().map(cli_material);
             file.film.search = None;
             file.film.prior = None;
         }
@@ -137,7 +149,7 @@ impl SceneOverrides {
         }
         if let Some(m) = &self.material3 {
             file.substrate = MediumSpec {
-                material: Some(m.clone()),
+                material: Some(cli_material(m)),
                 ..Default::default()
             };
         }
@@ -162,5 +174,66 @@ impl SceneOverrides {
             file.light.polarization = toml::Value::String(p.clone());
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::{AngleKnowledge, FilmKnowledge};
+
+    #[test]
+    fn wavelength_lists() {
+        assert_eq!(parse_wavelengths("400:700:10").unwrap().len(), 31);
+        assert_eq!(
+            parse_wavelengths("400:700:100").unwrap(),
+            [400.0, 500.0, 600.0, 700.0]
+        );
+        assert_eq!(parse_wavelengths("550").unwrap(), [550.0]);
+        assert_eq!(parse_wavelengths("500, 510.5").unwrap(), [500.0, 510.5]);
+        assert!((parse_wavelengths("0.1:0.3:0.1").unwrap()[2] - 0.3).abs() < 1e-12);
+        for bad in [
+            "700:400:10",
+            "400:700:0",
+            "400:700",
+            "a",
+            "400,,500",
+            "-5",
+            "1:1e9:1e-3",
+        ] {
+            assert!(parse_wavelengths(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn overrides_make_values_known() {
+        let mut src = SceneSource::paper_cylinder();
+        let o = SceneOverrides {
+            n2: Some(1.38),
+            theta_deg: Some(30.0),
+            pol: Some("p".into()),
+            n3: Some(1.55),
+            ..Default::default()
+        };
+        o.apply(&mut src.file).unwrap();
+        src.file.truth = None;
+        let scene = src.resolve().unwrap();
+        assert!(matches!(scene.film, FilmKnowledge::Known(_)));
+        assert!(
+            matches!(scene.angle, AngleKnowledge::Uniform(t) if (t - 30f64.to_radians()).abs() < 1e-12)
+        );
+        assert_eq!(scene.polarization, crate::optics::Polarization::P);
+        assert_eq!(scene.substrate.index_at(500.0).unwrap().re, 1.55);
+    }
+
+    #[test]
+    fn bad_override_is_named() {
+        let mut src = SceneSource::empty();
+        let o = SceneOverrides {
+            pol: Some("sideways".into()),
+            ..Default::default()
+        };
+        let e = o.apply(&mut src.file).unwrap_err().to_string();
+        assert!(e.starts_with("--pol"), "{e}");
     }
 }

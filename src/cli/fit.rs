@@ -62,10 +62,17 @@ pub struct Summary {
     pub n_film_sigma: f64,
     /// Whether the index was estimated.
     pub n_film_estimated: bool,
-    /// Seconds spent fitting (reading and writing excluded).
+    /// Seconds spent fitting (reading and writing excluded): the global
+    /// index search plus the per-pixel solve.
     pub elapsed_s: f64,
-    /// Pixels per second of the fit.
+    /// Pixels per second of the whole fit (`pixels / elapsed_s`).
     pub pixels_per_s: f64,
+    /// Seconds of the global film-index (and noise) estimate.
+    pub index_s: f64,
+    /// Seconds of the per-pixel solve.
+    pub solve_s: f64,
+    /// Pixels per second of the per-pixel solve alone.
+    pub solve_pixels_per_s: f64,
     /// Solver mode.
     pub mode: &'static str,
 }
@@ -119,8 +126,12 @@ pub fn run(a: &FitArgs) -> anyhow::Result<()> {
         .build()
         .context("building the thread pool")?;
     let start = Instant::now();
+    pool.install(|| solver.estimate_film_index(&cube))
+        .context("estimating the film index")?;
+    let index_s = start.elapsed().as_secs_f64();
     let result = pool.install(|| solver.fit_cube(&cube));
     let elapsed = start.elapsed().as_secs_f64();
+    let solve_s = elapsed - index_s;
     let mut maps = result.context("fitting")?;
     complete_meta(&mut maps, &solver, &scene, &cube, a.mode);
     exr_maps::write_maps(&a.out, &maps)?;
@@ -132,11 +143,10 @@ pub fn run(a: &FitArgs) -> anyhow::Result<()> {
         n_film_sigma: maps.meta.n_film_sigma,
         n_film_estimated: maps.meta.n_film_estimated,
         elapsed_s: elapsed,
-        pixels_per_s: if elapsed > 0.0 {
-            pixels as f64 / elapsed
-        } else {
-            f64::INFINITY
-        },
+        pixels_per_s: pixels as f64 / elapsed.max(1e-9),
+        index_s,
+        solve_s,
+        solve_pixels_per_s: pixels as f64 / solve_s.max(1e-9),
         mode: a.mode.name(),
     };
     if a.json {

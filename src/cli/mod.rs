@@ -42,7 +42,7 @@ pub enum Command {
     Synth(synth::SynthArgs),
     /// Print the model reflectance of a single film for given parameters.
     Model(model::ModelArgs),
-    /// Talk to the tunable-filter controller.
+    /// Talk to the tunable-filter controller (or its emulator).
     Lctf(lctf::LctfArgs),
 }
 

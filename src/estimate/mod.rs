@@ -12,6 +12,7 @@
 //! material is used as given and the cheaper path is taken.
 #![forbid(unsafe_code)]
 
+pub mod angle;
 pub mod cube;
 pub mod fastmath;
 pub mod maps;
@@ -25,14 +26,20 @@ pub use solver::{IndexEstimate, Solver};
 /// Speed/accuracy trade-off of the per-pixel solver.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, clap::ValueEnum)]
 pub enum Mode {
-    /// Extrema only, closed forms: order from the fringe spacing, angle from
-    /// the half-wave reflectance, thickness from the extremum wavelength.
+    /// Closed forms on the fringe extrema: extrema located between bands in
+    /// wavenumber, order from their spacing and the interference lattice,
+    /// angle from the half-wave level, thickness from Eq. 14; σ propagated
+    /// from the extrema fits. Pixels with fewer than two extrema fall back
+    /// to the candidate search.
     Fast,
-    /// Interference-lattice candidates scored on the whole spectrum, then a
-    /// Gauss–Newton refinement of the unknowns.
+    /// The fast estimate as a start, then a joint Gauss–Newton /
+    /// Levenberg–Marquardt refinement of the unknowns on the whole spectrum
+    /// with the exact model; the full fringe-order search only where the
+    /// closed form is unavailable or leaves residuals above the noise.
     Balanced,
-    /// A denser candidate search, joint Levenberg–Marquardt refinement of all
-    /// unknowns to convergence, passband integration where the band width
+    /// Balanced, refined to convergence, plus the best competing fringe
+    /// order refined too (pixels where it fits as well are flagged
+    /// "ambiguous order"), and passband integration where the band width
     /// matters.
     Accurate,
 }

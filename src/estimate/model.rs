@@ -248,6 +248,22 @@ impl FilmModel {
         self.n_bands
     }
 
+    /// Ambient and substrate indices at the middle band.
+    pub fn ambient_substrate_mid(&self) -> (Complex64, Complex64) {
+        let mid = self.n_bands / 2;
+        self.nodes
+            .iter()
+            .find(|n| n.band == mid)
+            .map_or((Complex64::new(1.0, 0.0), Complex64::new(1.5, 0.0)), |n| {
+                (n.n1, n.n3)
+            })
+    }
+
+    /// Ambient index at the middle band.
+    pub fn n1_mid(&self) -> f64 {
+        self.n1_mid
+    }
+
     /// Film index at the middle band.
     pub fn n2_mid(&self) -> f64 {
         self.n2_mid
@@ -311,8 +327,8 @@ impl FilmModel {
     /// [`THETA_STEP`], with `q2` and `dq2/dθ`.
     #[inline]
     fn coeffs_with_slope(&self, n: &Node, theta: f64) -> CoeffSet {
-        let (s, c) = theta.sin_cos();
-        let (sh, ch) = (theta + THETA_STEP).sin_cos();
+        let (s, c) = sin_cos(theta);
+        let (sh, ch) = sin_cos(theta + THETA_STEP);
         let (cs, cp, q2) = self.coeffs(n, s, c);
         let (cs_h, cp_h, q2_h) = self.coeffs(n, sh, ch);
         CoeffSet {

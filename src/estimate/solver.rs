@@ -28,10 +28,12 @@
 //! the χ² difference between them is reported; a prior breaks a tie the data
 //! cannot.
 
+use super::angle::half_wave_angles;
 use super::model::{FilmModel, ModelOut};
 use super::{Cube, EstimateError, Mode, ParamMaps, PixelEstimate, Reason};
 use crate::optics::band::Band;
 use crate::optics::dispersion::Dispersion;
+use crate::optics::Polarization;
 use crate::scene::{AngleKnowledge, FilmKnowledge, Scene};
 use rayon::prelude::*;
 use std::f64::consts::PI;
@@ -55,17 +57,25 @@ pub struct IndexEstimate {
     pub note: String,
 }
 
+/// Pixels sampled (on a regular lattice) for the global film-index search.
+pub const INDEX_SAMPLE_PIXELS: usize = 400;
+
+/// Step of the coarse film-index profile.
+const INDEX_GRID_STEP: f64 = 0.02;
+
 /// Largest number of bands a pixel may have.
 pub const MAX_BANDS: usize = 512;
 
 /// Angle σ above which the angle is reported as not identifiable, degrees.
-pub const ANGLE_SIGMA_LIMIT_DEG: f64 = 0.5;
+pub const ANGLE_SIGMA_LIMIT_DEG: f64 = 0.25;
 
 /// Reusable per-thread working memory of the solver.
 #[derive(Clone, Debug, Default)]
 pub struct Scratch {
     /// The caller's gathered spectrum (solve_row).
     pixel: Vec<f64>,
+    sorted_y: Vec<f64>,
+    smooth_y: Vec<f64>,
     spectrum: Vec<f64>,
     weight: Vec<f64>,
     cur: ModelOut,
@@ -157,6 +167,9 @@ struct Effort {
     n_refine: usize,
     /// Iteration cap of each refinement.
     iters: usize,
+    /// After a closed-form start, also refine the best other fringe order
+    /// and flag the pixel if it fits as well.
+    verify_order: bool,
 }
 
 impl Effort {
@@ -165,20 +178,23 @@ impl Effort {
             Mode::Fast => Effort {
                 closed_form: true,
                 closed_form_only: true,
-                n_refine: 1,
-                iters: 4,
+                n_refine: 2,
+                iters: 6,
+                verify_order: false,
             },
             Mode::Balanced => Effort {
                 closed_form: true,
                 closed_form_only: false,
                 n_refine: 2,
                 iters: 8,
+                verify_order: false,
             },
             Mode::Accurate => Effort {
-                closed_form: false,
+                closed_form: true,
                 closed_form_only: false,
                 n_refine: 3,
                 iters: 25,
+                verify_order: true,
             },
         }
     }
@@ -190,7 +206,33 @@ impl Effort {
         closed_form_only: false,
         n_refine: 2,
         iters: 10,
+        verify_order: false,
     };
+}
+
+/// A pixel of the global index search, with its fringe candidates for
+/// both fringe signs precomputed (they do not depend on the film index).
+#[derive(Clone, Debug)]
+struct SamplePixel {
+    spectrum: Vec<f64>,
+    theta: Option<f64>,
+    /// Candidates for sign +1 (index 0) and −1 (index 1).
+    cands: [[Candidate; MAX_CANDIDATES]; 2],
+    n_cands: [usize; 2],
+}
+
+/// One pixel's solve request.
+#[derive(Clone, Copy)]
+struct Job<'a> {
+    /// Reflectance per band (NaN: missing).
+    spectrum: &'a [f64],
+    /// Known angle, radians.
+    theta_known: Option<f64>,
+    /// Reflectance noise σ of the image, once known.
+    noise: Option<f64>,
+    effort: Effort,
+    /// Precomputed fringe candidates (index search).
+    pre: Option<&'a SamplePixel>,
 }
 
 /// Result of refining one start.
@@ -211,6 +253,9 @@ struct Prepared {
     sign: f64,
     /// Angle table for the start: (θ, R(cos Δ = 1), R(cos Δ = −1)).
     table: Vec<(f64, f64, f64)>,
+    /// Real ambient and substrate indices at the middle band, when the
+    /// half-wave level can be inverted in closed form (lossless, s or p).
+    closed_form: Option<(f64, f64, Polarization)>,
 }
 
 /// Solves pixels for the scene's unknowns.
@@ -226,6 +271,11 @@ pub struct Solver {
     d_max: f64,
     /// Bands by increasing wavelength: (plane index, λ, wavenumber 1/λ).
     sorted: Vec<(usize, f64, f64)>,
+    /// Centre of the band range in wavenumber, nm⁻¹.
+    sigma_center: f64,
+    /// Inverse normal matrices of the five-point parabola centred on each
+    /// sorted band (`None` at the ends or if singular).
+    parabola: Vec<Option<[[f64; 3]; 3]>>,
 }
 
 /// Largest film thickness the solver considers, nm.
@@ -287,7 +337,35 @@ impl Solver {
                 v.sort_by(|a, b| a.1.total_cmp(&b.1));
                 v
             },
+            parabola: Vec::new(),
+            sigma_center: 0.0,
         };
+        let (s_lo, s_hi) = solver
+            .sorted
+            .iter()
+            .fold((f64::INFINITY, 0.0f64), |(a, b), x| {
+                (a.min(x.2), b.max(x.2))
+            });
+        solver.sigma_center = 0.5 * (s_lo + s_hi);
+        solver.parabola = (0..solver.sorted.len())
+            .map(|i| {
+                if i < 2 || i + 2 >= solver.sorted.len() {
+                    return None;
+                }
+                let x0 = solver.sorted[i].2;
+                let mut m = [[0.0; 3]; 3];
+                for j in i - 2..=i + 2 {
+                    let u = (solver.sorted[j].2 - x0) * 1e4;
+                    let row = [u * u, u, 1.0];
+                    for r in 0..3 {
+                        for c in 0..3 {
+                            m[r][c] += row[r] * row[c];
+                        }
+                    }
+                }
+                inv3(m)
+            })
+            .collect();
         if let FilmKnowledge::Known(film) = &scene.film {
             let film = film.clone();
             let prepared = solver.prepare(&film)?;
@@ -345,7 +423,17 @@ impl Solver {
         };
         let (h, l) = model.envelopes(mid_th);
         let sign = if h >= l { 1.0 } else { -1.0 };
-        Ok(Prepared { model, sign, table })
+        let (n1, n3) = model.ambient_substrate_mid();
+        let pol = self.scene.polarization;
+        let closed_form =
+            (n1.im == 0.0 && n3.im == 0.0 && matches!(pol, Polarization::S | Polarization::P))
+                .then_some((n1.re, n3.re, pol));
+        Ok(Prepared {
+            model,
+            sign,
+            table,
+            closed_form,
+        })
     }
 
     /// The mode.
@@ -392,14 +480,25 @@ impl Solver {
             None
         };
         let effort = Effort::of(self.mode);
-        let (mut est, _) = self.solve_with(prep, spectrum, theta_known, noise, effort, scratch);
+        let (mut est, _) = self.solve_with(
+            prep,
+            Job {
+                spectrum,
+                theta_known,
+                noise,
+                effort,
+                pre: None,
+            },
+            scratch,
+        );
         if est.is_valid() {
             est.n_film = index.n;
             // The global index's own error moves the thickness at fixed
             // optical thickness: ∂d/∂n2 = −d·n2/q2².
             let q2 = prep.model.q2_mid(est.theta_deg.to_radians());
             let dd_dn = est.thickness_nm * index.n / (q2 * q2);
-            est.sigma_thickness_nm = est.sigma_thickness_nm.hypot(dd_dn * index.sigma);
+            let (a, b) = (est.sigma_thickness_nm, dd_dn * index.sigma);
+            est.sigma_thickness_nm = (a * a + b * b).sqrt();
         }
         est
     }
@@ -495,7 +594,7 @@ impl Solver {
     /// the index is known). The result is kept for later pixels and sweeps.
     pub fn estimate_film_index(&mut self, cube: &Cube) -> Result<IndexEstimate, EstimateError> {
         self.check_cube(cube)?;
-        let sample = self.sample_pixels(cube, 600);
+        let sample = self.sample_pixels(cube, INDEX_SAMPLE_PIXELS);
         if sample.is_empty() {
             return Err(EstimateError::FilmIndex(
                 "no pixel has a complete, finite spectrum".into(),
@@ -519,20 +618,35 @@ impl Solver {
 
     /// Up to `max` pixels on a regular lattice with complete spectra, with
     /// their known angles.
-    fn sample_pixels(&self, cube: &Cube, max: usize) -> Vec<(Vec<f64>, Option<f64>)> {
+    fn sample_pixels(&self, cube: &Cube, max: usize) -> Vec<SamplePixel> {
         let total = cube.plane_len();
         let stride = (total / max.max(1)).max(1);
         let mut out = Vec::new();
-        let mut spec = vec![0.0; cube.bands.len()];
+        let nb = cube.bands.len();
+        let mut spec = vec![0.0; nb];
+        let mut scratch = Scratch::default();
+        scratch.ensure(nb);
         let mut i = stride / 2;
         while i < total {
             let (x, y) = (i % cube.width, i / cube.width);
             cube.spectrum_into(x, y, &mut spec);
             if spec
                 .iter()
-                .all(|v| v.is_finite() && (-0.5..=1.5).contains(v))
+                .all(|v| v.is_finite() && (-0.2..=1.2).contains(v))
             {
-                out.push((spec.clone(), self.scene.angle.known_at(x, y)));
+                scratch.spectrum.copy_from_slice(&spec);
+                scratch.weight.fill(1.0);
+                let mut cands = [[Candidate::default(); MAX_CANDIDATES]; 2];
+                let mut n_cands = [0; 2];
+                for (k, sign) in [1.0, -1.0].into_iter().enumerate() {
+                    n_cands[k] = self.fringe_search(&scratch, sign, true, &mut cands[k]);
+                }
+                out.push(SamplePixel {
+                    spectrum: spec.clone(),
+                    theta: self.scene.angle.known_at(x, y),
+                    cands,
+                    n_cands,
+                });
             }
             i += stride;
         }
@@ -541,12 +655,19 @@ impl Solver {
 
     /// Summed residual of the sample under a prepared index, with the
     /// number of observations and of fitted parameters.
-    fn sample_sse(&self, prep: &Prepared, sample: &[(Vec<f64>, Option<f64>)]) -> (f64, f64, f64) {
+    fn sample_sse(&self, prep: &Prepared, sample: &[SamplePixel]) -> (f64, f64, f64) {
         sample
             .par_iter()
-            .map_init(Scratch::default, |scratch, (spec, th)| {
-                let (est, sse) =
-                    self.solve_with(prep, spec, *th, None, Effort::INDEX_SEARCH, scratch);
+            .map_init(Scratch::default, |scratch, px| {
+                let (spec, th) = (&px.spectrum, &px.theta);
+                let job = Job {
+                    spectrum: spec,
+                    theta_known: *th,
+                    noise: None,
+                    effort: Effort::INDEX_SEARCH,
+                    pre: Some(px),
+                };
+                let (est, sse) = self.solve_with(prep, job, scratch);
                 if est.is_valid() && sse.is_finite() {
                     let p = if th.is_some() { 1.0 } else { 2.0 };
                     (sse, spec.len() as f64, p)
@@ -557,40 +678,39 @@ impl Solver {
             .reduce(|| (0.0, 0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2))
     }
 
-    fn profile_at(
-        &self,
-        n: f64,
-        sample: &[(Vec<f64>, Option<f64>)],
-    ) -> Result<(f64, f64, f64), EstimateError> {
+    fn profile_at(&self, n: f64, sample: &[SamplePixel]) -> Result<(f64, f64, f64), EstimateError> {
         let prep = self.prepare(&Dispersion::constant(n))?;
         Ok(self.sample_sse(&prep, sample))
     }
 
     fn search_index(
         &self,
-        sample: &[(Vec<f64>, Option<f64>)],
+        sample: &[SamplePixel],
         search: (f64, f64),
         prior: Option<f64>,
     ) -> Result<IndexEstimate, EstimateError> {
-        // Coarse profile on the paper's 0.01 grid; pixels a trial index
+        // Coarse profile on a 0.02 grid (twice the paper's step: the
+        // profile's basin is wider, and the local fit below refines it far
+        // past 0.01); pixels a trial index
         // cannot fit at all are charged their total sum of squares so that
         // dropping them never looks like a better fit.
         let (lo, hi) = search;
         let lo = lo.max(1.0 + 1e-3);
-        let steps = ((hi - lo) / 0.01).round().max(2.0) as usize;
+        let steps = ((hi - lo) / INDEX_GRID_STEP).round().max(2.0) as usize;
         let grid: Vec<f64> = (0..=steps)
             .map(|i| lo + (hi - lo) * i as f64 / steps as f64)
             .collect();
         let total_ss: f64 = sample
             .iter()
-            .map(|(s, _)| {
+            .map(|px| {
+                let s = &px.spectrum;
                 let m = s.iter().sum::<f64>() / s.len() as f64;
                 s.iter().map(|v| (v - m) * (v - m)).sum::<f64>()
             })
             .sum();
         let cost = |n: f64| -> Result<f64, EstimateError> {
             let (sse, n_obs, _) = self.profile_at(n, sample)?;
-            let covered = n_obs / sample[0].0.len() as f64;
+            let covered = n_obs / sample[0].spectrum.len() as f64;
             let missing = sample.len() as f64 - covered;
             Ok(sse + missing * total_ss / sample.len() as f64)
         };
@@ -685,11 +805,11 @@ impl Solver {
         cost: &dyn Fn(f64) -> Result<f64, EstimateError>,
     ) -> Result<(f64, f64, f64), EstimateError> {
         let mut center = n_start;
-        let mut half = 0.01;
+        let mut half = INDEX_GRID_STEP;
         let mut result = (center, f64::INFINITY, 0.0);
         for _ in 0..3 {
-            let pts: Vec<f64> = (-4..=4)
-                .map(|i| (center + half * i as f64 / 4.0).clamp(bounds.0, bounds.1))
+            let pts: Vec<f64> = (-3..=3)
+                .map(|i| (center + half * i as f64 / 3.0).clamp(bounds.0, bounds.1))
                 .collect();
             let mut vals = Vec::with_capacity(pts.len());
             for &p in &pts {
@@ -719,7 +839,7 @@ impl Solver {
                 .enumerate()
                 .min_by(|x, y| x.1.total_cmp(y.1))
                 .map(|(i, v)| (i, *v))
-                .unwrap_or((4, f64::INFINITY));
+                .unwrap_or((3, f64::INFINITY));
             if a > 0.0 {
                 let u = (-b / (2.0 * a)).clamp(-half, half);
                 let n0 = (center + u).clamp(bounds.0, bounds.1);
@@ -730,7 +850,7 @@ impl Solver {
                 center = pts[imin];
                 result = (center, vmin, 0.0);
             }
-            half *= 0.25;
+            half *= 0.3;
         }
         // The value at the vertex itself, not the parabola's.
         let s = cost(result.0)?;
@@ -742,20 +862,23 @@ impl Solver {
     fn solve_with(
         &self,
         prep: &Prepared,
-        spectrum: &[f64],
-        theta_known: Option<f64>,
-        noise: Option<f64>,
-        effort: Effort,
+        job: Job<'_>,
         scratch: &mut Scratch,
     ) -> (PixelEstimate, f64) {
+        let Job {
+            spectrum,
+            theta_known,
+            noise,
+            effort,
+            pre,
+        } = job;
         let nb = self.bands.len();
         if spectrum.len() != nb {
             return (PixelEstimate::invalid(Reason::MissingBands), f64::NAN);
         }
         scratch.ensure(nb);
         let mut n_ok = 0usize;
-        for k in 0..nb {
-            let v = spectrum[k];
+        for (k, &v) in spectrum.iter().enumerate() {
             if v.is_finite() {
                 if !(-0.2..=1.2).contains(&v) {
                     return (PixelEstimate::invalid(Reason::OutOfModel), f64::NAN);
@@ -787,7 +910,7 @@ impl Solver {
         }
         let lam_min = self.sorted.first().map_or(400.0, |b| b.1);
         if effort.closed_form && n_ok == nb {
-            if let Some(fe) = self.extrema_estimate(prep, theta_known, scratch) {
+            if let Some(fe) = self.extrema_estimate(prep, theta_known, noise, scratch) {
                 if effort.closed_form_only {
                     return (fe, f64::NAN);
                 }
@@ -802,13 +925,67 @@ impl Solver {
                 let rms = (fit.sse / n_ok as f64).sqrt();
                 // A wrong order leaves fringe-sized residuals; only then is
                 // the full search worth its cost.
-                if noise.is_some_and(|n| rms <= 2.0 * n) {
-                    return self.finish(&[fit], n_ok, theta_known, noise, prep, lam_min);
+                let good = noise.is_some_and(|n| rms <= 2.0 * n);
+                if good && !effort.verify_order {
+                    return self.finish(&[fit], n_ok, theta_known, noise, prep, lam_min, scratch);
+                }
+                if good {
+                    // The neighbouring orders on the lattice: the same fringe
+                    // phase at the band-range centre, one fringe more or
+                    // fewer. The better one is refined; if it fits as well,
+                    // the order is ambiguous.
+                    let q2 = prep.model.q2_mid(fit.theta);
+                    let g = fit.d * q2;
+                    let dg = 0.5 / self.sigma_center;
+                    let mut alt = None;
+                    let mut alt_sse = f64::INFINITY;
+                    for ga in [g - dg, g + dg] {
+                        if ga < 0.0 || ga / q2 > self.d_max {
+                            continue;
+                        }
+                        prep.model
+                            .eval(ga / q2, fit.theta, &mut scratch.trial, false);
+                        let e = sse(&scratch.spectrum, &scratch.weight, &scratch.trial.r);
+                        if e < alt_sse {
+                            alt_sse = e;
+                            alt = Some(ga / q2);
+                        }
+                    }
+                    let mut fits = [fit, fit];
+                    let mut n_fits = 1;
+                    if let Some(d_alt) = alt {
+                        // Two steps tell a clearly worse order; only a close
+                        // one is refined to convergence.
+                        let free = theta_known.is_none();
+                        let mut f = self.refine(prep, d_alt, fit.theta, free, 2, scratch);
+                        let var = fit.sse / (n_ok.saturating_sub(2).max(1)) as f64;
+                        if f.sse < fit.sse + 25.0 * var {
+                            f = self.refine(prep, f.d, f.theta, free, effort.iters, scratch);
+                        }
+                        fits[1] = f;
+                        n_fits = 2;
+                    }
+                    return self.finish(
+                        &fits[..n_fits],
+                        n_ok,
+                        theta_known,
+                        noise,
+                        prep,
+                        lam_min,
+                        scratch,
+                    );
                 }
             }
         }
         let mut cands = [Candidate::default(); MAX_CANDIDATES];
-        let n_cands = self.fringe_search(scratch, prep.sign, n_ok == nb, &mut cands);
+        let n_cands = match pre {
+            Some(px) => {
+                let k = usize::from(prep.sign < 0.0);
+                cands = px.cands[k];
+                px.n_cands[k]
+            }
+            None => self.fringe_search(scratch, prep.sign, n_ok == nb, &mut cands),
+        };
 
         // Angle start.
         let theta0 = match theta_known {
@@ -854,10 +1031,19 @@ impl Solver {
             fits[n_fits] = self.refine(prep, st.0, theta0, theta_known.is_none(), iters, scratch);
             n_fits += 1;
         }
-        self.finish(&fits[..n_fits], n_ok, theta_known, noise, prep, lam_min)
+        self.finish(
+            &fits[..n_fits],
+            n_ok,
+            theta_known,
+            noise,
+            prep,
+            lam_min,
+            scratch,
+        )
     }
 
     /// From refined fits to an estimate: best fit, covariance, flags.
+    #[allow(clippy::too_many_arguments)]
     fn finish(
         &self,
         fits: &[Fit],
@@ -866,6 +1052,7 @@ impl Solver {
         noise: Option<f64>,
         prep: &Prepared,
         lam_min: f64,
+        scratch: &mut Scratch,
     ) -> (PixelEstimate, f64) {
         let n_par = if theta_known.is_some() { 1 } else { 2 };
         let mut order = [0usize, 1, 2];
@@ -896,6 +1083,14 @@ impl Solver {
             } else {
                 (f64::INFINITY, (hi - lo) / 12f64.sqrt())
             }
+        };
+        // Near d = 0 the reflectance is even in d (dR/dd = 0 at d = 0), so
+        // the linearised σ is meaningless: take the one-sided profile bound
+        // instead, the d at which the residual grows by one variance.
+        let sig_d = if best.d < 0.1 * lam_min && (sig_d.is_nan() || sig_d >= 0.05 * lam_min) {
+            self.profile_sigma_d(prep, best, var, scratch)
+        } else {
+            sig_d
         };
         let rms = (best.sse / n_ok as f64).sqrt();
         let mut reason = Reason::Ok;
@@ -936,28 +1131,82 @@ impl Solver {
         }
     }
 
+    /// One-sided profile bound on the thickness near zero: the smallest
+    /// `δ > d` whose residual (angle held) exceeds the best by one variance,
+    /// minus `d`.
+    fn profile_sigma_d(&self, prep: &Prepared, best: Fit, var: f64, s: &mut Scratch) -> f64 {
+        let target = best.sse + var;
+        let mut lo = best.d;
+        let mut hi = best.d + 1.0;
+        let mut grow = 0;
+        loop {
+            prep.model.eval(hi, best.theta, &mut s.trial, false);
+            if sse(&s.spectrum, &s.weight, &s.trial.r) > target || grow > 12 {
+                break;
+            }
+            lo = hi;
+            hi = best.d + 2.0 * (hi - best.d);
+            grow += 1;
+        }
+        for _ in 0..20 {
+            let mid = 0.5 * (lo + hi);
+            prep.model.eval(mid, best.theta, &mut s.trial, false);
+            if sse(&s.spectrum, &s.weight, &s.trial.r) > target {
+                hi = mid;
+            } else {
+                lo = mid;
+            }
+        }
+        0.5 * (lo + hi) - best.d
+    }
+
     /// The closed-form path: fringe extrema located between bands (a
     /// least-squares parabola in wavenumber through five samples), the order
     /// from their spacing and the interference lattice, the angle from the
     /// extrema levels, the thickness from Eq. 14. `None` when fewer than two
     /// consistent extrema are in range (the caller then searches).
+    ///
+    /// σ comes from the parabola fits' covariance (reflectance noise from
+    /// `noise`, else from the fits' own residuals), propagated to the
+    /// extremum positions and levels, then to g, θ (σ_R / |dR/dθ|) and d.
     fn extrema_estimate(
         &self,
         prep: &Prepared,
         theta_known: Option<f64>,
-        scratch: &Scratch,
+        noise: Option<f64>,
+        scratch: &mut Scratch,
     ) -> Option<PixelEstimate> {
         let nb = self.sorted.len();
-        let y = |i: usize| scratch.spectrum[self.sorted[i].0];
+        if nb < 7 {
+            return None;
+        }
+        // The spectrum by increasing wavelength, raw and [1 2 1]-smoothed.
+        let ys = &mut scratch.sorted_y;
+        let sm = &mut scratch.smooth_y;
+        ys.resize(nb, 0.0);
+        sm.resize(nb, 0.0);
+        for (i, b) in self.sorted.iter().enumerate() {
+            ys[i] = scratch.spectrum[b.0];
+        }
+        for i in 1..nb - 1 {
+            sm[i] = 0.25 * ys[i - 1] + 0.5 * ys[i] + 0.25 * ys[i + 1];
+        }
         let x = |i: usize| self.sorted[i].2;
-        // Extrema of the [1 2 1]-smoothed spectrum, alternating in type.
         const MAX_EXT: usize = 16;
-        let mut ext = [(0.0f64, 0.0f64, 0i8); MAX_EXT]; // (wavenumber, value, +1 max / −1 min)
+        #[derive(Clone, Copy, Default)]
+        struct Ext {
+            pos: f64,
+            val: f64,
+            kind: i8,
+            var_pos: f64,
+            var_val: f64,
+        }
+        let mut ext = [Ext::default(); MAX_EXT];
         let mut n_ext = 0usize;
-        let sm = |i: usize| 0.25 * y(i - 1) + 0.5 * y(i) + 0.25 * y(i + 1);
+        let (mut rss, mut rdof) = (0.0, 0.0);
         let mut i = 2;
         while i + 2 < nb && n_ext < MAX_EXT {
-            let (a, b, c) = (sm(i - 1), sm(i), sm(i + 1));
+            let (a, b, c) = (sm[i - 1], sm[i], sm[i + 1]);
             let kind: i8 = if b > a && b >= c {
                 1
             } else if b < a && b <= c {
@@ -965,92 +1214,167 @@ impl Solver {
             } else {
                 0
             };
-            if kind != 0 {
-                // Least-squares parabola through five raw samples.
-                let x0 = x(i);
-                let (mut s0, mut s1, mut s2, mut s3, mut s4, mut t0, mut t1, mut t2) =
-                    (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
-                for j in i - 2..=i + 2 {
-                    let u = (x(j) - x0) * 1e4;
-                    let v = y(j);
-                    let u2 = u * u;
-                    s0 += 1.0;
-                    s1 += u;
-                    s2 += u2;
-                    s3 += u2 * u;
-                    s4 += u2 * u2;
-                    t0 += v;
-                    t1 += v * u;
-                    t2 += v * u2;
-                }
-                if let Some([qa, qb, qc]) =
-                    solve3([[s4, s3, s2], [s3, s2, s1], [s2, s1, s0]], [t2, t1, t0])
-                {
-                    if qa * f64::from(kind) < 0.0 {
-                        let u = -qb / (2.0 * qa);
-                        let span = (x(i + 2) - x(i - 2)).abs() * 1e4;
-                        if u.abs() <= span {
-                            let pos = x0 + u * 1e-4;
-                            let val = qc - qb * qb / (4.0 * qa);
-                            if n_ext > 0 && ext[n_ext - 1].2 == kind {
-                                // Two of a kind in a row: noise; keep the more extreme.
-                                if (val - ext[n_ext - 1].1) * f64::from(kind) > 0.0 {
-                                    ext[n_ext - 1] = (pos, val, kind);
-                                }
-                            } else {
-                                ext[n_ext] = (pos, val, kind);
-                                n_ext += 1;
-                            }
-                        }
-                    }
-                }
-                i += 2;
-            } else {
+            if kind == 0 {
                 i += 1;
+                continue;
+            }
+            // Least-squares parabola v = qa u² + qb u + qc through five raw
+            // samples (u in units of 1e-4 nm⁻¹ for conditioning).
+            let x0 = x(i);
+            let (mut t0, mut t1, mut t2, mut tvv) = (0.0, 0.0, 0.0, 0.0);
+            for (j, &v) in ys.iter().enumerate().take(i + 3).skip(i - 2) {
+                let u = (x(j) - x0) * 1e4;
+                t2 += v * u * u;
+                t1 += v * u;
+                t0 += v;
+                tvv += v * v;
+            }
+            i += 2;
+            let Some(minv) = self.parabola[i - 2] else {
+                continue;
+            };
+            let t = [t2, t1, t0];
+            let q: [f64; 3] = std::array::from_fn(|r| (0..3).map(|c| minv[r][c] * t[c]).sum());
+            let (qa, qb, qc) = (q[0], q[1], q[2]);
+            if qa * f64::from(kind) >= 0.0 {
+                continue;
+            }
+            let u = -qb / (2.0 * qa);
+            let span = (x(i) - x(i - 4)).abs() * 1e4;
+            if u.abs() > span {
+                continue;
+            }
+            rss += (tvv - (qa * t2 + qb * t1 + qc * t0)).max(0.0);
+            rdof += 2.0;
+            // Delta method: ∂u/∂(a, b), ∂v/∂(a, b, c).
+            let gu = [qb / (2.0 * qa * qa), -1.0 / (2.0 * qa), 0.0];
+            let gv = [qb * qb / (4.0 * qa * qa), -qb / (2.0 * qa), 1.0];
+            let quad = |g: &[f64; 3]| -> f64 {
+                (0..3)
+                    .map(|r| (0..3).map(|c| g[r] * minv[r][c] * g[c]).sum::<f64>())
+                    .sum()
+            };
+            let e = Ext {
+                pos: x0 + u * 1e-4,
+                val: qc - qb * qb / (4.0 * qa),
+                kind,
+                var_pos: quad(&gu) * 1e-8,
+                var_val: quad(&gv),
+            };
+            if n_ext > 0 && ext[n_ext - 1].kind == kind {
+                // Two of a kind in a row: noise; keep the more extreme.
+                if (e.val - ext[n_ext - 1].val) * f64::from(kind) > 0.0 {
+                    ext[n_ext - 1] = e;
+                }
+            } else {
+                ext[n_ext] = e;
+                n_ext += 1;
             }
         }
         if n_ext < 2 {
             return None;
         }
         let ext = &ext[..n_ext];
+        let var_r = match noise {
+            Some(n) => n * n,
+            None if rdof > 0.0 => rss / rdof,
+            None => return None,
+        };
         // Adjacent extrema are a quarter wave apart in phase: Δσ = 1/(4g).
-        let span = (ext[n_ext - 1].0 - ext[0].0).abs();
+        let span = (ext[n_ext - 1].pos - ext[0].pos).abs();
         if span <= 0.0 {
             return None;
         }
         let g0 = (n_ext - 1) as f64 / (4.0 * span);
         // Lattice: at a half-wave point 2gσ = m, at a quarter-wave point
-        // 2gσ = m + ½. Which kind is the half-wave point follows the sign.
-        let mut g_sum = 0.0;
+        // 2gσ = m + ½; which kind is the half-wave point follows the sign.
+        let (mut wsum, mut gsum) = (0.0, 0.0);
         for e in ext {
-            let half_wave = f64::from(e.2) * prep.sign > 0.0;
-            let off = if half_wave { 0.0 } else { 0.5 };
-            let m = (2.0 * g0 * e.0 - off).round().max(0.0);
-            g_sum += (m + off) / (2.0 * e.0);
+            let off = if f64::from(e.kind) * prep.sign > 0.0 {
+                0.0
+            } else {
+                0.5
+            };
+            let m = round(2.0 * g0 * e.pos - off).max(0.0);
+            let gi = (m + off) / (2.0 * e.pos);
+            let var_g = gi * gi * (e.var_pos * var_r).max(1e-30) / (e.pos * e.pos);
+            wsum += 1.0 / var_g;
+            gsum += gi / var_g;
         }
-        let g = g_sum / n_ext as f64;
+        let g = gsum / wsum;
+        let var_g = 1.0 / wsum;
+        // Every extremum must sit on the same lattice: one that implies a
+        // different order means the spacing estimate was off.
+        for e in ext {
+            let off = if f64::from(e.kind) * prep.sign > 0.0 {
+                0.0
+            } else {
+                0.5
+            };
+            let m = round(2.0 * g * e.pos - off);
+            if m != round(2.0 * g0 * e.pos - off) || m < 0.0 {
+                return None;
+            }
+            let phase_err = 2.0 * g * e.pos - off - m;
+            if phase_err.abs() > 0.08 {
+                return None;
+            }
+        }
         // Adjacent extrema must agree on the order they imply.
-        if ((g - g0) / g0).abs() > 0.25 {
+        if !g.is_finite() || ((g - g0) / g0).abs() > 0.25 {
             return None;
         }
-        let theta = match theta_known {
-            Some(t) => t,
+        let (theta, sigma_theta) = match theta_known {
+            Some(t) => (t, 0.0),
             None => {
                 let (mut hw, mut qw, mut nh, mut nq) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+                let mut var_hw = 0.0;
                 for e in ext {
-                    if f64::from(e.2) * prep.sign > 0.0 {
-                        hw += e.1;
+                    if f64::from(e.kind) * prep.sign > 0.0 {
+                        hw += e.val;
+                        var_hw += e.var_val * var_r;
                         nh += 1.0;
                     } else {
-                        qw += e.1;
+                        qw += e.val;
                         nq += 1.0;
                     }
                 }
-                angle_start(
-                    &prep.table,
-                    (nh > 0.0).then(|| hw / nh),
-                    (nq > 0.0).then(|| qw / nq),
-                )
+                let (lo, hi) = self.theta_range;
+                let half = (nh > 0.0).then(|| hw / nh);
+                let quarter = (nq > 0.0).then(|| qw / nq);
+                let exact = match (prep.closed_form, half) {
+                    (Some((n1, n3, pol)), Some(h)) => {
+                        let sols = half_wave_angles(h, n1, n3, pol);
+                        match sols {
+                            [Some(a), None] | [None, Some(a)] => Some(a),
+                            // Both sides of Brewster's angle: the quarter-wave
+                            // level (through the table) decides.
+                            [Some(a), Some(b)] => {
+                                let t = angle_start(&prep.table, half, quarter);
+                                Some(if (a - t).abs() <= (b - t).abs() { a } else { b })
+                            }
+                            // Below the normal-incidence level: noise on a
+                            // near-normal pixel.
+                            [None, None] if h < prep.table[0].1 && pol == Polarization::S => {
+                                Some(lo)
+                            }
+                            [None, None] => None,
+                        }
+                    }
+                    _ => None,
+                };
+                let t = match exact {
+                    Some(a) => a.clamp(lo, hi),
+                    None => angle_start(&prep.table, half, quarter),
+                };
+                // σ_R / |dR/dθ| of the half-wave level (Eq. 10's slope).
+                let slope = table_slope(&prep.table, t);
+                let sig = if nh > 0.0 && slope != 0.0 {
+                    (var_hw / (nh * nh)).sqrt() / slope.abs()
+                } else {
+                    f64::INFINITY
+                };
+                (t, sig.min((hi - lo) / 12f64.sqrt()))
             }
         };
         let q2 = prep.model.q2_mid(theta);
@@ -1058,24 +1382,23 @@ impl Solver {
         if !(d.is_finite() && d >= 0.0 && d <= self.d_max) {
             return None;
         }
-        // σ from the spread of the per-extremum lattice values.
-        let mut var = 0.0;
-        for e in ext {
-            let half_wave = f64::from(e.2) * prep.sign > 0.0;
-            let off = if half_wave { 0.0 } else { 0.5 };
-            let m = (2.0 * g * e.0 - off).round();
-            let gi = (m + off) / (2.0 * e.0);
-            var += (gi - g) * (gi - g);
-        }
-        let sigma_g = (var / (n_ext as f64 - 1.0).max(1.0)).sqrt().max(0.5);
+        // d = g/q2(θ): the angle's error moves d through q2.
+        let n1 = prep.model.n1_mid();
+        let dq2 = n1 * n1 * theta.sin() * theta.cos() / q2;
+        let sigma_d = ((var_g / (q2 * q2)) + (d * dq2 / q2 * sigma_theta).powi(2)).sqrt();
+        let reason = if theta_known.is_none() && sigma_theta.to_degrees() > ANGLE_SIGMA_LIMIT_DEG {
+            Reason::AngleNotIdentifiable
+        } else {
+            Reason::Ok
+        };
         Some(PixelEstimate {
             thickness_nm: d,
             n_film: prep.model.n2_mid(),
             theta_deg: theta.to_degrees(),
-            sigma_thickness_nm: sigma_g / q2,
-            sigma_theta_deg: if theta_known.is_some() { 0.0 } else { f64::NAN },
-            residual_rms: f64::NAN,
-            reason: Reason::Ok,
+            sigma_thickness_nm: sigma_d,
+            sigma_theta_deg: sigma_theta.to_degrees(),
+            residual_rms: (rss / (5.0 * n_ext as f64)).sqrt(),
+            reason,
         })
     }
 
@@ -1229,8 +1552,8 @@ impl Solver {
                     // Converged once a step is far below the statistical error
                     // (σ_d ~ 0.3 nm, σ_θ ~ 1e-3 rad at the paper's noise) or
                     // the residual no longer moves.
-                    let small = ((nd - d).abs() < 2e-3 && (nt - th).abs() < 2e-6)
-                        || cur_sse - new_sse <= 1e-10 * cur_sse;
+                    let small = ((nd - d).abs() < 5e-3 && (nt - th).abs() < 2e-5)
+                        || cur_sse - new_sse <= 1e-8 * cur_sse;
                     d = nd;
                     th = nt;
                     cur_sse = new_sse;
@@ -1269,13 +1592,21 @@ fn angle_start(table: &[(f64, f64, f64)], half: Option<f64>, quarter: Option<f64
     let cost = |e: &(f64, f64, f64)| {
         half.map_or(0.0, |h| (e.1 - h).powi(2)) + quarter.map_or(0.0, |q| (e.2 - q).powi(2))
     };
-    let Some((i, _)) = table
-        .iter()
-        .enumerate()
-        .filter(|(_, e)| e.1.is_finite() && e.2.is_finite())
-        .min_by(|a, b| cost(a.1).total_cmp(&cost(b.1)))
-    else {
+    // Coarse to fine: every fourth entry, then the neighbourhood of the best
+    // (the cost is smooth on the 0.5° table, so its minimum is not skipped).
+    let best_in = |range: std::ops::Range<usize>, step: usize| {
+        range
+            .step_by(step)
+            .filter(|&i| table[i].1.is_finite() && table[i].2.is_finite())
+            .min_by(|&a, &b| cost(&table[a]).total_cmp(&cost(&table[b])))
+    };
+    let Some(coarse) = best_in(0..table.len(), 4) else {
         return 0.0;
+    };
+    let lo = coarse.saturating_sub(4);
+    let hi = (coarse + 5).min(table.len());
+    let Some(i) = best_in(lo..hi, 1) else {
+        return table[coarse].0;
     };
     if i == 0 || i + 1 >= table.len() {
         return table[i].0;
@@ -1316,6 +1647,48 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
         s += x * y;
     }
     s
+}
+
+/// Round to nearest for |x| < 2⁵¹ without a libm call.
+#[inline(always)]
+fn round(x: f64) -> f64 {
+    const SHIFT: f64 = 6_755_399_441_055_744.0;
+    if x.abs() < 4.0e15 {
+        (x + SHIFT) - SHIFT
+    } else {
+        x
+    }
+}
+
+/// Slope dR/dθ of the half-wave envelope at `theta`, from the table.
+fn table_slope(table: &[(f64, f64, f64)], theta: f64) -> f64 {
+    let i = table
+        .partition_point(|e| e.0 < theta)
+        .clamp(1, table.len().saturating_sub(1).max(1));
+    if table.len() < 2 {
+        return 0.0;
+    }
+    let (a, b) = (table[i - 1], table[i]);
+    (b.1 - a.1) / (b.0 - a.0)
+}
+
+/// Inverse of a 3×3 matrix by cofactors; `None` if singular.
+fn inv3(m: [[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
+    let c =
+        |r0: usize, r1: usize, c0: usize, c1: usize| m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0];
+    let cof = [
+        [c(1, 2, 1, 2), -c(1, 2, 0, 2), c(1, 2, 0, 1)],
+        [-c(0, 2, 1, 2), c(0, 2, 0, 2), -c(0, 2, 0, 1)],
+        [c(0, 1, 1, 2), -c(0, 1, 0, 2), c(0, 1, 0, 1)],
+    ];
+    let det = m[0][0] * cof[0][0] + m[0][1] * cof[0][1] + m[0][2] * cof[0][2];
+    if !det.is_finite() || det.abs() < 1e-300 {
+        return None;
+    }
+    // inverse = adjugate / det, adjugate = cofactor transposed.
+    Some(std::array::from_fn(|r| {
+        std::array::from_fn(|c| cof[c][r] / det)
+    }))
 }
 
 /// Solve a 3×3 linear system by Cramer's rule; `None` if singular.

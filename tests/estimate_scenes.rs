@@ -1,0 +1,420 @@
+//! The estimation core on synthetic scenes: the paper's cylinder and the
+//! cases the paper page lists as hard (thin films, bare substrate, the index
+//! twin, films denser than the substrate, p and unpolarised light, an
+//! absorbing substrate, extreme angles, bad pixels).
+//!
+//! Tolerances come from the statistics, not from a run: the Cramér–Rao
+//! bound for a pixel's thickness on the paper's scene is 0.44 nm with the
+//! angle unknown and 0.28 nm with it known, so a mean absolute error of an
+//! efficient estimator is ~0.8 of those (0.35 / 0.22 nm); the issue's
+//! targets (0.5 / 0.3 nm) leave room for the angle-poor rows. A fringe-order
+//! error is a jump of λ/(2 n2 cos θ2) ≈ 150–250 nm, so any bound of a few nm
+//! on the worst pixel proves there is none.
+
+use irid::estimate::{Mode, ParamMaps, Reason, Solver};
+use irid::scene::{AngleKnowledge, FilmKnowledge, Scene};
+use irid::synth::{compare, scene_bands, Accuracy, Renderer, TruthMaps};
+use std::path::Path;
+
+fn scene(text: &str) -> Scene {
+    Scene::from_toml(text, "<test>", Path::new(".")).expect("test scene parses")
+}
+
+fn fit(
+    scene: &Scene,
+    mode: Mode,
+) -> (
+    ParamMaps,
+    TruthMaps,
+    Accuracy,
+    irid::estimate::IndexEstimate,
+) {
+    let bands = scene_bands(scene).unwrap();
+    let r = Renderer::new(scene).unwrap();
+    let cube = r.render_cube(&bands).unwrap();
+    let truth = r.truth_maps(&bands);
+    let mut solver = Solver::new(scene, &bands, mode).unwrap();
+    let maps = solver.fit_cube(&cube).unwrap();
+    let idx = solver.film_index().unwrap().clone();
+    let acc = compare(&maps, &truth);
+    (maps, truth, acc, idx)
+}
+
+fn with_known_angle(mut s: Scene) -> Scene {
+    let t = s.truth.clone().unwrap();
+    let deg = (0..t.height)
+        .flat_map(|y| (0..t.width).map(move |x| (x, y)))
+        .map(|(x, y)| t.angle_deg.at(x, y, t.width, t.height) as f32)
+        .collect();
+    s.angle = AngleKnowledge::Map {
+        width: t.width,
+        height: t.height,
+        deg,
+    };
+    s
+}
+
+fn all_finite_or_flagged(maps: &ParamMaps) {
+    for i in 0..maps.width * maps.height {
+        if maps.valid[i] > 0.5 {
+            for (name, ch) in maps.channels() {
+                assert!(ch[i].is_finite(), "valid pixel {i} has non-finite {name}");
+            }
+            assert!(maps.sigma_thickness_nm[i] >= 0.0);
+        } else {
+            assert!(
+                maps.thickness_nm[i].is_nan(),
+                "invalid pixel {i} holds a thickness"
+            );
+            assert!(maps.reason[i] > 0.0, "invalid pixel {i} has no reason");
+        }
+    }
+}
+
+#[test]
+fn paper_cylinder_reaches_the_statistical_limit_with_the_angle_unknown() {
+    let s = Scene::paper_cylinder();
+    for mode in [Mode::Balanced, Mode::Accurate] {
+        let (maps, truth, acc, idx) = fit(&s, mode);
+        all_finite_or_flagged(&maps);
+        assert!(
+            (idx.n - truth.n_film).abs() < 1e-3,
+            "{mode:?} index {idx:?}"
+        );
+        assert!(idx.estimated && idx.sigma > 0.0 && idx.sigma < 1e-3);
+        // The twin branch near n1·n3/n2 ≈ 1.17 is found and rejected.
+        let twin = idx.twin.expect("the twin branch is located");
+        assert!((1.08..1.25).contains(&twin), "twin at {twin}");
+        assert!(idx.twin_delta_chi2 > 25.0, "{idx:?}");
+        assert!(acc.valid_fraction > 0.99, "{mode:?} {acc:?}");
+        assert!(acc.thickness_mae_nm <= 0.5, "{mode:?} {acc:?}");
+        assert!(acc.thickness_p99_nm < 2.0, "{mode:?} {acc:?}");
+        assert!(acc.theta_mae_ge20_deg <= 0.2, "{mode:?} {acc:?}");
+        assert!(acc.theta_max_lt20_unflagged_deg <= 1.0, "{mode:?} {acc:?}");
+        assert!(acc.coverage_2sigma >= 0.9, "{mode:?} {acc:?}");
+    }
+}
+
+#[test]
+fn paper_cylinder_with_known_angle_is_sharper() {
+    let s = with_known_angle(Scene::paper_cylinder());
+    let (maps, truth, acc, idx) = fit(&s, Mode::Balanced);
+    all_finite_or_flagged(&maps);
+    assert!((idx.n - truth.n_film).abs() < 1e-3);
+    assert!(acc.thickness_mae_nm <= 0.3, "{acc:?}");
+    assert!(acc.thickness_p99_nm < 2.0, "{acc:?}");
+    assert!(acc.coverage_2sigma >= 0.9, "{acc:?}");
+    // The angle was given: reported as given, with no uncertainty.
+    for i in 0..maps.width * maps.height {
+        assert!((maps.theta_deg[i] - truth.theta_deg[i]).abs() < 1e-3);
+        assert_eq!(maps.sigma_theta_deg[i], 0.0);
+    }
+}
+
+#[test]
+fn fast_mode_beats_the_paper_by_far() {
+    // The paper's own method reaches a mean error of ~45 nm (4.5 nm when
+    // re-implemented faithfully); closed forms on interpolated extrema must
+    // stay within a few nm with no order error.
+    let (maps, _, acc, _) = fit(&Scene::paper_cylinder(), Mode::Fast);
+    all_finite_or_flagged(&maps);
+    assert!(acc.thickness_mae_nm < 2.0, "{acc:?}");
+    assert!(acc.thickness_max_nm < 20.0, "{acc:?}");
+    assert!(acc.coverage_2sigma >= 0.85, "{acc:?}");
+}
+
+#[test]
+fn index_between_grid_steps_is_found_to_a_thousandth() {
+    let text = irid::scene::PAPER_CYLINDER.replace("film_n = 1.37", "film_n = 1.3737");
+    let (_, _, _, idx) = fit(&scene(&text), Mode::Balanced);
+    assert!((idx.n - 1.3737).abs() < 1e-3, "{idx:?}");
+}
+
+#[test]
+fn a_known_index_is_never_re_estimated() {
+    let text = irid::scene::PAPER_CYLINDER.replace("search = [1.0, 1.6]", "n = 1.37");
+    let s = scene(&text);
+    assert!(matches!(s.film, FilmKnowledge::Known(_)));
+    let (maps, _, acc, idx) = fit(&s, Mode::Balanced);
+    assert!(!idx.estimated && idx.sigma == 0.0 && idx.n == 1.37);
+    assert!(maps.meta.n_film == 1.37 && !maps.meta.n_film_estimated);
+    assert!(acc.thickness_mae_nm <= 0.5, "{acc:?}");
+}
+
+const THIN: &str = r#"
+[substrate]
+n = 1.60
+[film]
+n = 1.37
+[angle]
+deg = 30.0
+[light]
+polarization = "s"
+[bands]
+start_nm = 400
+stop_nm = 700
+step_nm = 10
+fwhm_nm = 0
+[truth]
+width = 41
+height = 2
+thickness_nm = { linear_x = [0.0, 200.0] }
+noise_sigma = 0.001
+seed = 7
+"#;
+
+#[test]
+fn thin_films_keep_their_order_or_are_flagged_and_bare_substrate_is_zero() {
+    let unknown_angle = THIN
+        .replace("deg = 30.0", "search_deg = [0.0, 80.0]")
+        .replace("seed = 7", "seed = 7\nangle_deg = { constant = 30.0 }");
+    for (mode, text) in [
+        (Mode::Balanced, THIN.to_string()),
+        (Mode::Accurate, THIN.to_string()),
+        (Mode::Accurate, unknown_angle),
+    ] {
+        let (maps, truth, _, _) = fit(&scene(&text), mode);
+        all_finite_or_flagged(&maps);
+        let mut valid = 0;
+        for i in 0..maps.width * maps.height {
+            if maps.valid[i] < 0.5 {
+                continue;
+            }
+            valid += 1;
+            let e = (maps.thickness_nm[i] - truth.thickness_nm[i]).abs();
+            // Below the first fringe the level alone fixes d: errors are
+            // larger than on fringes but never an order (≥ 150 nm).
+            assert!(
+                e < 5.0 + 4.0 * maps.sigma_thickness_nm[i],
+                "{mode:?} pixel {i}: truth {} est {} σ {}",
+                truth.thickness_nm[i],
+                maps.thickness_nm[i],
+                maps.sigma_thickness_nm[i]
+            );
+        }
+        assert!(
+            valid as f64 > 0.9 * (maps.width * maps.height) as f64,
+            "{mode:?}: {valid}"
+        );
+        // d = 0 is reported as a bare substrate, not a spurious fringe.
+        let d0 = maps.thickness_nm[0];
+        assert!(
+            maps.valid[0] > 0.5 && d0.abs() < 3.0,
+            "bare substrate read as {d0} nm"
+        );
+    }
+}
+
+#[test]
+fn unresolvable_twin_is_reported_and_a_prior_decides() {
+    // At normal incidence the twin n1·n3/n2 is exact: no data can separate
+    // the branches, so the solver must say so.
+    let text = r#"
+[substrate]
+n = 1.60
+[film]
+search = [1.05, 1.58]
+[angle]
+deg = 0.0
+[bands]
+start_nm = 400
+stop_nm = 700
+step_nm = 10
+fwhm_nm = 0
+[truth]
+width = 40
+height = 4
+film_n = 1.37
+thickness_nm = { linear_x = [420.0, 560.0] }
+noise_sigma = 0.001
+seed = 3
+"#;
+    let (_, _, _, idx) = fit(&scene(text), Mode::Balanced);
+    let twin = 1.6 / 1.37;
+    let found = [Some(idx.n), idx.twin];
+    assert!(
+        found.iter().flatten().any(|n| (n - 1.37).abs() < 2e-3),
+        "{idx:?}"
+    );
+    assert!(
+        found.iter().flatten().any(|n| (n - twin).abs() < 5e-3),
+        "{idx:?}"
+    );
+    assert!(
+        idx.twin_delta_chi2 < 9.0 && idx.note.contains("AMBIGUOUS"),
+        "{idx:?}"
+    );
+    let with_prior = text.replace(
+        "search = [1.05, 1.58]",
+        "search = [1.05, 1.58]\nprior = 1.35",
+    );
+    let (_, _, _, idx) = fit(&scene(&with_prior), Mode::Balanced);
+    assert!((idx.n - 1.37).abs() < 2e-3, "{idx:?}");
+    assert!(idx.note.contains("prior"), "{idx:?}");
+}
+
+#[test]
+fn film_denser_than_substrate_has_valleys_at_half_wave_and_still_fits() {
+    let text = r#"
+[substrate]
+n = 1.50
+[film]
+search = [1.55, 2.6]
+[light]
+polarization = "s"
+[bands]
+start_nm = 400
+stop_nm = 700
+step_nm = 10
+fwhm_nm = 0
+[truth]
+width = 40
+height = 8
+film_n = 2.1
+thickness_nm = { linear_x = [250.0, 400.0] }
+angle_deg = { linear_y = [20.0, 45.0] }
+noise_sigma = 0.001
+seed = 11
+"#;
+    let (maps, truth, acc, idx) = fit(&scene(text), Mode::Accurate);
+    all_finite_or_flagged(&maps);
+    assert!((idx.n - truth.n_film).abs() < 1e-3, "{idx:?}");
+    assert!(
+        acc.valid_fraction > 0.95 && acc.thickness_mae_nm < 1.0,
+        "{acc:?}"
+    );
+    assert!(acc.thickness_max_nm < 10.0, "{acc:?}");
+}
+
+#[test]
+fn p_and_unpolarised_light_and_a_dispersive_known_film() {
+    for pol in ["p", "u"] {
+        let text = format!(
+            r#"
+[substrate]
+material = "SiO2-Malitson"
+[film]
+material = "MgF2-Dodge-o"
+[light]
+polarization = "{pol}"
+[bands]
+start_nm = 420
+stop_nm = 700
+step_nm = 10
+fwhm_nm = 0
+[truth]
+width = 30
+height = 6
+thickness_nm = {{ linear_x = [300.0, 700.0] }}
+angle_deg = {{ linear_y = [25.0, 50.0] }}
+noise_sigma = 0.0005
+seed = 5
+"#
+        );
+        let (maps, _, acc, idx) = fit(&scene(&text), Mode::Accurate);
+        all_finite_or_flagged(&maps);
+        assert!(!idx.estimated);
+        // MgF2 on silica reflects weakly: fringes of ~0.005, so the error
+        // budget is a few times the paper scene's.
+        assert!(acc.valid_fraction > 0.9, "{pol}: {acc:?}");
+        assert!(acc.thickness_max_nm < 15.0, "{pol}: {acc:?}");
+        assert!(acc.coverage_2sigma > 0.85, "{pol}: {acc:?}");
+    }
+}
+
+#[test]
+fn absorbing_substrate_takes_the_complex_path() {
+    let text = r#"
+[substrate]
+material = "Si-Green-2008"
+[film]
+n = 1.46
+[angle]
+deg = 20.0
+[bands]
+start_nm = 400
+stop_nm = 700
+step_nm = 10
+fwhm_nm = 0
+[truth]
+width = 20
+height = 2
+thickness_nm = { linear_x = [100.0, 900.0] }
+noise_sigma = 0.001
+seed = 9
+"#;
+    let (maps, _, acc, _) = fit(&scene(text), Mode::Balanced);
+    all_finite_or_flagged(&maps);
+    assert!(acc.valid_fraction > 0.9, "{acc:?}");
+    assert!(acc.thickness_max_nm < 3.0, "{acc:?}");
+}
+
+#[test]
+fn extremes_give_finite_or_flagged_outputs() {
+    // Grazing incidence, films matching an adjacent medium, total internal
+    // reflection in the film, Brewster's angle for p.
+    let cases = [
+        ("1.0", "1.37", "1.6", "s", "[80.0, 89.0]"),
+        ("1.0", "1.6", "1.6", "s", "[10.0, 40.0]"),
+        ("1.0", "1.0001", "1.6", "s", "[10.0, 40.0]"),
+        ("1.5", "1.0", "1.5", "s", "[30.0, 60.0]"),
+        ("1.0", "1.37", "1.6", "p", "[50.0, 65.0]"),
+    ];
+    for (n1, n2, n3, pol, ang) in cases {
+        let text = format!(
+            r#"
+[ambient]
+n = {n1}
+[substrate]
+n = {n3}
+[film]
+n = {n2}
+[light]
+polarization = "{pol}"
+[bands]
+start_nm = 400
+stop_nm = 700
+step_nm = 10
+fwhm_nm = 0
+[truth]
+width = 12
+height = 6
+thickness_nm = {{ linear_x = [0.0, 1500.0] }}
+angle_deg = {{ linear_y = {ang} }}
+noise_sigma = 0.001
+seed = 1
+"#
+        );
+        for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
+            let (maps, _, _, _) = fit(&scene(&text), mode);
+            all_finite_or_flagged(&maps);
+        }
+    }
+}
+
+#[test]
+fn bad_pixels_are_flagged_with_a_reason_and_missing_bands_tolerated() {
+    let s = Scene::paper_cylinder();
+    let bands = scene_bands(&s).unwrap();
+    let r = Renderer::new(&s).unwrap();
+    let mut cube = r.render_cube(&bands).unwrap();
+    let truth = r.truth_maps(&bands);
+    let n = cube.plane_len();
+    // Pixel 0: every band NaN. Pixel 1: one band missing. Pixel 2: a
+    // reflectance of 7. Pixel 3: one infinite sample (treated as missing).
+    for b in 0..bands.len() {
+        cube.data[b * n] = f32::NAN;
+    }
+    cube.data[5 * n + 1] = f32::NAN;
+    cube.data[3 * n + 2] = 7.0;
+    cube.data[3 * n + 3] = f32::INFINITY;
+    let mut solver = Solver::new(&s, &bands, Mode::Balanced).unwrap();
+    let maps = solver.fit_cube(&cube).unwrap();
+    all_finite_or_flagged(&maps);
+    assert_eq!(maps.get(0, 0).reason, Reason::NonFinite);
+    assert!(maps.get(1, 0).is_valid());
+    assert!((maps.thickness_nm[1] - truth.thickness_nm[1]).abs() < 3.0);
+    assert_eq!(maps.get(2, 0).reason, Reason::OutOfModel);
+    assert!(maps.get(3, 0).is_valid());
+    assert!((maps.thickness_nm[3] - truth.thickness_nm[3]).abs() < 3.0);
+}
