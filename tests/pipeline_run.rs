@@ -30,7 +30,8 @@ fn maps_match_the_truth_threaded_in_any_band_order() {
         );
         for (s, m) in sink.summaries.iter().zip(&sink.maps) {
             assert_eq!(s.missing_bands, 0);
-            let (mean, _max, valid) = thickness_error(m, &r.truth);
+            let (mean, max, valid) = thickness_error(m, &r.truth);
+            eprintln!("{order} sweep {}: valid {valid:.3}, mean |Δd| {mean:.3} nm, max {max:.2} nm, n {:.5}", s.sweep, s.n_film);
             assert!(valid > 0.95, "{order}: valid {valid}");
             assert!(
                 mean < MEAN_ERR_NM,

@@ -492,7 +492,7 @@ impl Sequencer {
                 self.missing_recent.remove(0);
             }
             self.missing_recent.push(gap);
-            if !self.abandoned_through.is_some_and(|a| sweep <= a) {
+            if self.abandoned_through.is_none_or(|a| sweep > a) {
                 missing(Missing { sweep, band });
             }
         }
