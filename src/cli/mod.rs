@@ -1,5 +1,6 @@
-//! Command-line front ends: `irid fit`, `irid synth`, `irid model`,
-//! `irid lctf`.
+//! Command-line front ends: `irid run` (the live pipeline; the default, so
+//! `irid` alone runs the demo), `irid calibrate`, `irid fit`, `irid synth`,
+//! `irid model`, `irid lctf`.
 //!
 //! This layer reads the clock (to report speed), parses arguments, picks
 //! files and thread pools, and turns every error into one line on stderr
@@ -7,10 +8,12 @@
 //! errors. To add a subcommand, add a module with an `Args` struct and a
 //! `run`, and a variant to [`Command`].
 
+pub mod calibrate;
 pub mod common;
 pub mod fit;
 pub mod lctf;
 pub mod model;
+pub mod run;
 pub mod synth;
 
 use clap::{Parser, Subcommand};
@@ -20,14 +23,19 @@ use std::process::ExitCode;
 #[derive(Debug, Parser)]
 #[command(name = "irid", version, about, propagate_version = true)]
 pub struct Cli {
-    /// What to do.
+    /// What to do (default: `run`, the live demo).
     #[command(subcommand)]
-    pub command: Command,
+    pub command: Option<Command>,
 }
 
 /// The subcommands.
 #[derive(Debug, Subcommand)]
 pub enum Command {
+    /// Live thickness maps from a camera behind a tunable filter (with no
+    /// `--config`: the demo on a synthetic camera and an emulated filter).
+    Run(run::RunArgs),
+    /// Capture dark and white references per band.
+    Calibrate(calibrate::CalibrateArgs),
     /// Fit a spectral cube (ENVI) and write parameter maps (OpenEXR).
     Fit(fit::FitArgs),
     /// Render a synthetic ENVI cube from a scene, with its truth as EXR.
@@ -41,10 +49,13 @@ pub enum Command {
 /// Run a parsed command line.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
-        Command::Fit(a) => fit::run(&a),
-        Command::Synth(a) => synth::run(&a),
-        Command::Model(a) => model::run(&a),
-        Command::Lctf(a) => lctf::run(&a),
+        None => run::run(&run::RunArgs::defaults()),
+        Some(Command::Run(a)) => run::run(&a),
+        Some(Command::Calibrate(a)) => calibrate::run(&a),
+        Some(Command::Fit(a)) => fit::run(&a),
+        Some(Command::Synth(a)) => synth::run(&a),
+        Some(Command::Model(a)) => model::run(&a),
+        Some(Command::Lctf(a)) => lctf::run(&a),
     }
 }
 

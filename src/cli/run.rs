@@ -1,0 +1,699 @@
+//! `irid run`: live thickness maps.
+//!
+//! With `--config line.toml`: real hardware (a V4L2 camera, a VariSpec
+//! controller on a serial port, a stored calibration). Without: the demo —
+//! a synthetic camera looking at the scene (default: the paper's cylinder)
+//! through the emulated VariSpec firmware on a pseudo-terminal, calibrated
+//! automatically at start (dark: no light; white: a reference target).
+//!
+//! Per sweep: `OUT/sweep-NNNNNN.exr` and one summary line (`--json`: one
+//! JSON object per line). Ctrl-C abandons the sweep in progress, flushes
+//! the finished ones and exits 0.
+
+use crate::device::camera::synthetic::{FilterView, SensorModel, SyntheticCamera, SyntheticConfig};
+use crate::device::camera::{FrameSource, PixelFormat, Target};
+use crate::estimate::{Mode, ParamMaps};
+use crate::optics::band::Band;
+use crate::pipeline::calibration::{
+    capture_reference, CalExpect, CalMeta, Calibration, Calibrator, CapturePlan,
+};
+use crate::pipeline::output::{sweep_path, write_map, SweepSummary};
+use crate::pipeline::profile::ProfileLayer;
+use crate::pipeline::runner::{self, RunConfig, Setup, SweepSink};
+use crate::pipeline::sequencer::{order_for, BandTuner, ControllerTuner, EmulatedTuner, SeqMode};
+use crate::scene::{BandsSpec, Scene, SceneFile};
+use anyhow::{bail, Context};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+
+/// Arguments of `irid run`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct RunArgs {
+    /// Line configuration (camera, controller, bands, calibration, scene);
+    /// without it, run the demo.
+    #[arg(long, value_name = "line.toml")]
+    pub config: Option<PathBuf>,
+    /// Demo scene (default: the paper's cylinder).
+    #[arg(long, value_name = "FILE")]
+    pub scene: Option<PathBuf>,
+    /// Sweeps to run, then exit (0: until Ctrl-C).
+    #[arg(long, default_value_t = 3)]
+    pub sweeps: u64,
+    /// Output directory of the maps.
+    #[arg(long, default_value = "out")]
+    pub out: PathBuf,
+    /// Do not write maps (summaries only).
+    #[arg(long)]
+    pub no_maps: bool,
+    /// One JSON object per sweep on stdout.
+    #[arg(long)]
+    pub json: bool,
+    /// Solver mode.
+    #[arg(long, value_enum, default_value_t = Mode::Balanced)]
+    pub mode: Mode,
+    /// Solver threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Run every stage on one thread (deterministic).
+    #[arg(long)]
+    pub single_thread: bool,
+    /// Demo: image size (the scene's fields stretch to it).
+    #[arg(long, value_name = "WxH")]
+    pub size: Option<String>,
+    /// Band order: ascending, descending, interleaved.
+    #[arg(long, default_value = "ascending")]
+    pub order: String,
+    /// Demo: hardware-triggered pairing (camera triggered by the filter's
+    /// settled output) instead of software stepping.
+    #[arg(long)]
+    pub triggered: bool,
+    /// Demo: the emulated filter in-process instead of the VariSpec
+    /// firmware on a pseudo-terminal.
+    #[arg(long)]
+    pub in_process_filter: bool,
+    /// Demo: the emulated controller's clock runs this many times faster
+    /// than a real unit's.
+    #[arg(long, default_value_t = 5.0)]
+    pub time_scale: f64,
+    /// Demo: let the synthetic camera run as fast as it can instead of at
+    /// its frame rate (sped up by --time-scale); the pipeline will then
+    /// rightly drop sweeps it cannot keep up with.
+    #[arg(long)]
+    pub unpaced: bool,
+    /// Demo: noise seed.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Write a Chrome/Perfetto trace (JSON) of every span.
+    #[arg(long, value_name = "FILE")]
+    pub trace: Option<PathBuf>,
+    /// Print per-stage latency percentiles and throughput at exit.
+    #[arg(long)]
+    pub profile: bool,
+}
+
+#[derive(clap::Parser)]
+struct DefaultsOnly {
+    #[command(flatten)]
+    args: RunArgs,
+}
+
+impl RunArgs {
+    /// The defaults (what `irid` with no subcommand runs).
+    pub fn defaults() -> RunArgs {
+        <DefaultsOnly as clap::Parser>::parse_from(["irid"]).args
+    }
+}
+
+/// `line.toml`: a production line's hardware.
+#[derive(Debug, Clone, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LineConfig {
+    /// Scene file (what is known about the object), relative to line.toml.
+    pub scene: PathBuf,
+    /// Solver mode (overridden by `--mode` when given explicitly).
+    pub mode: Option<String>,
+    /// The camera.
+    pub camera: CameraSection,
+    /// The filter controller.
+    pub filter: FilterSection,
+    /// Bands (default: the scene's `[bands]`).
+    #[serde(default)]
+    pub bands: Option<BandsSpec>,
+    /// Pairing.
+    #[serde(default)]
+    pub sequence: SequenceSection,
+    /// Calibration.
+    pub calibration: CalibrationSection,
+}
+
+/// `[camera]`.
+#[derive(Debug, Clone, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraSection {
+    /// V4L2 device.
+    pub device: String,
+    /// `grey8`, `y10`, `y12`, `y16`.
+    #[serde(default = "default_format")]
+    pub format: String,
+    /// Width (0: the device's).
+    #[serde(default)]
+    pub width: u32,
+    /// Height (0: the device's).
+    #[serde(default)]
+    pub height: u32,
+    /// Exposure, µs.
+    pub exposure_us: u32,
+    /// Analogue gain.
+    pub gain: Option<f32>,
+    /// Driver buffers.
+    #[serde(default = "default_buffers")]
+    pub buffers: u32,
+}
+
+fn default_format() -> String {
+    "y16".into()
+}
+fn default_buffers() -> u32 {
+    4
+}
+
+/// `[filter]`.
+#[derive(Debug, Clone, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FilterSection {
+    /// Serial port.
+    pub port: String,
+    /// Baud rate.
+    #[serde(default = "default_baud")]
+    pub baud: u32,
+    /// Longest wait for the filter to settle, ms.
+    #[serde(default = "default_settle_timeout")]
+    pub settle_timeout_ms: u64,
+}
+
+fn default_baud() -> u32 {
+    9600
+}
+fn default_settle_timeout() -> u64 {
+    1000
+}
+
+/// `[sequence]`.
+#[derive(Debug, Clone, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SequenceSection {
+    /// `stepped` or `triggered`.
+    #[serde(default = "default_seq_mode")]
+    pub mode: SeqMode,
+    /// `ascending`, `descending`, `interleaved`.
+    #[serde(default = "default_order")]
+    pub order: String,
+}
+
+impl Default for SequenceSection {
+    fn default() -> Self {
+        SequenceSection {
+            mode: SeqMode::Stepped,
+            order: default_order(),
+        }
+    }
+}
+
+fn default_seq_mode() -> SeqMode {
+    SeqMode::Stepped
+}
+fn default_order() -> String {
+    "ascending".into()
+}
+
+/// `[calibration]`.
+#[derive(Debug, Clone, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CalibrationSection {
+    /// The `.ircal` file written by `irid calibrate`.
+    pub file: PathBuf,
+    /// Refuse a calibration older than this, hours.
+    #[serde(default = "default_max_age")]
+    pub max_age_h: f64,
+    /// Reflectance of the white reference.
+    #[serde(default = "default_white")]
+    pub white_reflectance: f64,
+}
+
+fn default_max_age() -> f64 {
+    24.0
+}
+fn default_white() -> f64 {
+    0.99
+}
+
+impl LineConfig {
+    /// Read and check `line.toml`.
+    pub fn load(path: &Path) -> anyhow::Result<(LineConfig, PathBuf)> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("cannot read {}", path.display()))?;
+        let cfg: LineConfig =
+            toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        Ok((cfg, path.parent().unwrap_or(Path::new(".")).to_path_buf()))
+    }
+}
+
+/// Seconds since the Unix epoch (the CLI reads the clock; layers below are
+/// passed it).
+pub fn now_unix_s() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs())
+}
+
+/// A camera and a filter, ready to run.
+pub struct Rig {
+    /// The camera.
+    pub source: Box<dyn FrameSource>,
+    /// The filter.
+    pub tuner: Box<dyn BandTuner>,
+    /// Scene knowledge.
+    pub scene: Scene,
+    /// Bands, plane order.
+    pub bands: Vec<Band>,
+    /// Capture order.
+    pub order: Vec<usize>,
+    /// Pairing.
+    pub seq_mode: SeqMode,
+    /// Stored calibration and its limits, for hardware.
+    pub calibration: Option<(PathBuf, f64, f64)>,
+    /// Keeps the emulated controller's pseudo-terminal alive.
+    pub _emulator: Option<lctf_firmware::emu::EmulatorHandle>,
+}
+
+fn parse_size(s: &str) -> anyhow::Result<(usize, usize)> {
+    let (w, h) = s
+        .split_once(['x', 'X'])
+        .context("--size wants WxH, e.g. 1280x1024")?;
+    let (w, h): (usize, usize) = (w.trim().parse()?, h.trim().parse()?);
+    if w == 0 || h == 0 || w * h > 1 << 26 {
+        bail!("--size {s}: out of range");
+    }
+    Ok((w, h))
+}
+
+/// The demo rig: synthetic camera + emulated filter.
+pub fn demo_rig(args: &RunArgs) -> anyhow::Result<Rig> {
+    let (mut file, base): (SceneFile, PathBuf) = match &args.scene {
+        Some(p) => {
+            let text = std::fs::read_to_string(p)
+                .with_context(|| format!("cannot read scene {}", p.display()))?;
+            let f =
+                toml::from_str(&text).map_err(|e| anyhow::anyhow!("scene {}: {e}", p.display()))?;
+            (f, p.parent().unwrap_or(Path::new(".")).to_path_buf())
+        }
+        None => (
+            toml::from_str(crate::scene::PAPER_CYLINDER).expect("embedded scene parses"),
+            PathBuf::from("."),
+        ),
+    };
+    if let Some(s) = &args.size {
+        let (w, h) = parse_size(s)?;
+        let t = file
+            .truth
+            .as_mut()
+            .context("the scene has no [truth] to render")?;
+        // Fields given per row / column are stretched to the new size.
+        use crate::scene::Field;
+        let (ow, oh) = (t.width as f64, t.height as f64);
+        let stretch = |f: &mut Field| match f {
+            Field::Rows([_, s]) => *s *= (oh - 1.0).max(1.0) / (h as f64 - 1.0).max(1.0),
+            Field::Columns([_, s]) => *s *= (ow - 1.0).max(1.0) / (w as f64 - 1.0).max(1.0),
+            _ => {}
+        };
+        stretch(&mut t.thickness_nm);
+        if let Some(a) = t.angle_deg.as_mut() {
+            stretch(a);
+        }
+        t.width = w;
+        t.height = h;
+    }
+    let scene = Scene::resolve(&file, &base).map_err(|e| anyhow::anyhow!("scene: {e}"))?;
+    let bands = scene.bands.clone().context("the scene has no [bands]")?;
+    let nm: Vec<f64> = bands.iter().map(|b| b.center_nm).collect();
+    let order = order_for(&args.order, bands.len(), &nm).with_context(|| {
+        format!(
+            "unknown --order {} (ascending, descending, interleaved)",
+            args.order
+        )
+    })?;
+    let view = FilterView::new();
+    let big = file_pixels(&scene) > 100_000;
+    let mut cfg = SyntheticConfig {
+        sensor: SensorModel::default(),
+        seed: args.seed,
+        // Settled frames of large images come from a per-band cache, so
+        // the camera does not limit the line.
+        noise_cache: usize::from(big),
+        ..Default::default()
+    };
+    let seq_mode = if args.triggered {
+        cfg.trigger_palette = Some(order.clone());
+        SeqMode::Triggered
+    } else {
+        SeqMode::Stepped
+    };
+    let camera =
+        SyntheticCamera::new(&scene, &bands, view.clone(), cfg).context("rendering the scene")?;
+    let (tuner, emulator): (Box<dyn BandTuner>, _) = if args.in_process_filter || args.triggered {
+        let t = EmulatedTuner::new(
+            view,
+            Duration::from_millis(50),
+            Duration::from_millis(2),
+            args.seed,
+        );
+        (Box::new(t), None)
+    } else {
+        let (t, h) = emulated_varispec(view, args.time_scale)?;
+        (Box::new(t), Some(h))
+    };
+    Ok(Rig {
+        source: Box::new(camera),
+        tuner,
+        scene,
+        bands,
+        order,
+        seq_mode,
+        calibration: None,
+        _emulator: emulator,
+    })
+}
+
+fn file_pixels(scene: &Scene) -> usize {
+    scene.truth.as_ref().map_or(0, |t| t.width * t.height)
+}
+
+/// The VariSpec firmware emulated on a pseudo-terminal, driven by the
+/// serial driver, mirrored into `view`.
+pub fn emulated_varispec(
+    view: FilterView,
+    time_scale: f64,
+) -> anyhow::Result<(
+    ControllerTuner<crate::device::filter::VariSpec>,
+    lctf_firmware::emu::EmulatorHandle,
+)> {
+    use crate::device::filter::{FilterController, VariSpec, VariSpecOptions};
+    use lctf_firmware::emu::{spawn_pty, EmuConfig};
+    let scale = lctf_firmware::TimeScale::new(time_scale);
+    let h = spawn_pty(EmuConfig {
+        time_scale: scale,
+        ..EmuConfig::ready()
+    })
+    .context("spawning the emulated filter controller")?;
+    let path = h.path().display().to_string();
+    let mut ctrl = VariSpec::open(&path, VariSpecOptions::default())
+        .with_context(|| format!("opening the emulated controller on {path}"))?;
+    ctrl.ensure_ready(Duration::from_secs(10))
+        .context("initialising the emulated controller")?;
+    Ok((
+        ControllerTuner::new(ctrl, Some(view), time_scale, Duration::from_secs(2)),
+        h,
+    ))
+}
+
+/// The hardware rig of `line.toml`.
+pub fn hardware_rig(path: &Path) -> anyhow::Result<(Rig, LineConfig)> {
+    let (line, base) = LineConfig::load(path)?;
+    let scene = Scene::load(&base.join(&line.scene)).map_err(|e| anyhow::anyhow!("{e}"))?;
+    let bands = match &line.bands {
+        Some(b) => {
+            let mut f = SceneFile::default();
+            f.substrate.n = Some(1.5);
+            f.bands = b.clone();
+            Scene::resolve(&f, &base)
+                .map_err(|e| anyhow::anyhow!("{}: [bands]: {e}", path.display()))?
+                .bands
+                .context("[bands] is empty")?
+        }
+        None => scene
+            .bands
+            .clone()
+            .context("neither line.toml nor the scene gives [bands]")?,
+    };
+    let nm: Vec<f64> = bands.iter().map(|b| b.center_nm).collect();
+    let order = order_for(&line.sequence.order, bands.len(), &nm).with_context(|| {
+        format!(
+            "{}: unknown sequence.order {}",
+            path.display(),
+            line.sequence.order
+        )
+    })?;
+    let source = open_camera(&line.camera)?;
+    let tuner = {
+        use crate::device::filter::{FilterController, VariSpec, VariSpecOptions};
+        let mut ctrl = VariSpec::open(
+            &line.filter.port,
+            VariSpecOptions {
+                baud: line.filter.baud,
+                ..Default::default()
+            },
+        )
+        .with_context(|| format!("opening the filter controller on {}", line.filter.port))?;
+        ctrl.ensure_ready(Duration::from_secs(60))
+            .context("initialising the filter controller")?;
+        if line.sequence.mode == SeqMode::Triggered {
+            let seqnm: Vec<f64> = order.iter().map(|&b| nm[b]).collect();
+            ctrl.define_sequence(&seqnm)
+                .context("loading the band palette")?;
+            ctrl.select_palette(0).context("selecting the first band")?;
+            ctrl.arm_sync(1).context("arming the sync input")?;
+        }
+        ControllerTuner::new(
+            ctrl,
+            None,
+            1.0,
+            Duration::from_millis(line.filter.settle_timeout_ms),
+        )
+    };
+    let cal = (
+        base.join(&line.calibration.file),
+        line.calibration.max_age_h,
+        line.calibration.white_reflectance,
+    );
+    Ok((
+        Rig {
+            source,
+            tuner: Box::new(tuner),
+            scene,
+            bands,
+            order,
+            seq_mode: line.sequence.mode,
+            calibration: Some(cal),
+            _emulator: None,
+        },
+        line,
+    ))
+}
+
+#[cfg(feature = "v4l2")]
+fn open_camera(c: &CameraSection) -> anyhow::Result<Box<dyn FrameSource>> {
+    use crate::device::camera::v4l2::{V4l2Camera, V4l2Config};
+    let format = PixelFormat::parse(&c.format)
+        .with_context(|| format!("camera.format {}: grey8, y10, y12 or y16", c.format))?;
+    let mut cam = V4l2Camera::open(&V4l2Config {
+        path: c.device.clone(),
+        width: c.width,
+        height: c.height,
+        format,
+        exposure_us: c.exposure_us,
+        buffers: c.buffers,
+    })?;
+    if let Some(g) = c.gain {
+        cam.set_gain(g)?;
+    }
+    Ok(Box::new(cam))
+}
+
+#[cfg(not(feature = "v4l2"))]
+fn open_camera(c: &CameraSection) -> anyhow::Result<Box<dyn FrameSource>> {
+    let _ = PixelFormat::parse(&c.format);
+    bail!(
+        "camera {}: this irid was built without V4L2 support; rebuild with `cargo build --release --features v4l2`",
+        c.device
+    )
+}
+
+/// Capture dark and white references with the rig (the synthetic camera
+/// switches its own target; a real one needs a person).
+pub fn capture_calibration(
+    rig: &mut Rig,
+    frames: u32,
+    white_reflectance: f64,
+) -> anyhow::Result<Calibration> {
+    let info = rig.source.info();
+    let nm: Vec<f64> = rig.bands.iter().map(|b| b.center_nm).collect();
+    let mut refs = Vec::new();
+    for (name, target) in [
+        ("dark", Target::Dark),
+        ("white", Target::White(white_reflectance)),
+    ] {
+        if !rig.source.set_target(target)? {
+            eprintln!(
+                "irid: {}; then press Enter",
+                if name == "dark" {
+                    "cap the lens (or close the shutter)"
+                } else {
+                    "place the white reference in view"
+                }
+            );
+            let mut s = String::new();
+            std::io::stdin().read_line(&mut s)?;
+        }
+        let plan = CapturePlan {
+            mode: rig.seq_mode,
+            bands_nm: &nm,
+            order: &rig.order,
+            frames,
+            timeout: Duration::from_secs(2),
+        };
+        let acc = capture_reference(name, rig.source.as_mut(), rig.tuner.as_mut(), &plan)?;
+        refs.push(acc);
+    }
+    rig.source.set_target(Target::Scene)?;
+    let meta = CalMeta {
+        version: 1,
+        width: info.width,
+        height: info.height,
+        bands_nm: nm,
+        exposure_us: info.exposure_us,
+        gain: info.gain,
+        format: info.format,
+        camera_id: info.id,
+        created_unix_s: now_unix_s(),
+        white_reflectance,
+        frames,
+    };
+    // A usable pixel's white stands 1% of full scale above its dark.
+    let min_contrast = f32::from(info.format.max_value()) * 0.01;
+    Ok(Calibration::from_references(
+        meta,
+        &refs[0],
+        &refs[1],
+        min_contrast,
+    ))
+}
+
+struct CliSink {
+    out: Option<PathBuf>,
+    json: bool,
+}
+
+impl SweepSink for CliSink {
+    fn on_sweep(&mut self, s: &SweepSummary, maps: &ParamMaps) -> Result<(), String> {
+        let mut s = s.clone();
+        if let Some(dir) = &self.out {
+            let p = sweep_path(dir, s.sweep);
+            write_map(&p, maps).map_err(|e| e.to_string())?;
+            s.path = Some(p.display().to_string());
+        }
+        if self.json {
+            println!("{}", s.json());
+        } else {
+            println!("{}", s.line());
+        }
+        Ok(())
+    }
+}
+
+static STOP: AtomicBool = AtomicBool::new(false);
+
+/// Run `irid run`.
+pub fn run(args: &RunArgs) -> anyhow::Result<()> {
+    // Tracing: nothing installed unless asked, so spans cost ~1 ns.
+    let profile = args.profile.then(ProfileLayer::new);
+    let mut _chrome_guard = None;
+    if args.trace.is_some() || profile.is_some() {
+        use tracing_subscriber::prelude::*;
+        let chrome = args.trace.as_ref().map(|p| {
+            let (layer, guard) = tracing_chrome::ChromeLayerBuilder::new()
+                .file(p.clone())
+                .include_args(true)
+                .build();
+            _chrome_guard = Some(guard);
+            layer
+        });
+        tracing_subscriber::registry()
+            .with(chrome)
+            .with(profile.clone())
+            .try_init()
+            .context("installing the tracing subscriber")?;
+    }
+    if ctrlc::set_handler(|| STOP.store(true, Ordering::Relaxed)).is_err() {
+        tracing::warn!("Ctrl-C handler not installed");
+    }
+
+    let (mut rig, mode) = match &args.config {
+        Some(p) => {
+            let (rig, line) = hardware_rig(p)?;
+            let mode = match (&line.mode, args.mode) {
+                (Some(m), Mode::Balanced) => <Mode as clap::ValueEnum>::from_str(m, true)
+                    .map_err(|e| anyhow::anyhow!("{}: mode: {e}", p.display()))?,
+                _ => args.mode,
+            };
+            (rig, mode)
+        }
+        None => (demo_rig(args)?, args.mode),
+    };
+    let calibrator = match rig.calibration.clone() {
+        Some((path, max_age_h, _)) => {
+            let cal = Calibration::load(&path)?;
+            cal.check(
+                &path.display().to_string(),
+                &CalExpect {
+                    camera: rig.source.info(),
+                    bands_nm: rig.bands.iter().map(|b| b.center_nm).collect(),
+                    now_unix_s: now_unix_s(),
+                    max_age_s: (max_age_h * 3600.0) as u64,
+                },
+            )?;
+            Calibrator::from_calibration(cal)
+        }
+        None => {
+            if !args.json {
+                eprintln!(
+                    "irid: demo: {} looking at `{}` through {}; calibrating…",
+                    rig.source.info().id,
+                    rig.scene.name,
+                    rig.tuner.describe()
+                );
+            }
+            Calibrator::from_calibration(capture_calibration(&mut rig, 4, 0.99)?)
+        }
+    };
+    let out = if args.no_maps {
+        None
+    } else {
+        std::fs::create_dir_all(&args.out)
+            .with_context(|| format!("creating {}", args.out.display()))?;
+        Some(args.out.clone())
+    };
+    let cfg = RunConfig {
+        sweeps: (args.sweeps > 0).then_some(args.sweeps),
+        mode,
+        threads: args.threads,
+        single_thread: args.single_thread,
+        ..RunConfig::default()
+    };
+    let mut sink = CliSink {
+        out,
+        json: args.json,
+    };
+    let setup = Setup {
+        scene: rig.scene.clone(),
+        bands: rig.bands.clone(),
+        order: rig.order.clone(),
+        seq_mode: rig.seq_mode,
+        calibrator,
+    };
+    let stop: &'static AtomicBool = &STOP;
+    let report = runner::run(
+        rig.source.as_mut(),
+        rig.tuner.as_mut(),
+        setup,
+        &cfg,
+        &mut sink,
+        stop,
+    )?;
+    if !args.json {
+        eprintln!(
+            "irid: {} sweeps mapped, {} dropped; {} frames read, {} discarded while settling, {} lost or refused{}",
+            report.sweeps_completed,
+            report.sweeps_dropped,
+            report.frames_total,
+            report.frames_settling,
+            report.frames_dropped,
+            if report.stopped { "; stopped by Ctrl-C" } else { "" }
+        );
+    }
+    if let Some(p) = profile {
+        eprint!("{}", p.report());
+    }
+    drop(_chrome_guard);
+    Ok(())
+}

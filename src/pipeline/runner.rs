@@ -1,0 +1,760 @@
+//! Running the pipeline: capture → ingest (calibrate + track) → solve →
+//! sink, threaded or on one thread.
+//!
+//! Threads and queues (threaded mode):
+//!
+//! ```text
+//!  capture ──SPSC ring (Packet)──▶ ingest ──bounded(k) SweepBuf──▶ solve ──bounded(k) maps──▶ sink
+//!     ▲ ◀──SPSC ring (free Frame)──┘  ▲ ◀────bounded free SweepBuf─┘  ▲ ◀──bounded free maps──┘
+//! ```
+//!
+//! - The capture thread never blocks on processing: it takes an empty frame
+//!   from a fixed pool (a lock-free `ringbuf` SPSC ring of buffers, sized
+//!   once) and hands the filled frame on through another. When the pool is
+//!   empty and the sequencer wanted the frame, processing is behind: the
+//!   **whole sweep** in progress is abandoned (never a single band, silently),
+//!   the sequencer restarts at the next sweep, and the drop is counted.
+//! - Ingest fills a sweep buffer taken from a bounded pool of sweep buffers;
+//!   if none is free when a sweep begins (the solver is behind), that whole
+//!   sweep is skipped and counted.
+//! - The solver solves a completed sweep's rows in parallel (rayon) and the
+//!   map is complete before the next sweep's: sweeps are solved in order,
+//!   one at a time.
+//! - The sink writes maps in order.
+//!
+//! Single-threaded mode runs the same stages in one loop: the same seed and
+//! configuration give bit-identical maps (only `latency_ms` differs).
+//!
+//! Stopping (Ctrl-C sets the stop flag): capture ends, the sweep in progress
+//! is abandoned, every completed sweep is solved and written, and the run
+//! returns normally.
+
+use super::calibration::Calibrator;
+use super::output::SweepSummary;
+use super::sequencer::{BandTuner, Discard, SeqMode, Sequencer, SequencerError, Verdict};
+use super::tracker::{SweepBuf, TrackError, Tracker};
+use crate::device::camera::{CameraError, Frame, FrameSource};
+use crate::estimate::solver::Scratch;
+use crate::estimate::{EstimateError, Mode, ParamMaps, PixelEstimate, Solver};
+use crate::optics::band::Band;
+use crate::scene::Scene;
+use ringbuf::traits::{Consumer, Producer, Split};
+use ringbuf::HeapRb;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// Errors that end a run.
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    /// The camera failed.
+    #[error("camera: {0}")]
+    Camera(#[from] CameraError),
+    /// The filter or the sequencing failed.
+    #[error("{0}")]
+    Sequencer(#[from] SequencerError),
+    /// The estimator could not be set up.
+    #[error("estimator: {0}")]
+    Estimate(#[from] EstimateError),
+    /// The sink failed (writing a map).
+    #[error("output: {0}")]
+    Sink(String),
+    /// Inconsistent set-up.
+    #[error("pipeline: {0}")]
+    Config(String),
+}
+
+/// Where finished maps go.
+pub trait SweepSink: Send {
+    /// One finished sweep, in order.
+    fn on_sweep(&mut self, summary: &SweepSummary, maps: &ParamMaps) -> Result<(), String>;
+}
+
+/// A sink that keeps everything (tests).
+#[derive(Default)]
+pub struct CollectSink {
+    /// Summaries.
+    pub summaries: Vec<SweepSummary>,
+    /// Maps.
+    pub maps: Vec<ParamMaps>,
+}
+
+impl SweepSink for CollectSink {
+    fn on_sweep(&mut self, summary: &SweepSummary, maps: &ParamMaps) -> Result<(), String> {
+        self.summaries.push(summary.clone());
+        self.maps.push(maps.clone());
+        Ok(())
+    }
+}
+
+/// What to run.
+pub struct Setup {
+    /// The scene (knowledge for the solver).
+    pub scene: Scene,
+    /// Bands, in plane order.
+    pub bands: Vec<Band>,
+    /// Capture order (band indices).
+    pub order: Vec<usize>,
+    /// Stepped or triggered.
+    pub seq_mode: SeqMode,
+    /// Counts → reflectance.
+    pub calibrator: Calibrator,
+}
+
+/// How to run.
+#[derive(Clone, Debug)]
+pub struct RunConfig {
+    /// Sweeps to complete (None: until stopped).
+    pub sweeps: Option<u64>,
+    /// Solver mode.
+    pub mode: Mode,
+    /// Solver threads (None: rayon's default).
+    pub threads: Option<usize>,
+    /// Everything on the calling thread, deterministically.
+    pub single_thread: bool,
+    /// Frame buffers in the capture pool.
+    pub frame_pool: usize,
+    /// Sweep buffers (one filling, the others queued or solving).
+    pub sweep_buffers: usize,
+    /// How long to wait for a frame before giving up.
+    pub frame_timeout: Duration,
+    /// Track per-pixel fringe extrema while bands arrive.
+    pub track_extrema: bool,
+}
+
+impl Default for RunConfig {
+    fn default() -> Self {
+        RunConfig {
+            sweeps: Some(3),
+            mode: Mode::Balanced,
+            threads: None,
+            single_thread: false,
+            frame_pool: 16,
+            sweep_buffers: 3,
+            frame_timeout: Duration::from_secs(2),
+            track_extrema: true,
+        }
+    }
+}
+
+/// What happened in a run.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct RunReport {
+    /// Maps delivered to the sink.
+    pub sweeps_completed: u64,
+    /// Whole sweeps dropped (processing behind, or stopped mid-sweep).
+    pub sweeps_dropped: u64,
+    /// Frames lost, refused, duplicated or stale.
+    pub frames_dropped: u64,
+    /// Frames discarded because the filter was settling.
+    pub frames_settling: u64,
+    /// Frames read from the camera.
+    pub frames_total: u64,
+    /// Whether the run was stopped early.
+    pub stopped: bool,
+}
+
+#[derive(Default)]
+struct Counters {
+    frames_dropped: AtomicU64,
+    sweeps_dropped: AtomicU64,
+    frames_settling: AtomicU64,
+    frames_total: AtomicU64,
+}
+
+/// What capture hands ingest.
+enum Packet {
+    Frame {
+        sweep: u64,
+        band: usize,
+        frame: Frame,
+    },
+    Missing {
+        sweep: u64,
+        band: usize,
+    },
+    Abandoned {
+        sweep: u64,
+    },
+    End,
+}
+
+/// The capture stage: camera + sequencer + filter.
+struct Capture<'a> {
+    source: &'a mut dyn FrameSource,
+    tuner: &'a mut dyn BandTuner,
+    seq: Sequencer,
+    spare: Frame,
+    timeout: Duration,
+    last_seq: Option<u64>,
+    counters: Arc<Counters>,
+    width: u32,
+    height: u32,
+}
+
+enum Step {
+    Continue,
+    Done,
+}
+
+impl Capture<'_> {
+    /// Capture one frame into a pooled buffer (`buf`, or the spare when the
+    /// pool is empty) and emit what it means.
+    fn step(
+        &mut self,
+        buf: Option<Frame>,
+        emit: &mut dyn FnMut(Packet),
+        recycle: &mut dyn FnMut(Frame),
+    ) -> Result<Step, RunError> {
+        if self.seq.finished() {
+            if let Some(b) = buf {
+                recycle(b);
+            }
+            return Ok(Step::Done);
+        }
+        let pooled = buf.is_some();
+        let format = self.spare.meta.format;
+        // An empty Vec does not allocate.
+        let mut frame = buf
+            .unwrap_or_else(|| std::mem::replace(&mut self.spare, Frame::with_size(0, 0, format)));
+        let _span = tracing::info_span!("capture.frame").entered();
+        let got = self.source.next_frame(&mut frame, self.timeout);
+        self.counters.frames_total.fetch_add(1, Ordering::Relaxed);
+        let result = match got {
+            Ok(()) => {
+                let m = frame.meta;
+                // Gaps in the camera's counter are frames lost before us.
+                if let Some(last) = self.last_seq {
+                    if m.seq > last + 1 {
+                        self.counters
+                            .frames_dropped
+                            .fetch_add(m.seq - last - 1, Ordering::Relaxed);
+                    }
+                }
+                self.last_seq = Some(self.last_seq.map_or(m.seq, |l| l.max(m.seq)));
+                let valid =
+                    frame.pixels().is_ok() && (m.width, m.height) == (self.width, self.height);
+                let v = self.seq.on_frame(&m, valid, self.tuner, &mut |x| {
+                    emit(Packet::Missing {
+                        sweep: x.sweep,
+                        band: x.band,
+                    })
+                })?;
+                match v {
+                    Verdict::Accept { sweep, band } if pooled => {
+                        emit(Packet::Frame { sweep, band, frame });
+                        return Ok(Step::Continue);
+                    }
+                    Verdict::Accept { .. } => {
+                        // No buffer: processing is behind. Drop the sweep.
+                        let now = m.timestamp_ns + u64::from(m.exposure_us) * 1000;
+                        let s = self.seq.abandon_sweep(self.tuner, now)?;
+                        tracing::warn!(sweep = s, "frame pool empty: sweep abandoned");
+                        self.counters.frames_dropped.fetch_add(1, Ordering::Relaxed);
+                        emit(Packet::Abandoned { sweep: s });
+                    }
+                    Verdict::Discard(Discard::Settling) => {
+                        self.counters
+                            .frames_settling
+                            .fetch_add(1, Ordering::Relaxed);
+                    }
+                    Verdict::Discard(Discard::Bad | Discard::Stale) => {
+                        self.counters.frames_dropped.fetch_add(1, Ordering::Relaxed);
+                    }
+                    Verdict::Discard(Discard::Abandoned | Discard::Done) => {}
+                }
+                Ok(Step::Continue)
+            }
+            Err(CameraError::BadFrame { seq, message }) => {
+                tracing::warn!(seq, %message, "bad frame");
+                self.counters.frames_dropped.fetch_add(1, Ordering::Relaxed);
+                Ok(Step::Continue)
+            }
+            Err(e) => Err(RunError::Camera(e)),
+        };
+        if pooled {
+            recycle(frame);
+        } else {
+            self.spare = frame;
+        }
+        result
+    }
+}
+
+/// Free sweep buffers.
+trait SweepPool {
+    fn take(&mut self) -> Option<SweepBuf>;
+    fn give(&mut self, b: SweepBuf);
+}
+
+impl SweepPool for Vec<SweepBuf> {
+    fn take(&mut self) -> Option<SweepBuf> {
+        self.pop()
+    }
+    fn give(&mut self, b: SweepBuf) {
+        self.push(b);
+    }
+}
+
+struct ChannelPool {
+    rx: crossbeam_channel::Receiver<SweepBuf>,
+    tx: crossbeam_channel::Sender<SweepBuf>,
+}
+
+impl SweepPool for ChannelPool {
+    fn take(&mut self) -> Option<SweepBuf> {
+        self.rx.try_recv().ok()
+    }
+    fn give(&mut self, b: SweepBuf) {
+        // Bounded by the number of buffers: never full.
+        let _ = self.tx.try_send(b);
+    }
+}
+
+/// The ingest stage: calibration + tracking into sweep buffers.
+struct Ingest {
+    tracker: Tracker,
+    cal: Calibrator,
+    current: Option<SweepBuf>,
+    /// Sweeps at or below this are not wanted any more.
+    floor: Option<u64>,
+    counters: Arc<Counters>,
+}
+
+impl Ingest {
+    fn drop_current(&mut self, pool: &mut dyn SweepPool) {
+        if let Some(b) = self.current.take() {
+            self.counters.sweeps_dropped.fetch_add(1, Ordering::Relaxed);
+            self.floor = Some(b.sweep);
+            pool.give(b);
+        }
+    }
+
+    /// Handle one packet; a completed sweep goes to `done`; a frame buffer
+    /// is returned for recycling.
+    fn on_packet(
+        &mut self,
+        p: Packet,
+        pool: &mut dyn SweepPool,
+        done: &mut dyn FnMut(SweepBuf, Instant),
+    ) -> Option<Frame> {
+        let (sweep, band, frame) = match p {
+            Packet::End => {
+                // An incomplete sweep at the end is abandoned.
+                self.drop_current(pool);
+                return None;
+            }
+            Packet::Abandoned { sweep } => {
+                if self.current.as_ref().is_some_and(|b| b.sweep == sweep) {
+                    self.drop_current(pool);
+                } else {
+                    self.counters.sweeps_dropped.fetch_add(1, Ordering::Relaxed);
+                }
+                self.floor = Some(self.floor.map_or(sweep, |f| f.max(sweep)));
+                return None;
+            }
+            Packet::Missing { sweep, band } => (sweep, band, None),
+            Packet::Frame { sweep, band, frame } => (sweep, band, Some(frame)),
+        };
+        let _span = tracing::info_span!("ingest.frame", sweep, band).entered();
+        let stale = self.floor.is_some_and(|f| sweep <= f)
+            || self.current.as_ref().is_some_and(|b| sweep < b.sweep);
+        if stale {
+            if frame.is_some() {
+                self.counters.frames_dropped.fetch_add(1, Ordering::Relaxed);
+            }
+            return frame;
+        }
+        if self.current.as_ref().is_some_and(|b| b.sweep < sweep) {
+            // A later sweep began before this one completed: abandon it.
+            self.drop_current(pool);
+        }
+        if self.current.is_none() {
+            match pool.take() {
+                Some(mut b) => {
+                    self.tracker.begin(&mut b, sweep);
+                    self.current = Some(b);
+                }
+                None => {
+                    // The solver is behind: skip this whole sweep.
+                    tracing::warn!(sweep, "no free sweep buffer: sweep dropped");
+                    self.counters.sweeps_dropped.fetch_add(1, Ordering::Relaxed);
+                    self.floor = Some(sweep);
+                    if frame.is_some() {
+                        self.counters.frames_dropped.fetch_add(1, Ordering::Relaxed);
+                    }
+                    return frame;
+                }
+            }
+        }
+        let buf = self.current.as_mut().expect("set above");
+        let r: Result<bool, TrackError> = match &frame {
+            Some(f) => self.tracker.ingest(buf, band, f, &self.cal),
+            None => self.tracker.mark_missing(buf, band),
+        };
+        match r {
+            Ok(true) => {
+                let b = self.current.take().expect("set above");
+                done(b, Instant::now());
+            }
+            Ok(false) => {}
+            Err(e) => {
+                tracing::warn!(%e, "frame refused");
+                buf.frames_dropped += 1;
+                self.counters.frames_dropped.fetch_add(1, Ordering::Relaxed);
+            }
+        }
+        frame
+    }
+}
+
+/// The solve stage.
+struct Solve {
+    solver: Solver,
+    scene: Scene,
+    index_tried: bool,
+    estimates: Vec<PixelEstimate>,
+    counters: Arc<Counters>,
+    reported_frames: u64,
+    reported_sweeps: u64,
+}
+
+impl Solve {
+    fn solve(
+        &mut self,
+        buf: &SweepBuf,
+        maps: &mut ParamMaps,
+        pool: Option<&rayon::ThreadPool>,
+    ) -> SweepSummary {
+        let _span = tracing::info_span!("solve.sweep", sweep = buf.sweep).entered();
+        let cube = &buf.cube;
+        if self.solver.film_index().is_none() {
+            let _s = tracing::info_span!("solve.index").entered();
+            match self.solver.estimate_film_index(cube) {
+                Ok(est) => {
+                    if let Err(e) = self.solver.set_film_index(est) {
+                        tracing::warn!(%e, "film index not usable");
+                    }
+                }
+                Err(e) => {
+                    if !self.index_tried {
+                        tracing::warn!(%e, "film index not estimated on this sweep; trying again on the next");
+                    }
+                }
+            }
+            self.index_tried = true;
+        }
+        let w = cube.width;
+        let solver = &self.solver;
+        let run_rows = |est: &mut [PixelEstimate]| {
+            use rayon::prelude::*;
+            est.par_chunks_mut(w.max(1)).enumerate().for_each_init(
+                Scratch::default,
+                |scr, (y, row)| {
+                    solver.solve_row(cube, y, row, scr);
+                },
+            );
+        };
+        match pool {
+            Some(p) => p.install(|| run_rows(&mut self.estimates)),
+            None => {
+                let mut scr = Scratch::default();
+                for (y, row) in self.estimates.chunks_mut(w.max(1)).enumerate() {
+                    solver.solve_row(cube, y, row, &mut scr);
+                }
+            }
+        }
+        for (i, e) in self.estimates.iter().enumerate() {
+            maps.set_index(i, e);
+        }
+        let m = &mut maps.meta;
+        m.mode = self.solver.mode().name().to_string();
+        m.wavelengths_nm.clear();
+        m.wavelengths_nm
+            .extend(cube.bands.iter().map(|b| b.center_nm));
+        m.fwhm_nm.clear();
+        m.fwhm_nm.extend(cube.bands.iter().map(|b| b.fwhm_nm));
+        m.polarization = format!("{:?}", self.scene.polarization);
+        match self.solver.film_index() {
+            Some(ix) => {
+                m.n_film = ix.n;
+                m.n_film_sigma = ix.sigma;
+                m.n_film_estimated = ix.estimated;
+                m.n_film_note.clone_from(&ix.note);
+            }
+            None => {
+                m.n_film = f64::NAN;
+                m.n_film_note = "film index not available".into();
+            }
+        }
+        let mut s = SweepSummary::from_maps(buf.sweep, maps);
+        let fd = self.counters.frames_dropped.load(Ordering::Relaxed);
+        let sd = self.counters.sweeps_dropped.load(Ordering::Relaxed);
+        s.frames_dropped = fd - self.reported_frames;
+        s.sweeps_dropped = sd - self.reported_sweeps;
+        (self.reported_frames, self.reported_sweeps) = (fd, sd);
+        s.missing_bands = buf.missing();
+        s
+    }
+}
+
+/// Run the pipeline until `cfg.sweeps` maps are delivered, the stop flag is
+/// set, or an error occurs. Completed sweeps are always flushed to the sink.
+pub fn run(
+    source: &mut dyn FrameSource,
+    tuner: &mut dyn BandTuner,
+    setup: Setup,
+    cfg: &RunConfig,
+    sink: &mut dyn SweepSink,
+    stop: &AtomicBool,
+) -> Result<RunReport, RunError> {
+    let info = source.info();
+    let (w, h) = (info.width as usize, info.height as usize);
+    if setup.calibrator.plane_len() != w * h {
+        return Err(RunError::Config(format!(
+            "calibration is for {} pixels per frame, the camera delivers {w}×{h}",
+            setup.calibrator.plane_len()
+        )));
+    }
+    let bands_nm: Vec<f64> = setup.bands.iter().map(|b| b.center_nm).collect();
+    let seq = Sequencer::new(setup.seq_mode, bands_nm, setup.order.clone(), cfg.sweeps)?;
+    let solver = Solver::new(&setup.scene, &setup.bands, cfg.mode)?;
+    let counters = Arc::new(Counters::default());
+    let mut capture = Capture {
+        source,
+        tuner,
+        seq,
+        spare: Frame::with_size(info.width, info.height, info.format),
+        timeout: cfg.frame_timeout,
+        last_seq: None,
+        counters: counters.clone(),
+        width: info.width,
+        height: info.height,
+    };
+    let tracker = Tracker::new(w, h, &setup.bands).track_extrema(cfg.track_extrema);
+    let n_sweep_bufs = cfg.sweep_buffers.max(1);
+    let mut sweep_bufs: Vec<SweepBuf> =
+        (0..n_sweep_bufs).map(|_| tracker.new_sweep_buf()).collect();
+    let mut ingest = Ingest {
+        tracker,
+        cal: setup.calibrator,
+        current: None,
+        floor: None,
+        counters: counters.clone(),
+    };
+    let mut solve = Solve {
+        solver,
+        scene: setup.scene,
+        index_tried: false,
+        estimates: vec![PixelEstimate::invalid(crate::estimate::Reason::Masked); w * h],
+        counters: counters.clone(),
+        reported_frames: 0,
+        reported_sweeps: 0,
+    };
+    let mut stopped = false;
+    let mut completed = 0u64;
+
+    if cfg.single_thread {
+        let mut maps = ParamMaps::new(w, h);
+        let mut pool: Vec<Frame> = vec![Frame::with_size(info.width, info.height, info.format)];
+        let mut packets: std::collections::VecDeque<Packet> =
+            std::collections::VecDeque::with_capacity(64);
+        let mut result = Ok(());
+        loop {
+            if stop.load(Ordering::Relaxed) {
+                stopped = true;
+                packets.push_back(Packet::End);
+            } else {
+                match capture.step(pool.pop(), &mut |p| packets.push_back(p), &mut |f| {
+                    pool.push(f)
+                }) {
+                    Ok(Step::Continue) => {}
+                    Ok(Step::Done) => packets.push_back(Packet::End),
+                    Err(e) => {
+                        result = Err(e);
+                        packets.push_back(Packet::End);
+                    }
+                }
+            }
+            let mut ended = false;
+            while let Some(p) = packets.pop_front() {
+                ended |= matches!(p, Packet::End);
+                let mut finished: Option<(SweepBuf, Instant)> = None;
+                let f = ingest.on_packet(p, &mut sweep_bufs, &mut |b, t| finished = Some((b, t)));
+                if let Some(f) = f {
+                    pool.push(f);
+                }
+                if let Some((b, t)) = finished {
+                    let mut s = solve.solve(&b, &mut maps, None);
+                    s.latency_ms = t.elapsed().as_secs_f64() * 1e3;
+                    let _span = tracing::info_span!("write.sweep", sweep = b.sweep).entered();
+                    sink.on_sweep(&s, &maps).map_err(RunError::Sink)?;
+                    completed += 1;
+                    sweep_bufs.push(b);
+                }
+            }
+            if ended {
+                break;
+            }
+        }
+        result?;
+    } else {
+        let rayon_pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(cfg.threads.unwrap_or(0))
+            .thread_name(|i| format!("irid-solve-{i}"))
+            .build()
+            .map_err(|e| RunError::Config(format!("solver thread pool: {e}")))?;
+        let n_frames = cfg.frame_pool.max(2);
+        let (mut free_prod, mut free_cons) = HeapRb::<Frame>::new(n_frames).split();
+        for _ in 0..n_frames {
+            let _ = free_prod.try_push(Frame::with_size(info.width, info.height, info.format));
+        }
+        // Room for every pooled frame plus markers.
+        let (mut pkt_prod, mut pkt_cons) =
+            HeapRb::<Packet>::new(n_frames + 2 * setup.order.len() + 4).split();
+        let (free_sweep_tx, free_sweep_rx) = crossbeam_channel::bounded::<SweepBuf>(n_sweep_bufs);
+        for b in sweep_bufs.drain(..) {
+            let _ = free_sweep_tx.send(b);
+        }
+        let (done_tx, done_rx) = crossbeam_channel::bounded::<(SweepBuf, Instant)>(n_sweep_bufs);
+        let (maps_tx, maps_rx) = crossbeam_channel::bounded::<(SweepSummary, ParamMaps)>(2);
+        let (free_maps_tx, free_maps_rx) = crossbeam_channel::bounded::<ParamMaps>(2);
+        for _ in 0..2 {
+            let _ = free_maps_tx.send(ParamMaps::new(w, h));
+        }
+        let outcome = std::thread::scope(|sc| -> Result<(), RunError> {
+            let cap = std::thread::Builder::new()
+                .name("irid-capture".into())
+                .spawn_scoped(sc, move || -> Result<bool, RunError> {
+                    let mut stopped = false;
+                    let mut result = Ok(());
+                    // Frames the capture thread did not pass on, reused first.
+                    let mut stash: Vec<Frame> = Vec::with_capacity(n_frames + 1);
+                    loop {
+                        if stop.load(Ordering::Relaxed) {
+                            stopped = true;
+                            break;
+                        }
+                        let mut overflow = false;
+                        let buf = stash.pop().or_else(|| free_cons.try_pop());
+                        let r = capture.step(
+                            buf,
+                            &mut |p| {
+                                if let Err(p) = pkt_prod.try_push(p) {
+                                    // Cannot happen by sizing; never lose silently.
+                                    overflow = true;
+                                    drop(p);
+                                }
+                            },
+                            &mut |f| stash.push(f),
+                        );
+                        if overflow {
+                            capture
+                                .counters
+                                .sweeps_dropped
+                                .fetch_add(1, Ordering::Relaxed);
+                        }
+                        match r {
+                            Ok(Step::Continue) => {}
+                            Ok(Step::Done) => break,
+                            Err(e) => {
+                                result = Err(e);
+                                break;
+                            }
+                        }
+                    }
+                    let mut end = Packet::End;
+                    while let Err(p) = pkt_prod.try_push(end) {
+                        end = p;
+                        std::thread::sleep(Duration::from_micros(200));
+                    }
+                    result.map(|()| stopped)
+                })
+                .map_err(|e| RunError::Config(format!("spawn: {e}")))?;
+            let mut sweep_pool = ChannelPool {
+                rx: free_sweep_rx,
+                tx: free_sweep_tx.clone(),
+            };
+            let ing = std::thread::Builder::new()
+                .name("irid-ingest".into())
+                .spawn_scoped(sc, move || {
+                    let mut idle = 0u32;
+                    loop {
+                        let Some(p) = pkt_cons.try_pop() else {
+                            idle += 1;
+                            if idle < 64 {
+                                std::hint::spin_loop();
+                            } else if idle < 128 {
+                                std::thread::yield_now();
+                            } else {
+                                std::thread::sleep(Duration::from_micros(50));
+                            }
+                            continue;
+                        };
+                        idle = 0;
+                        let end = matches!(p, Packet::End);
+                        let f = ingest.on_packet(p, &mut sweep_pool, &mut |b, t| {
+                            // Bounded by the number of sweep buffers: never blocks.
+                            let _ = done_tx.send((b, t));
+                        });
+                        if let Some(f) = f {
+                            let _ = free_prod.try_push(f);
+                        }
+                        if end {
+                            break;
+                        }
+                    }
+                })
+                .map_err(|e| RunError::Config(format!("spawn: {e}")))?;
+            let sink_thread = std::thread::Builder::new()
+                .name("irid-sink".into())
+                .spawn_scoped(sc, move || -> Result<u64, RunError> {
+                    let mut n = 0;
+                    let mut err = None;
+                    for (s, maps) in maps_rx.iter() {
+                        if err.is_none() {
+                            let _span =
+                                tracing::info_span!("write.sweep", sweep = s.sweep).entered();
+                            match sink.on_sweep(&s, &maps) {
+                                Ok(()) => n += 1,
+                                Err(e) => err = Some(RunError::Sink(e)),
+                            }
+                        }
+                        let _ = free_maps_tx.try_send(maps);
+                    }
+                    err.map_or(Ok(n), Err)
+                })
+                .map_err(|e| RunError::Config(format!("spawn: {e}")))?;
+            // Solve on this thread.
+            for (b, t) in done_rx.iter() {
+                let mut maps = free_maps_rx.recv().unwrap_or_else(|_| ParamMaps::new(w, h));
+                let mut s = solve.solve(&b, &mut maps, Some(&rayon_pool));
+                s.latency_ms = t.elapsed().as_secs_f64() * 1e3;
+                let _ = free_sweep_tx.try_send(b);
+                if maps_tx.send((s, maps)).is_err() {
+                    break;
+                }
+            }
+            drop(maps_tx);
+            let _ = ing.join();
+            let cap_result = cap
+                .join()
+                .unwrap_or_else(|_| Err(RunError::Config("capture thread panicked".into())));
+            let sink_result = sink_thread
+                .join()
+                .unwrap_or_else(|_| Err(RunError::Config("sink thread panicked".into())));
+            completed = sink_result?;
+            stopped = cap_result?;
+            Ok(())
+        });
+        outcome?;
+    }
+    Ok(RunReport {
+        sweeps_completed: completed,
+        sweeps_dropped: counters.sweeps_dropped.load(Ordering::Relaxed),
+        frames_dropped: counters.frames_dropped.load(Ordering::Relaxed),
+        frames_settling: counters.frames_settling.load(Ordering::Relaxed),
+        frames_total: counters.frames_total.load(Ordering::Relaxed),
+        stopped,
+    })
+}
