@@ -336,9 +336,11 @@ impl AngleKnowledge {
     pub fn known_at(&self, x: usize, y: usize) -> Option<f64> {
         match self {
             AngleKnowledge::Uniform(t) => Some(*t),
-            AngleKnowledge::Map { width, deg, .. } => {
-                deg.get(y * width + x).map(|d| f64::from(*d).to_radians())
-            }
+            // A NaN entry leaves that pixel's angle unknown.
+            AngleKnowledge::Map { width, deg, .. } => deg
+                .get(y * width + x)
+                .filter(|d| d.is_finite())
+                .map(|d| f64::from(*d).to_radians()),
             AngleKnowledge::Unknown { .. } => None,
         }
     }

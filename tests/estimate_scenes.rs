@@ -418,3 +418,49 @@ fn bad_pixels_are_flagged_with_a_reason_and_missing_bands_tolerated() {
     assert!(maps.get(3, 0).is_valid());
     assert!((maps.thickness_nm[3] - truth.thickness_nm[3]).abs() < 3.0);
 }
+
+#[test]
+fn a_lost_band_still_gives_the_index_and_the_maps() {
+    // A dropped frame leaves one band NaN in every pixel (the pipeline's
+    // "missing" band): the index search and the pixels go on without it.
+    let s = Scene::paper_cylinder();
+    let bands = scene_bands(&s).unwrap();
+    let r = Renderer::new(&s).unwrap();
+    let mut cube = r.render_cube(&bands).unwrap();
+    let truth = r.truth_maps(&bands);
+    cube.plane_mut(7).fill(f32::NAN);
+    let mut solver = Solver::new(&s, &bands, Mode::Balanced).unwrap();
+    let maps = solver.fit_cube(&cube).unwrap();
+    let idx = solver.film_index().unwrap();
+    assert!((idx.n - truth.n_film).abs() < 1e-3, "{idx:?}");
+    let acc = compare(&maps, &truth);
+    assert!(
+        acc.valid_fraction > 0.99 && acc.thickness_mae_nm < 0.6,
+        "{acc:?}"
+    );
+    assert!(acc.thickness_p99_nm < 2.5, "{acc:?}");
+}
+
+#[test]
+fn nan_entries_of_an_angle_map_leave_those_angles_to_be_estimated() {
+    let mut s = with_known_angle(Scene::paper_cylinder());
+    if let AngleKnowledge::Map { deg, width, .. } = &mut s.angle {
+        // Unknown angle over the bottom row (42.5°, well identifiable).
+        let w = *width;
+        let n = deg.len();
+        deg[n - w..].fill(f32::NAN);
+    }
+    let (maps, truth, acc, _) = fit(&s, Mode::Balanced);
+    all_finite_or_flagged(&maps);
+    assert!(acc.thickness_mae_nm <= 0.5, "{acc:?}");
+    let w = maps.width;
+    let n = maps.width * maps.height;
+    for i in n - w..n {
+        // Estimated, hence with an uncertainty; and close to the truth.
+        assert!(maps.sigma_theta_deg[i] > 0.0);
+        assert!((maps.theta_deg[i] - truth.theta_deg[i]).abs() < 1.0);
+    }
+    for i in 0..n - w {
+        assert_eq!(maps.sigma_theta_deg[i], 0.0);
+    }
+}

@@ -164,3 +164,74 @@ fn falling_behind_drops_whole_sweeps_and_counts_them() {
         assert!(mean < MEAN_ERR_NM);
     }
 }
+
+/// Records the row blocks a run emits, and checks each against the map.
+#[derive(Default)]
+struct RowLog {
+    events: Vec<(u64, std::ops::Range<usize>)>,
+    unfinished_blocks: usize,
+}
+
+impl irid::pipeline::runner::RowSink for RowLog {
+    fn on_rows(
+        &mut self,
+        sweep: u64,
+        rows: std::ops::Range<usize>,
+        maps: &irid::estimate::ParamMaps,
+    ) {
+        // The rows handed over are final: every pixel has been decided
+        // (valid or flagged, never the "masked" placeholder).
+        let w = maps.width;
+        let masked = irid::estimate::Reason::Masked as u8 as f32;
+        if !(rows.start * w..rows.end * w).all(|i| maps.reason[i] != masked) {
+            self.unfinished_blocks += 1;
+        }
+        self.events.push((sweep, rows));
+    }
+}
+
+#[test]
+fn rows_are_emitted_in_order_as_they_finish() {
+    for single_thread in [true, false] {
+        let mut r = rig(5, "ascending", false);
+        let mut sink = CollectSink::default();
+        let mut rows = RowLog::default();
+        let stop = AtomicBool::new(false);
+        r.cam.set_realtime(!single_thread);
+        let mut cfg = config(2, single_thread);
+        cfg.row_block = 3;
+        let setup = r.setup(false);
+        let rep = irid::pipeline::runner::run_with_rows(
+            &mut r.cam,
+            &mut r.tuner,
+            setup,
+            &cfg,
+            &mut sink,
+            &mut rows,
+            &stop,
+        )
+        .unwrap();
+        assert_eq!(rep.sweeps_completed, 2);
+        assert_eq!(rows.unfinished_blocks, 0);
+        assert!(!rows.events.is_empty());
+        let h = sink.maps[0].height;
+        for sweep in 0..2u64 {
+            let ranges: Vec<_> = rows
+                .events
+                .iter()
+                .filter(|e| e.0 == sink.summaries[sweep as usize].sweep)
+                .map(|e| e.1.clone())
+                .collect();
+            // Contiguous, ascending, covering the image, in blocks of 3.
+            assert_eq!(ranges.first().map(|r| r.start), Some(0));
+            assert_eq!(ranges.last().map(|r| r.end), Some(h));
+            for pair in ranges.windows(2) {
+                assert_eq!(pair[0].end, pair[1].start);
+            }
+            assert!(ranges.iter().all(|r| r.len() <= 3 && !r.is_empty()));
+        }
+        // Sweeps are emitted in order: all rows of one before the next.
+        let sweeps: Vec<u64> = rows.events.iter().map(|e| e.0).collect();
+        assert!(sweeps.windows(2).all(|p| p[0] <= p[1]), "{sweeps:?}");
+    }
+}

@@ -604,7 +604,7 @@ impl Solver {
             FilmKnowledge::Known(_) => {
                 let mut est = self.index.clone().expect("known index set at construction");
                 let prep = self.prepared.clone().expect("known index prepared");
-                let (sse, n_obs, n_par) = self.sample_sse(&prep, &sample);
+                let (sse, n_obs, n_par, _) = self.sample_sse(&prep, &sample);
                 est.noise_sigma = (sse / (n_obs - n_par).max(1.0)).sqrt();
                 est
             }
@@ -630,16 +630,23 @@ impl Solver {
         while i < total {
             let (x, y) = (i % cube.width, i / cube.width);
             cube.spectrum_into(x, y, &mut spec);
-            if spec
+            // Missing bands (NaN: a dropped frame) are allowed as in any
+            // pixel's solve, up to a quarter of them.
+            let n_ok = spec.iter().filter(|v| v.is_finite()).count();
+            let in_range = spec
                 .iter()
-                .all(|v| v.is_finite() && (-0.2..=1.2).contains(v))
-            {
-                scratch.spectrum.copy_from_slice(&spec);
-                scratch.weight.fill(1.0);
+                .all(|v| !v.is_finite() || (-0.2..=1.2).contains(v));
+            if in_range && 4 * n_ok >= 3 * nb && !spec.iter().any(|v| v.is_infinite()) {
+                for (k, &v) in spec.iter().enumerate() {
+                    let ok = v.is_finite();
+                    scratch.spectrum[k] = if ok { v } else { 0.0 };
+                    scratch.weight[k] = if ok { 1.0 } else { 0.0 };
+                }
+                let complete = n_ok == nb;
                 let mut cands = [[Candidate::default(); MAX_CANDIDATES]; 2];
                 let mut n_cands = [0; 2];
                 for (k, sign) in [1.0, -1.0].into_iter().enumerate() {
-                    n_cands[k] = self.fringe_search(&scratch, sign, true, &mut cands[k]);
+                    n_cands[k] = self.fringe_search(&scratch, sign, complete, &mut cands[k]);
                 }
                 out.push(SamplePixel {
                     spectrum: spec.clone(),
@@ -655,7 +662,9 @@ impl Solver {
 
     /// Summed residual of the sample under a prepared index, with the
     /// number of observations and of fitted parameters.
-    fn sample_sse(&self, prep: &Prepared, sample: &[SamplePixel]) -> (f64, f64, f64) {
+    /// Summed residual of the sample under a prepared index: `(sse,
+    /// observations, fitted parameters, pixels fitted)`.
+    fn sample_sse(&self, prep: &Prepared, sample: &[SamplePixel]) -> (f64, f64, f64, f64) {
         sample
             .par_iter()
             .map_init(Scratch::default, |scratch, px| {
@@ -670,15 +679,23 @@ impl Solver {
                 let (est, sse) = self.solve_with(prep, job, scratch);
                 if est.is_valid() && sse.is_finite() {
                     let p = if th.is_some() { 1.0 } else { 2.0 };
-                    (sse, spec.len() as f64, p)
+                    let n = spec.iter().filter(|v| v.is_finite()).count();
+                    (sse, n as f64, p, 1.0)
                 } else {
-                    (0.0, 0.0, 0.0)
+                    (0.0, 0.0, 0.0, 0.0)
                 }
             })
-            .reduce(|| (0.0, 0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2))
+            .reduce(
+                || (0.0, 0.0, 0.0, 0.0),
+                |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2, a.3 + b.3),
+            )
     }
 
-    fn profile_at(&self, n: f64, sample: &[SamplePixel]) -> Result<(f64, f64, f64), EstimateError> {
+    fn profile_at(
+        &self,
+        n: f64,
+        sample: &[SamplePixel],
+    ) -> Result<(f64, f64, f64, f64), EstimateError> {
         let prep = self.prepare(&Dispersion::constant(n))?;
         Ok(self.sample_sse(&prep, sample))
     }
@@ -704,14 +721,15 @@ impl Solver {
             .iter()
             .map(|px| {
                 let s = &px.spectrum;
-                let m = s.iter().sum::<f64>() / s.len() as f64;
-                s.iter().map(|v| (v - m) * (v - m)).sum::<f64>()
+                let ok = s.iter().filter(|v| v.is_finite());
+                let n = ok.clone().count().max(1) as f64;
+                let m = ok.clone().sum::<f64>() / n;
+                ok.map(|v| (v - m) * (v - m)).sum::<f64>()
             })
             .sum();
         let cost = |n: f64| -> Result<f64, EstimateError> {
-            let (sse, n_obs, _) = self.profile_at(n, sample)?;
-            let covered = n_obs / sample[0].spectrum.len() as f64;
-            let missing = sample.len() as f64 - covered;
+            let (sse, _, _, fitted) = self.profile_at(n, sample)?;
+            let missing = sample.len() as f64 - fitted;
             Ok(sse + missing * total_ss / sample.len() as f64)
         };
         let mut prof = Vec::with_capacity(grid.len());
@@ -744,7 +762,7 @@ impl Solver {
             }
         }
         refined.sort_by(|a, b| a.1.total_cmp(&b.1));
-        let (_, n_obs, n_par) = self.profile_at(refined[0].0, sample)?;
+        let (_, n_obs, n_par, _) = self.profile_at(refined[0].0, sample)?;
         let dof = (n_obs - n_par - 1.0).max(1.0);
         let var = refined[0].1 / dof;
         let noise_sigma = var.sqrt();

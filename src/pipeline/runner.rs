@@ -70,6 +70,21 @@ pub trait SweepSink: Send {
     fn on_sweep(&mut self, summary: &SweepSummary, maps: &ParamMaps) -> Result<(), String>;
 }
 
+/// Receives a sweep's map rows as they are solved, in order, on the solve
+/// thread, before the sweep's map is complete. A moving-web mode emits map
+/// rows at line rate through this; a static scene may ignore it.
+pub trait RowSink {
+    /// Rows `rows` of sweep `sweep` are final in `maps`.
+    fn on_rows(&mut self, sweep: u64, rows: std::ops::Range<usize>, maps: &ParamMaps);
+}
+
+/// A [`RowSink`] that ignores rows.
+pub struct NoRows;
+
+impl RowSink for NoRows {
+    fn on_rows(&mut self, _: u64, _: std::ops::Range<usize>, _: &ParamMaps) {}
+}
+
 /// A sink that keeps everything (tests).
 #[derive(Default)]
 pub struct CollectSink {
@@ -120,6 +135,9 @@ pub struct RunConfig {
     pub frame_timeout: Duration,
     /// Track per-pixel fringe extrema while bands arrive.
     pub track_extrema: bool,
+    /// Rows solved (in parallel) and emitted together; 0: a sixteenth of
+    /// the image.
+    pub row_block: usize,
 }
 
 impl Default for RunConfig {
@@ -133,6 +151,7 @@ impl Default for RunConfig {
             sweep_buffers: 3,
             frame_timeout: Duration::from_secs(2),
             track_extrema: true,
+            row_block: 0,
         }
     }
 }
@@ -411,7 +430,8 @@ impl Ingest {
 /// The solve stage.
 struct Solve {
     solver: Solver,
-    scene: Scene,
+    scratch: Scratch,
+    row_block: usize,
     index_tried: bool,
     estimates: Vec<PixelEstimate>,
     counters: Arc<Counters>,
@@ -425,6 +445,7 @@ impl Solve {
         buf: &SweepBuf,
         maps: &mut ParamMaps,
         pool: Option<&rayon::ThreadPool>,
+        rows: &mut dyn RowSink,
     ) -> SweepSummary {
         let _span = tracing::info_span!("solve.sweep", sweep = buf.sweep).entered();
         let cube = &buf.cube;
@@ -444,48 +465,47 @@ impl Solve {
             }
             self.index_tried = true;
         }
-        let w = cube.width;
+        let (w, h) = (cube.width, cube.height);
         let solver = &self.solver;
-        let run_rows = |est: &mut [PixelEstimate]| {
-            use rayon::prelude::*;
-            est.par_chunks_mut(w.max(1)).enumerate().for_each_init(
-                Scratch::default,
-                |scr, (y, row)| {
-                    solver.solve_row(cube, y, row, scr);
-                },
-            );
+        // Row blocks in order: rows within a block are solved in parallel,
+        // and each block is emitted as soon as it is done, so at most one
+        // block is in flight and rows leave in order.
+        let block = if self.row_block > 0 {
+            self.row_block
+        } else {
+            h.div_ceil(16).max(1)
         };
-        match pool {
-            Some(p) => p.install(|| run_rows(&mut self.estimates)),
-            None => {
-                let mut scr = Scratch::default();
-                for (y, row) in self.estimates.chunks_mut(w.max(1)).enumerate() {
-                    solver.solve_row(cube, y, row, &mut scr);
+        let mut y0 = 0;
+        while y0 < h {
+            let y1 = (y0 + block).min(h);
+            let est = &mut self.estimates[y0 * w..y1 * w];
+            let run_rows = |est: &mut [PixelEstimate]| {
+                use rayon::prelude::*;
+                est.par_chunks_mut(w.max(1)).enumerate().for_each_init(
+                    Scratch::default,
+                    |scr, (dy, row)| {
+                        solver.solve_row(cube, y0 + dy, row, scr);
+                    },
+                );
+            };
+            match pool {
+                Some(p) => p.install(|| run_rows(est)),
+                None => {
+                    for (dy, row) in est.chunks_mut(w.max(1)).enumerate() {
+                        solver.solve_row(cube, y0 + dy, row, &mut self.scratch);
+                    }
                 }
             }
-        }
-        for (i, e) in self.estimates.iter().enumerate() {
-            maps.set_index(i, e);
-        }
-        let m = &mut maps.meta;
-        m.mode = self.solver.mode().name().to_string();
-        m.wavelengths_nm.clear();
-        m.wavelengths_nm
-            .extend(cube.bands.iter().map(|b| b.center_nm));
-        m.fwhm_nm.clear();
-        m.fwhm_nm.extend(cube.bands.iter().map(|b| b.fwhm_nm));
-        m.polarization = format!("{:?}", self.scene.polarization);
-        match self.solver.film_index() {
-            Some(ix) => {
-                m.n_film = ix.n;
-                m.n_film_sigma = ix.sigma;
-                m.n_film_estimated = ix.estimated;
-                m.n_film_note.clone_from(&ix.note);
+            for i in y0 * w..y1 * w {
+                maps.set_index(i, &self.estimates[i]);
             }
-            None => {
-                m.n_film = f64::NAN;
-                m.n_film_note = "film index not available".into();
-            }
+            rows.on_rows(buf.sweep, y0..y1, maps);
+            y0 = y1;
+        }
+        // Per sweep, not per frame: the small allocations here are fine.
+        maps.meta = self.solver.map_meta();
+        if self.solver.film_index().is_none() {
+            maps.meta.n_film_note = "film index not available".into();
         }
         let mut s = SweepSummary::from_maps(buf.sweep, maps);
         let fd = self.counters.frames_dropped.load(Ordering::Relaxed);
@@ -506,6 +526,19 @@ pub fn run(
     setup: Setup,
     cfg: &RunConfig,
     sink: &mut dyn SweepSink,
+    stop: &AtomicBool,
+) -> Result<RunReport, RunError> {
+    run_with_rows(source, tuner, setup, cfg, sink, &mut NoRows, stop)
+}
+
+/// [`run`], also handing each sweep's rows to `rows` as they are solved.
+pub fn run_with_rows(
+    source: &mut dyn FrameSource,
+    tuner: &mut dyn BandTuner,
+    setup: Setup,
+    cfg: &RunConfig,
+    sink: &mut dyn SweepSink,
+    rows: &mut dyn RowSink,
     stop: &AtomicBool,
 ) -> Result<RunReport, RunError> {
     let info = source.info();
@@ -544,7 +577,8 @@ pub fn run(
     };
     let mut solve = Solve {
         solver,
-        scene: setup.scene,
+        scratch: Scratch::default(),
+        row_block: cfg.row_block,
         index_tried: false,
         estimates: vec![PixelEstimate::invalid(crate::estimate::Reason::Masked); w * h],
         counters: counters.clone(),
@@ -585,7 +619,7 @@ pub fn run(
                     pool.push(f);
                 }
                 if let Some((b, t)) = finished {
-                    let mut s = solve.solve(&b, &mut maps, None);
+                    let mut s = solve.solve(&b, &mut maps, None, rows);
                     s.latency_ms = t.elapsed().as_secs_f64() * 1e3;
                     let _span = tracing::info_span!("write.sweep", sweep = b.sweep).entered();
                     sink.on_sweep(&s, &maps).map_err(RunError::Sink)?;
@@ -728,7 +762,7 @@ pub fn run(
             // Solve on this thread.
             for (b, t) in done_rx.iter() {
                 let mut maps = free_maps_rx.recv().unwrap_or_else(|_| ParamMaps::new(w, h));
-                let mut s = solve.solve(&b, &mut maps, Some(&rayon_pool));
+                let mut s = solve.solve(&b, &mut maps, Some(&rayon_pool), rows);
                 s.latency_ms = t.elapsed().as_secs_f64() * 1e3;
                 let _ = free_sweep_tx.try_send(b);
                 if maps_tx.send((s, maps)).is_err() {
