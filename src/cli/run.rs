@@ -58,6 +58,11 @@ pub struct RunArgs {
     /// Run every stage on one thread (deterministic).
     #[arg(long)]
     pub single_thread: bool,
+    /// Also track every pixel's fringe extrema while bands arrive
+    /// (sub-band peaks and valleys, in the sweep buffer; the solver finds
+    /// its own from the complete spectrum, so this is off by default).
+    #[arg(long)]
+    pub track_extrema: bool,
     /// Demo: image size (the scene's fields stretch to it).
     #[arg(long, value_name = "WxH")]
     pub size: Option<String>,
@@ -658,6 +663,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         mode,
         threads: args.threads,
         single_thread: args.single_thread,
+        track_extrema: args.track_extrema,
         ..RunConfig::default()
     };
     let mut sink = CliSink {
