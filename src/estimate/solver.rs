@@ -531,20 +531,26 @@ impl Solver {
         {
             self.estimate_film_index(cube)?;
         }
-        let mut maps = ParamMaps::new(cube.width, cube.height);
-        let w = cube.width;
-        let rows: Vec<Vec<PixelEstimate>> = (0..cube.height)
-            .into_par_iter()
-            .map_init(Scratch::default, |scratch, y| {
-                let mut row = vec![PixelEstimate::invalid(Reason::Masked); w];
-                self.solve_row(cube, y, &mut row, scratch);
-                row
-            })
-            .collect();
-        for (y, row) in rows.iter().enumerate() {
-            for (x, e) in row.iter().enumerate() {
-                maps.set(x, y, e);
+        let (w, h) = (cube.width, cube.height);
+        let mut maps = ParamMaps::new(w, h);
+        // Blocks of rows: rows within a block in parallel, one block buffer
+        // reused, so memory stays bounded whatever the image size.
+        let block = 64.min(h).max(1);
+        let mut est = vec![PixelEstimate::invalid(Reason::Masked); block * w];
+        let mut y0 = 0;
+        while y0 < h {
+            let y1 = (y0 + block).min(h);
+            let part = &mut est[..(y1 - y0) * w];
+            part.par_chunks_mut(w.max(1)).enumerate().for_each_init(
+                Scratch::default,
+                |scratch, (dy, row)| {
+                    self.solve_row(cube, y0 + dy, row, scratch);
+                },
+            );
+            for (k, e) in part.iter().enumerate() {
+                maps.set_index(y0 * w + k, e);
             }
+            y0 = y1;
         }
         maps.meta = self.map_meta();
         Ok(maps)
@@ -619,16 +625,26 @@ impl Solver {
     /// Up to `max` pixels on a regular lattice with complete spectra, with
     /// their known angles.
     fn sample_pixels(&self, cube: &Cube, max: usize) -> Vec<SamplePixel> {
-        let total = cube.plane_len();
-        let stride = (total / max.max(1)).max(1);
+        let (w, h) = (cube.width, cube.height);
+        // A 2-D stratified grid (cells of the image's aspect), one pixel per
+        // cell at a golden-ratio offset, so periodic structure in the scene
+        // cannot alias the sample onto a few columns.
+        let max = max.max(1);
+        let nx =
+            ((max as f64 * w as f64 / h.max(1) as f64).sqrt().ceil() as usize).clamp(1, w.max(1));
+        let ny = max.div_ceil(nx).clamp(1, h.max(1));
+        const PHI: f64 = 0.618_033_988_749_895;
         let mut out = Vec::new();
         let nb = cube.bands.len();
         let mut spec = vec![0.0; nb];
         let mut scratch = Scratch::default();
         scratch.ensure(nb);
-        let mut i = stride / 2;
-        while i < total {
-            let (x, y) = (i % cube.width, i / cube.width);
+        for k in 0..nx * ny {
+            let (i, j) = (k % nx, k / nx);
+            let fx = (i as f64 + (j as f64 * PHI).fract()) / nx as f64;
+            let fy = (j as f64 + (i as f64 * PHI).fract()) / ny as f64;
+            let x = ((fx * w as f64) as usize).min(w - 1);
+            let y = ((fy * h as f64) as usize).min(h - 1);
             cube.spectrum_into(x, y, &mut spec);
             // Missing bands (NaN: a dropped frame) are allowed as in any
             // pixel's solve, up to a quarter of them.
@@ -655,13 +671,10 @@ impl Solver {
                     n_cands,
                 });
             }
-            i += stride;
         }
         out
     }
 
-    /// Summed residual of the sample under a prepared index, with the
-    /// number of observations and of fitted parameters.
     /// Summed residual of the sample under a prepared index: `(sse,
     /// observations, fitted parameters, pixels fitted)`.
     fn sample_sse(&self, prep: &Prepared, sample: &[SamplePixel]) -> (f64, f64, f64, f64) {
