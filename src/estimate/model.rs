@@ -257,23 +257,24 @@ impl ModelOut {
 }
 
 impl FilmModel {
-    /// Build the model. `integrate` selects passband integration for bands
-    /// with a width; otherwise every band is point-sampled at its centre.
+    /// Build the model. `integrate[i]` selects passband integration for band
+    /// `i` (if it has a width); other bands are point-sampled at their centre.
     pub fn new(
         bands: &[Band],
         ambient: &Dispersion,
         film: &Dispersion,
         substrate: &Dispersion,
         pol: Polarization,
-        integrate: bool,
+        integrate: &[bool],
     ) -> Result<FilmModel, (&'static str, crate::optics::dispersion::OpticsError)> {
         let mut nodes = Vec::new();
         for (i, band) in bands.iter().enumerate() {
-            let pts: Vec<(f64, f64)> = if integrate && band.fwhm_nm > 0.0 {
-                band.nodes().to_vec()
-            } else {
-                vec![(band.center_nm, 1.0)]
-            };
+            let pts: Vec<(f64, f64)> =
+                if integrate.get(i).copied().unwrap_or(false) && band.fwhm_nm > 0.0 {
+                    band.nodes().to_vec()
+                } else {
+                    vec![(band.center_nm, 1.0)]
+                };
             for (lambda, weight) in pts {
                 nodes.push(Node {
                     band: i,
@@ -541,7 +542,7 @@ mod tests {
                 &Dispersion::constant(1.37),
                 &Dispersion::constant(1.6),
                 pol,
-                false,
+                &[false; 31],
             )
             .unwrap();
             let mut out = ModelOut::new(31);

@@ -63,6 +63,10 @@ pub const INDEX_SAMPLE_PIXELS: usize = 400;
 /// Step of the coarse film-index profile.
 const INDEX_GRID_STEP: f64 = 0.02;
 
+/// Reflectance error of point sampling above which the accurate mode
+/// integrates the passband (a fifth of the paper's noise level).
+pub const INTEGRATION_TOLERANCE: f64 = 2e-4;
+
 /// Largest number of bands a pixel may have.
 pub const MAX_BANDS: usize = 512;
 
@@ -243,6 +247,8 @@ struct Fit {
     sse: f64,
     /// `JᵀJ` entries (dd, dθ, θθ).
     jtj: [f64; 3],
+    /// Fitted with the passband-integrated model.
+    integrated: bool,
 }
 
 /// Everything that depends on the film index.
@@ -256,6 +262,11 @@ struct Prepared {
     /// Real ambient and substrate indices at the middle band, when the
     /// half-wave level can be inverted in closed form (lossless, s or p).
     closed_form: Option<(f64, f64, Polarization)>,
+    /// The model with the passband integrated on every band that has a
+    /// width (accurate mode, bands with a width only).
+    integrated: Option<FilmModel>,
+    /// Largest fringe amplitude over the angle range, for the criterion.
+    fringe_amplitude: f64,
 }
 
 /// Solves pixels for the scene's unknowns.
@@ -384,18 +395,23 @@ impl Solver {
         Ok(solver)
     }
 
-    fn integrate(&self) -> bool {
-        self.mode == Mode::Accurate
-            && self.bands.iter().any(|b| {
-                // Attenuation of the fastest fringe the solver considers by
-                // the Gaussian passband (see optics::band): integrate when
-                // point sampling would err by more than 1e-4 of reflectance
-                // on a fringe of amplitude ~0.05.
-                let g = self.d_max.min(1000.0) * 1.5;
-                let x = PI * b.fwhm_nm * 2.0 * g / (b.center_nm * b.center_nm);
-                let att = (-x * x / (4.0 * std::f64::consts::LN_2)).exp();
-                (1.0 - att) * 0.05 > 1e-4
-            })
+    /// The model a fit should use: the passband-integrated one when some
+    /// band would err by more than [`INTEGRATION_TOLERANCE`] if
+    /// point-sampled at this fit's optical thickness (the criterion of
+    /// `optics::band`), else the point-sampled one.
+    fn model_for<'p>(&self, prep: &'p Prepared, fit: &Fit) -> &'p FilmModel {
+        let Some(int) = &prep.integrated else {
+            return &prep.model;
+        };
+        let g = fit.d * prep.model.q2_mid(fit.theta);
+        if self.bands.iter().any(|b| {
+            b.fwhm_nm > 0.0
+                && b.needs_integration_for(g, prep.fringe_amplitude, INTEGRATION_TOLERANCE)
+        }) {
+            int
+        } else {
+            &prep.model
+        }
     }
 
     fn prepare(&self, film: &Dispersion) -> Result<Prepared, EstimateError> {
@@ -405,7 +421,7 @@ impl Solver {
             film,
             &self.scene.substrate,
             self.scene.polarization,
-            self.integrate(),
+            &vec![false; self.bands.len()],
         )
         .map_err(|(medium, source)| EstimateError::Optics { medium, source })?;
         let (lo, hi) = self.theta_range;
@@ -428,11 +444,35 @@ impl Solver {
         let closed_form =
             (n1.im == 0.0 && n3.im == 0.0 && matches!(pol, Polarization::S | Polarization::P))
                 .then_some((n1.re, n3.re, pol));
+        let fringe_amplitude = table
+            .iter()
+            .map(|e| 0.5 * (e.1 - e.2).abs())
+            .filter(|a| a.is_finite())
+            .fold(0.0, f64::max);
+        let integrated =
+            if self.mode == Mode::Accurate && self.bands.iter().any(|b| b.fwhm_nm > 0.0) {
+                let all = vec![true; self.bands.len()];
+                Some(
+                    FilmModel::new(
+                        &self.bands,
+                        &self.scene.ambient,
+                        film,
+                        &self.scene.substrate,
+                        self.scene.polarization,
+                        &all,
+                    )
+                    .map_err(|(medium, source)| EstimateError::Optics { medium, source })?,
+                )
+            } else {
+                None
+            };
         Ok(Prepared {
             model,
             sign,
             table,
             closed_form,
+            integrated,
+            fringe_amplitude,
         })
     }
 
@@ -946,7 +986,7 @@ impl Solver {
                     return (fe, f64::NAN);
                 }
                 let fit = self.refine(
-                    prep,
+                    &prep.model,
                     fe.thickness_nm,
                     fe.theta_deg.to_radians(),
                     theta_known.is_none(),
@@ -961,6 +1001,19 @@ impl Solver {
                     return self.finish(&[fit], n_ok, theta_known, noise, prep, lam_min, scratch);
                 }
                 if good {
+                    // Where this pixel's fringes are fast enough for the
+                    // passband to matter, refit with the integrated model
+                    // (and judge the competing order with it too).
+                    let model = self.model_for(prep, &fit);
+                    let fit = if std::ptr::eq(model, &prep.model) {
+                        fit
+                    } else {
+                        let free = theta_known.is_none();
+                        let mut f =
+                            self.refine(model, fit.d, fit.theta, free, effort.iters, scratch);
+                        f.integrated = true;
+                        f
+                    };
                     // The neighbouring orders on the lattice: the same fringe
                     // phase at the band-range centre, one fringe more or
                     // fewer. The better one is refined; if it fits as well,
@@ -974,8 +1027,7 @@ impl Solver {
                         if ga < 0.0 || ga / q2 > self.d_max {
                             continue;
                         }
-                        prep.model
-                            .eval(ga / q2, fit.theta, &mut scratch.trial, false);
+                        model.eval(ga / q2, fit.theta, &mut scratch.trial, false);
                         let e = sse(&scratch.spectrum, &scratch.weight, &scratch.trial.r);
                         if e < alt_sse {
                             alt_sse = e;
@@ -988,11 +1040,12 @@ impl Solver {
                         // Two steps tell a clearly worse order; only a close
                         // one is refined to convergence.
                         let free = theta_known.is_none();
-                        let mut f = self.refine(prep, d_alt, fit.theta, free, 2, scratch);
+                        let mut f = self.refine(model, d_alt, fit.theta, free, 2, scratch);
                         let var = fit.sse / (n_ok.saturating_sub(2).max(1)) as f64;
                         if f.sse < fit.sse + 25.0 * var {
-                            f = self.refine(prep, f.d, f.theta, free, effort.iters, scratch);
+                            f = self.refine(model, f.d, f.theta, free, effort.iters, scratch);
                         }
+                        f.integrated = fit.integrated;
                         fits[1] = f;
                         n_fits = 2;
                     }
@@ -1059,8 +1112,26 @@ impl Solver {
             if !st.1.is_finite() {
                 continue;
             }
-            fits[n_fits] = self.refine(prep, st.0, theta0, theta_known.is_none(), iters, scratch);
+            fits[n_fits] = self.refine(
+                &prep.model,
+                st.0,
+                theta0,
+                theta_known.is_none(),
+                iters,
+                scratch,
+            );
             n_fits += 1;
+        }
+        if effort.verify_order {
+            // As on the closed-form path: fits whose fringes the passband
+            // affects are redone with the integrated model.
+            for f in &mut fits[..n_fits] {
+                let model = self.model_for(prep, f);
+                if !std::ptr::eq(model, &prep.model) {
+                    *f = self.refine(model, f.d, f.theta, theta_known.is_none(), iters, scratch);
+                    f.integrated = true;
+                }
+            }
         }
         self.finish(
             &fits[..n_fits],
@@ -1118,11 +1189,46 @@ impl Solver {
         // Near d = 0 the reflectance is even in d (dR/dd = 0 at d = 0), so
         // the linearised σ is meaningless: take the one-sided profile bound
         // instead, the d at which the residual grows by one variance.
+        let model = match (&prep.integrated, best.integrated) {
+            (Some(m), true) => m,
+            _ => &prep.model,
+        };
         let sig_d = if best.d < 0.1 * lam_min && (sig_d.is_nan() || sig_d >= 0.05 * lam_min) {
-            self.profile_sigma_d(prep, best, var, scratch)
+            self.profile_sigma_d(model, best, var, scratch)
         } else {
             sig_d
         };
+        // A weak angle: the linearised σ_θ says little (at θ = 0, R is even
+        // in θ and dR/dθ vanishes). Take the profile bound instead — the
+        // angle at which the residual, with the optical thickness held,
+        // grows by one variance — and carry its share into d, which at
+        // fixed optical thickness moves as 1/(n2 cos θ2).
+        let (sig_d, sig_th) =
+            if theta_known.is_none() && sig_th.to_degrees() > ANGLE_SIGMA_LIMIT_DEG {
+                let (lo, hi) = self.theta_range;
+                // Inside the range the linearised σ stands; at a bound (where the
+                // slope vanishes or the clamp hides the other side) profile.
+                let at_bound = best.theta - lo < sig_th || hi - best.theta < sig_th;
+                let sig_th = if !sig_th.is_finite() || at_bound {
+                    let th_bound = self.profile_sigma_theta(model, best, var, scratch);
+                    if sig_th.is_finite() {
+                        sig_th.min(th_bound.max(1e-6))
+                    } else {
+                        th_bound
+                    }
+                } else {
+                    sig_th
+                };
+                let q = |t: f64| model.q2_mid(t.clamp(lo, hi));
+                let q0 = q(best.theta);
+                let shift = [best.theta - sig_th, best.theta + sig_th]
+                    .iter()
+                    .map(|&t| (best.d * (q0 / q(t) - 1.0)).abs())
+                    .fold(0.0, f64::max);
+                ((sig_d * sig_d + shift * shift).sqrt(), sig_th)
+            } else {
+                (sig_d, sig_th)
+            };
         let rms = (best.sse / n_ok as f64).sqrt();
         let mut reason = Reason::Ok;
         // A second order that fits as well as the best is an ambiguity.
@@ -1165,13 +1271,13 @@ impl Solver {
     /// One-sided profile bound on the thickness near zero: the smallest
     /// `δ > d` whose residual (angle held) exceeds the best by one variance,
     /// minus `d`.
-    fn profile_sigma_d(&self, prep: &Prepared, best: Fit, var: f64, s: &mut Scratch) -> f64 {
+    fn profile_sigma_d(&self, model: &FilmModel, best: Fit, var: f64, s: &mut Scratch) -> f64 {
         let target = best.sse + var;
         let mut lo = best.d;
         let mut hi = best.d + 1.0;
         let mut grow = 0;
         loop {
-            prep.model.eval(hi, best.theta, &mut s.trial, false);
+            model.eval(hi, best.theta, &mut s.trial, false);
             if sse(&s.spectrum, &s.weight, &s.trial.r) > target || grow > 12 {
                 break;
             }
@@ -1181,7 +1287,7 @@ impl Solver {
         }
         for _ in 0..20 {
             let mid = 0.5 * (lo + hi);
-            prep.model.eval(mid, best.theta, &mut s.trial, false);
+            model.eval(mid, best.theta, &mut s.trial, false);
             if sse(&s.spectrum, &s.weight, &s.trial.r) > target {
                 hi = mid;
             } else {
@@ -1189,6 +1295,47 @@ impl Solver {
             }
         }
         0.5 * (lo + hi) - best.d
+    }
+
+    /// Profile bound on a weak angle: the larger of the two distances from
+    /// the fitted angle (within the search range) at which the residual,
+    /// with the optical thickness `g = d·n2 cos θ2` held, exceeds the best
+    /// by one variance; the range's extent if it never does.
+    fn profile_sigma_theta(&self, model: &FilmModel, best: Fit, var: f64, s: &mut Scratch) -> f64 {
+        let (lo, hi) = self.theta_range;
+        let g = best.d * model.q2_mid(best.theta);
+        let target = best.sse + var;
+        let mut bound: f64 = 0.0;
+        for dir in [1.0, -1.0] {
+            let limit = if dir > 0.0 {
+                hi - best.theta
+            } else {
+                best.theta - lo
+            };
+            if limit <= 0.0 {
+                continue;
+            }
+            let mut sse_at = |step: f64| {
+                let t = best.theta + dir * step;
+                model.eval(g / model.q2_mid(t), t, &mut s.trial, false);
+                sse(&s.spectrum, &s.weight, &s.trial.r)
+            };
+            if sse_at(limit) <= target {
+                bound = bound.max(limit);
+                continue;
+            }
+            let (mut a, mut b) = (0.0, limit);
+            for _ in 0..10 {
+                let m = 0.5 * (a + b);
+                if sse_at(m) > target {
+                    b = m;
+                } else {
+                    a = m;
+                }
+            }
+            bound = bound.max(0.5 * (a + b));
+        }
+        bound
     }
 
     /// The closed-form path: fringe extrema located between bands (a
@@ -1531,14 +1678,13 @@ impl Solver {
     /// Levenberg–Marquardt on thickness (and angle when `free_theta`).
     fn refine(
         &self,
-        prep: &Prepared,
+        model: &FilmModel,
         d0: f64,
         theta0: f64,
         free_theta: bool,
         iters: usize,
         s: &mut Scratch,
     ) -> Fit {
-        let model = &prep.model;
         let (lo, hi) = self.theta_range;
         let eval = |d: f64, th: f64, out: &mut ModelOut| {
             model.eval(d, th, out, true);
@@ -1614,6 +1760,7 @@ impl Solver {
             theta: th,
             sse: cur_sse,
             jtj: [a, b, c],
+            integrated: false,
         }
     }
 }
