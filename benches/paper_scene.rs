@@ -66,6 +66,46 @@ fn main() {
         bands.len(),
         renderer.noise().0
     );
+    // The Cramér–Rao bound per pixel at the truth: σ_R² (JᵀJ)⁻¹ with the
+    // exact model's Jacobian in (d, θ) — an independent yardstick for the
+    // errors printed below (an efficient estimator's mean |Δd| is ≈ 0.80 σ).
+    {
+        use irid::estimate::model::{FilmModel, ModelOut};
+        let film = irid::optics::dispersion::Dispersion::constant(truth.n_film);
+        let model = FilmModel::new(
+            &bands,
+            &scene.ambient,
+            &film,
+            &scene.substrate,
+            scene.polarization,
+            &vec![false; bands.len()],
+        )
+        .unwrap();
+        let sigma_r = renderer.noise().0;
+        let mut out = ModelOut::new(bands.len());
+        let (mut s2, mut s1, mut n) = (0.0, 0.0, 0.0);
+        for i in 0..truth.thickness_nm.len() {
+            let d = f64::from(truth.thickness_nm[i]);
+            let th = f64::from(truth.theta_deg[i]).to_radians();
+            model.eval(d, th, &mut out, true);
+            let (mut a, mut b, mut c) = (0.0, 0.0, 0.0);
+            for k in 0..bands.len() {
+                a += out.dr_dd[k] * out.dr_dd[k];
+                b += out.dr_dd[k] * out.dr_dth[k];
+                c += out.dr_dth[k] * out.dr_dth[k];
+            }
+            s2 += sigma_r * (c / (a * c - b * b)).sqrt();
+            s1 += sigma_r / a.sqrt();
+            n += 1.0;
+        }
+        println!(
+            "Cramér–Rao bound on σ_d, mean over the scene: {:.3} nm (angle unknown), {:.3} nm (angle known) → efficient mean |Δd| ≈ {:.3} / {:.3} nm",
+            s2 / n,
+            s1 / n,
+            0.798 * s2 / n,
+            0.798 * s1 / n
+        );
+    }
     for angle_known in [false, true] {
         let mut sc = scene.clone();
         if angle_known {

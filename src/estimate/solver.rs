@@ -1382,6 +1382,9 @@ impl Solver {
         let mut ext = [Ext::default(); MAX_EXT];
         let mut n_ext = 0usize;
         let (mut rss, mut rdof) = (0.0, 0.0);
+        // Extrema closer in level than this are noise wiggles (3 σ_R of the
+        // image, when known).
+        let prominence = noise.map_or(0.0, |n| 3.0 * n);
         let mut i = 2;
         while i + 2 < nb && n_ext < MAX_EXT {
             let (a, b, c) = (sm[i - 1], sm[i], sm[i + 1]);
@@ -1444,6 +1447,10 @@ impl Solver {
                 if (e.val - ext[n_ext - 1].val) * f64::from(kind) > 0.0 {
                     ext[n_ext - 1] = e;
                 }
+            } else if n_ext > 0 && (e.val - ext[n_ext - 1].val).abs() < prominence {
+                // A wiggle of noise size on a flat fringe top: not a fringe
+                // extremum (hysteresis). The next extremum of the earlier
+                // kind then merges with it above.
             } else {
                 ext[n_ext] = e;
                 n_ext += 1;

@@ -149,7 +149,7 @@ impl Default for RunConfig {
             mode: Mode::Balanced,
             threads: None,
             single_thread: false,
-            frame_pool: 16,
+            frame_pool: 32,
             sweep_buffers: 3,
             frame_timeout: Duration::from_secs(2),
             track_extrema: false,
