@@ -133,28 +133,35 @@ impl Renderer {
     /// (row-major, `width × height`). The passband is integrated when the
     /// band has a width.
     pub fn render_band(&self, band: &Band, out: &mut [f32]) -> Result<(), SynthError> {
+        use rayon::prelude::*;
         let (w, h) = (self.truth.width, self.truth.height);
-        // Evaluate the media at the band's nodes once, not per pixel.
-        let err = std::cell::Cell::new(None);
+        // The media at the band's quadrature nodes, once per band (the same
+        // nodes `Band::integrate` uses), not per pixel.
+        let points: Vec<(f64, f64)> = if band.fwhm_nm > 0.0 {
+            band.nodes().to_vec()
+        } else {
+            vec![(band.center_nm, 1.0)]
+        };
+        let mut nodes = Vec::with_capacity(points.len());
+        for (lam, wgt) in points {
+            nodes.push((lam, wgt, self.media_at(lam)?));
+        }
         let pol = self.scene.polarization;
-        for y in 0..h {
-            for x in 0..w {
-                let d = self.truth.thickness_nm.at(x, y, w, h).max(0.0);
-                let th = self.truth.angle_deg.at(x, y, w, h).to_radians();
-                let r = band.integrate(|lam| match self.media_at(lam) {
-                    Ok(m) => airy::reflectance(m, d, th, lam, pol),
-                    Err(e) => {
-                        err.set(Some(e));
-                        f64::NAN
-                    }
-                });
-                out[y * w + x] = r as f32;
-            }
-        }
-        match err.take() {
-            Some(e) => Err(e),
-            None => Ok(()),
-        }
+        out[..w * h]
+            .par_chunks_mut(w.max(1))
+            .enumerate()
+            .for_each(|(y, row)| {
+                for (x, o) in row.iter_mut().enumerate() {
+                    let d = self.truth.thickness_nm.at(x, y, w, h).max(0.0);
+                    let th = self.truth.angle_deg.at(x, y, w, h).to_radians();
+                    let r: f64 = nodes
+                        .iter()
+                        .map(|&(lam, wgt, m)| wgt * airy::reflectance(m, d, th, lam, pol))
+                        .sum();
+                    *o = r as f32;
+                }
+            });
+        Ok(())
     }
 
     /// Render a whole noisy cube (noise σ and seed from the truth).

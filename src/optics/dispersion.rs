@@ -550,7 +550,10 @@ impl Dispersion {
 
     /// The complex index at `wavelength_nm`.
     pub fn index_at(&self, wavelength_nm: f64) -> Result<Complex64, OpticsError> {
-        self.index_named(wavelength_nm, &self.describe())
+        // The model's name is only needed for an error: build it then, so
+        // the success path (called per pixel by renderers) never allocates.
+        self.index_named(wavelength_nm, "")
+            .or_else(|_| self.index_named(wavelength_nm, &self.describe()))
     }
 
     /// As [`Dispersion::index_at`], naming the model `what` in errors (a

@@ -111,8 +111,14 @@ impl SweepBuf {
 
     /// Pixel `i`'s extrema (at most [`MAX_EXTREMA`]), in arrival order.
     pub fn extrema_of(&self, i: usize) -> impl Iterator<Item = Extremum> + '_ {
-        let k = usize::from(self.n_extrema[i]).min(MAX_EXTREMA);
-        self.extrema[i * MAX_EXTREMA..i * MAX_EXTREMA + k]
+        let k = self
+            .n_extrema
+            .get(i)
+            .map_or(0, |&k| usize::from(k).min(MAX_EXTREMA));
+        // Empty when extrema are not tracked (no slots were allocated).
+        self.extrema
+            .get(i * MAX_EXTREMA..i * MAX_EXTREMA + k)
+            .unwrap_or(&[])
             .iter()
             .map(|&(p, v)| Extremum {
                 nm: p.abs(),
@@ -182,14 +188,22 @@ impl Tracker {
     /// A sweep buffer of the right size: the one allocation per buffer.
     pub fn new_sweep_buf(&self) -> SweepBuf {
         let n = self.width * self.height;
+        // Filled (NaN: nothing arrived yet) rather than calloc'ed, so every
+        // page is touched here, once, and not faulted in on the frame path.
+        let mut cube = Cube::zeros(self.width, self.height, self.bands.clone());
+        cube.data.fill(f32::NAN);
         SweepBuf {
             sweep: 0,
-            cube: Cube::zeros(self.width, self.height, self.bands.clone()),
+            cube,
             state: vec![BandState::Empty; self.bands.len()],
             frames: vec![None; self.bands.len()],
             done: 0,
             n_extrema: vec![0; n],
-            extrema: vec![(0.0, 0.0); n * MAX_EXTREMA],
+            extrema: if self.extrema {
+                vec![(f32::NAN, f32::NAN); n * MAX_EXTREMA]
+            } else {
+                Vec::new()
+            },
             frames_dropped: 0,
         }
     }
