@@ -648,6 +648,9 @@ pub fn run_with_rows(
         // Room for every pooled frame plus markers.
         let (mut pkt_prod, mut pkt_cons) =
             HeapRb::<Packet>::new(n_frames + 2 * setup.order.len() + 4).split();
+        // Capture → ingest doorbell: the ring is lock-free, the bell only
+        // wakes a sleeping ingest.
+        let (bell_tx, bell_rx) = crossbeam_channel::bounded::<()>(1);
         let (free_sweep_tx, free_sweep_rx) = crossbeam_channel::bounded::<SweepBuf>(n_sweep_bufs);
         for b in sweep_bufs.drain(..) {
             let _ = free_sweep_tx.send(b);
@@ -680,6 +683,10 @@ pub fn run_with_rows(
                                     // Cannot happen by sizing; never lose silently.
                                     overflow = true;
                                     drop(p);
+                                } else {
+                                    // Wake ingest if it sleeps (never blocks:
+                                    // one pending ring is enough).
+                                    let _ = bell_tx.try_send(());
                                 }
                             },
                             &mut |f| stash.push(f),
@@ -704,6 +711,7 @@ pub fn run_with_rows(
                         end = p;
                         std::thread::sleep(Duration::from_micros(200));
                     }
+                    let _ = bell_tx.try_send(());
                     result.map(|()| stopped)
                 })
                 .map_err(|e| RunError::Config(format!("spawn: {e}")))?;
@@ -717,13 +725,14 @@ pub fn run_with_rows(
                     let mut idle = 0u32;
                     loop {
                         let Some(p) = pkt_cons.try_pop() else {
+                            // Spin briefly (a frame is often just behind),
+                            // then sleep until capture rings the bell: an
+                            // idle ingest costs no CPU the solver needs.
                             idle += 1;
                             if idle < 64 {
                                 std::hint::spin_loop();
-                            } else if idle < 128 {
-                                std::thread::yield_now();
                             } else {
-                                std::thread::sleep(Duration::from_micros(50));
+                                let _ = bell_rx.recv_timeout(Duration::from_millis(20));
                             }
                             continue;
                         };
