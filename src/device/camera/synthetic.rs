@@ -295,7 +295,9 @@ impl SyntheticCamera {
             let signal = (ga * ra + gb * rb).max(0.0);
             let z: f64 = StandardNormal.sample(&mut self.rng);
             let v = dark + signal + z * (read2 + signal * cpe).sqrt();
-            *o = v.round().clamp(0.0, max) as u16;
+            // Round half up by truncation after clamping (non-negative):
+            // `f64::round` is a libm call in this per-pixel loop.
+            *o = (v.clamp(0.0, max) + 0.5).min(max) as u16;
         }
     }
 }
