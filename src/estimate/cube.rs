@@ -52,8 +52,11 @@ impl Cube {
     pub fn spectrum_into(&self, x: usize, y: usize, out: &mut [f64]) {
         let n = self.plane_len();
         let i = y * self.width + x;
-        for (b, o) in out.iter_mut().enumerate().take(self.bands.len()) {
-            *o = f64::from(self.data[b * n + i]);
+        if n == 0 || i >= n {
+            return;
+        }
+        for (o, plane) in out.iter_mut().zip(self.data.chunks_exact(n)) {
+            *o = f64::from(plane[i]);
         }
     }
 }

@@ -284,6 +284,8 @@ pub struct Solver {
     sorted: Vec<(usize, f64, f64)>,
     /// Centre of the band range in wavenumber, nm⁻¹.
     sigma_center: f64,
+    /// The planes are already in increasing wavelength.
+    sorted_identity: bool,
     /// Inverse normal matrices of the five-point parabola centred on each
     /// sorted band (`None` at the ends or if singular).
     parabola: Vec<Option<[[f64; 3]; 3]>>,
@@ -350,7 +352,9 @@ impl Solver {
             },
             parabola: Vec::new(),
             sigma_center: 0.0,
+            sorted_identity: false,
         };
+        solver.sorted_identity = solver.sorted.iter().enumerate().all(|(i, b)| b.0 == i);
         let (s_lo, s_hi) = solver
             .sorted
             .iter()
@@ -1358,14 +1362,24 @@ impl Solver {
         if nb < 7 {
             return None;
         }
-        // The spectrum by increasing wavelength, raw and [1 2 1]-smoothed.
-        let ys = &mut scratch.sorted_y;
-        let sm = &mut scratch.smooth_y;
-        ys.resize(nb, 0.0);
+        // The spectrum by increasing wavelength (no copy when the planes are
+        // already in that order), raw and [1 2 1]-smoothed.
+        let Scratch {
+            spectrum,
+            sorted_y,
+            smooth_y: sm,
+            ..
+        } = scratch;
+        let ys: &[f64] = if self.sorted_identity {
+            &spectrum[..nb]
+        } else {
+            sorted_y.resize(nb, 0.0);
+            for (i, b) in self.sorted.iter().enumerate() {
+                sorted_y[i] = spectrum[b.0];
+            }
+            &sorted_y[..]
+        };
         sm.resize(nb, 0.0);
-        for (i, b) in self.sorted.iter().enumerate() {
-            ys[i] = scratch.spectrum[b.0];
-        }
         for i in 1..nb - 1 {
             sm[i] = 0.25 * ys[i - 1] + 0.5 * ys[i] + 0.25 * ys[i + 1];
         }
