@@ -79,7 +79,6 @@ pub struct Scratch {
     /// The caller's gathered spectrum (solve_row).
     pixel: Vec<f64>,
     sorted_y: Vec<f64>,
-    smooth_y: Vec<f64>,
     spectrum: Vec<f64>,
     weight: Vec<f64>,
     cur: ModelOut,
@@ -289,6 +288,8 @@ pub struct Solver {
     /// Inverse normal matrices of the five-point parabola centred on each
     /// sorted band (`None` at the ends or if singular).
     parabola: Vec<Option<[[f64; 3]; 3]>>,
+    /// The five wavenumber offsets (1e-4 nm⁻¹) of each such parabola.
+    parabola_u: Vec<[f64; 5]>,
 }
 
 /// Largest film thickness the solver considers, nm.
@@ -351,6 +352,7 @@ impl Solver {
                 v
             },
             parabola: Vec::new(),
+            parabola_u: Vec::new(),
             sigma_center: 0.0,
             sorted_identity: false,
         };
@@ -362,6 +364,17 @@ impl Solver {
                 (a.min(x.2), b.max(x.2))
             });
         solver.sigma_center = 0.5 * (s_lo + s_hi);
+        solver.parabola_u = (0..solver.sorted.len())
+            .map(|i| {
+                let mut u = [0.0; 5];
+                if i >= 2 && i + 2 < solver.sorted.len() {
+                    for (k, j) in (i - 2..=i + 2).enumerate() {
+                        u[k] = (solver.sorted[j].2 - solver.sorted[i].2) * 1e4;
+                    }
+                }
+                u
+            })
+            .collect();
         solver.parabola = (0..solver.sorted.len())
             .map(|i| {
                 if i < 2 || i + 2 >= solver.sorted.len() {
@@ -1365,10 +1378,7 @@ impl Solver {
         // The spectrum by increasing wavelength (no copy when the planes are
         // already in that order), raw and [1 2 1]-smoothed.
         let Scratch {
-            spectrum,
-            sorted_y,
-            smooth_y: sm,
-            ..
+            spectrum, sorted_y, ..
         } = scratch;
         let ys: &[f64] = if self.sorted_identity {
             &spectrum[..nb]
@@ -1379,10 +1389,8 @@ impl Solver {
             }
             &sorted_y[..]
         };
-        sm.resize(nb, 0.0);
-        for i in 1..nb - 1 {
-            sm[i] = 0.25 * ys[i - 1] + 0.5 * ys[i] + 0.25 * ys[i + 1];
-        }
+        // [1 2 1]-smoothed value at i, for detection only (fits use raw data).
+        let smooth = |i: usize| 0.25 * ys[i - 1] + 0.5 * ys[i] + 0.25 * ys[i + 1];
         let x = |i: usize| self.sorted[i].2;
         const MAX_EXT: usize = 16;
         #[derive(Clone, Copy, Default)]
@@ -1400,8 +1408,9 @@ impl Solver {
         // image, when known).
         let prominence = noise.map_or(0.0, |n| 3.0 * n);
         let mut i = 2;
+        let (mut a, mut b) = (smooth(1), smooth(2));
         while i + 2 < nb && n_ext < MAX_EXT {
-            let (a, b, c) = (sm[i - 1], sm[i], sm[i + 1]);
+            let c = smooth(i + 1);
             let kind: i8 = if b > a && b >= c {
                 1
             } else if b < a && b <= c {
@@ -1410,21 +1419,26 @@ impl Solver {
                 0
             };
             if kind == 0 {
+                (a, b) = (b, c);
                 i += 1;
                 continue;
             }
             // Least-squares parabola v = qa u² + qb u + qc through five raw
-            // samples (u in units of 1e-4 nm⁻¹ for conditioning).
+            // samples (u in units of 1e-4 nm⁻¹ for conditioning, offsets
+            // precomputed per band).
             let x0 = x(i);
+            let us = &self.parabola_u[i];
             let (mut t0, mut t1, mut t2, mut tvv) = (0.0, 0.0, 0.0, 0.0);
-            for (j, &v) in ys.iter().enumerate().take(i + 3).skip(i - 2) {
-                let u = (x(j) - x0) * 1e4;
+            for (&u, &v) in us.iter().zip(&ys[i - 2..i + 3]) {
                 t2 += v * u * u;
                 t1 += v * u;
                 t0 += v;
                 tvv += v * v;
             }
             i += 2;
+            if i + 2 < nb {
+                (a, b) = (smooth(i - 1), smooth(i));
+            }
             let Some(minv) = self.parabola[i - 2] else {
                 continue;
             };
