@@ -224,6 +224,67 @@ struct SamplePixel {
     n_cands: [usize; 2],
 }
 
+/// A fringe extremum located between bands.
+#[derive(Clone, Copy, Debug, Default)]
+struct Ext {
+    /// Wavenumber, nm⁻¹.
+    pos: f64,
+    /// Reflectance at the vertex.
+    val: f64,
+    /// +1 maximum, −1 minimum.
+    kind: i8,
+    /// Variance factors (× σ_R²) of the position and the level.
+    var_pos: f64,
+    var_val: f64,
+}
+
+/// Most extrema kept per pixel.
+const MAX_EXT: usize = 16;
+
+/// Extrema of one pixel as they are found, in wavelength order, with the
+/// merging rules, and the fits' residuals.
+struct ExtremaAcc {
+    ext: [Ext; MAX_EXT],
+    n: usize,
+    rss: f64,
+    rdof: f64,
+    /// Extrema closer in level than this are noise wiggles (3 σ_R).
+    prominence: f64,
+}
+
+impl ExtremaAcc {
+    fn new(noise: Option<f64>) -> Self {
+        ExtremaAcc {
+            ext: [Ext::default(); MAX_EXT],
+            n: 0,
+            rss: 0.0,
+            rdof: 0.0,
+            prominence: noise.map_or(0.0, |n| 3.0 * n),
+        }
+    }
+
+    fn full(&self) -> bool {
+        self.n >= MAX_EXT
+    }
+
+    fn push(&mut self, e: Ext) {
+        let n = self.n;
+        if n > 0 && self.ext[n - 1].kind == e.kind {
+            // Two of a kind in a row: noise; keep the more extreme.
+            if (e.val - self.ext[n - 1].val) * f64::from(e.kind) > 0.0 {
+                self.ext[n - 1] = e;
+            }
+        } else if n > 0 && (e.val - self.ext[n - 1].val).abs() < self.prominence {
+            // A wiggle of noise size on a flat fringe top: not a fringe
+            // extremum (hysteresis). The next extremum of the earlier kind
+            // then merges with it above.
+        } else if n < MAX_EXT {
+            self.ext[n] = e;
+            self.n += 1;
+        }
+    }
+}
+
 /// One pixel's solve request.
 #[derive(Clone, Copy)]
 struct Job<'a> {
@@ -1376,7 +1437,7 @@ impl Solver {
             return None;
         }
         // The spectrum by increasing wavelength (no copy when the planes are
-        // already in that order), raw and [1 2 1]-smoothed.
+        // already in that order).
         let Scratch {
             spectrum, sorted_y, ..
         } = scratch;
@@ -1391,25 +1452,10 @@ impl Solver {
         };
         // [1 2 1]-smoothed value at i, for detection only (fits use raw data).
         let smooth = |i: usize| 0.25 * ys[i - 1] + 0.5 * ys[i] + 0.25 * ys[i + 1];
-        let x = |i: usize| self.sorted[i].2;
-        const MAX_EXT: usize = 16;
-        #[derive(Clone, Copy, Default)]
-        struct Ext {
-            pos: f64,
-            val: f64,
-            kind: i8,
-            var_pos: f64,
-            var_val: f64,
-        }
-        let mut ext = [Ext::default(); MAX_EXT];
-        let mut n_ext = 0usize;
-        let (mut rss, mut rdof) = (0.0, 0.0);
-        // Extrema closer in level than this are noise wiggles (3 σ_R of the
-        // image, when known).
-        let prominence = noise.map_or(0.0, |n| 3.0 * n);
+        let mut acc = ExtremaAcc::new(noise);
         let mut i = 2;
         let (mut a, mut b) = (smooth(1), smooth(2));
-        while i + 2 < nb && n_ext < MAX_EXT {
+        while i + 2 < nb && !acc.full() {
             let c = smooth(i + 1);
             let kind: i8 = if b > a && b >= c {
                 1
@@ -1423,71 +1469,77 @@ impl Solver {
                 i += 1;
                 continue;
             }
-            // Least-squares parabola v = qa u² + qb u + qc through five raw
-            // samples (u in units of 1e-4 nm⁻¹ for conditioning, offsets
-            // precomputed per band).
-            let x0 = x(i);
-            let us = &self.parabola_u[i];
-            let (mut t0, mut t1, mut t2, mut tvv) = (0.0, 0.0, 0.0, 0.0);
-            for (&u, &v) in us.iter().zip(&ys[i - 2..i + 3]) {
-                t2 += v * u * u;
-                t1 += v * u;
-                t0 += v;
-                tvv += v * v;
-            }
+            let y5 = [ys[i - 2], ys[i - 1], ys[i], ys[i + 1], ys[i + 2]];
+            self.fit_extremum(i, kind, y5, &mut acc);
             i += 2;
             if i + 2 < nb {
                 (a, b) = (smooth(i - 1), smooth(i));
             }
-            let Some(minv) = self.parabola[i - 2] else {
-                continue;
-            };
-            let t = [t2, t1, t0];
-            let q: [f64; 3] = std::array::from_fn(|r| (0..3).map(|c| minv[r][c] * t[c]).sum());
-            let (qa, qb, qc) = (q[0], q[1], q[2]);
-            if qa * f64::from(kind) >= 0.0 {
-                continue;
-            }
-            let u = -qb / (2.0 * qa);
-            let span = (x(i) - x(i - 4)).abs() * 1e4;
-            if u.abs() > span {
-                continue;
-            }
-            rss += (tvv - (qa * t2 + qb * t1 + qc * t0)).max(0.0);
-            rdof += 2.0;
-            // Delta method: ∂u/∂(a, b), ∂v/∂(a, b, c).
-            let gu = [qb / (2.0 * qa * qa), -1.0 / (2.0 * qa), 0.0];
-            let gv = [qb * qb / (4.0 * qa * qa), -qb / (2.0 * qa), 1.0];
-            let quad = |g: &[f64; 3]| -> f64 {
-                (0..3)
-                    .map(|r| (0..3).map(|c| g[r] * minv[r][c] * g[c]).sum::<f64>())
-                    .sum()
-            };
-            let e = Ext {
-                pos: x0 + u * 1e-4,
-                val: qc - qb * qb / (4.0 * qa),
-                kind,
-                var_pos: quad(&gu) * 1e-8,
-                var_val: quad(&gv),
-            };
-            if n_ext > 0 && ext[n_ext - 1].kind == kind {
-                // Two of a kind in a row: noise; keep the more extreme.
-                if (e.val - ext[n_ext - 1].val) * f64::from(kind) > 0.0 {
-                    ext[n_ext - 1] = e;
-                }
-            } else if n_ext > 0 && (e.val - ext[n_ext - 1].val).abs() < prominence {
-                // A wiggle of noise size on a flat fringe top: not a fringe
-                // extremum (hysteresis). The next extremum of the earlier
-                // kind then merges with it above.
-            } else {
-                ext[n_ext] = e;
-                n_ext += 1;
-            }
         }
+        self.closed_form(prep, &acc, theta_known, noise)
+    }
+
+    /// Fit the five-point parabola around sorted band `i` (a candidate
+    /// extremum of kind `kind`) and hand a usable extremum to `acc`.
+    #[inline]
+    fn fit_extremum(&self, i: usize, kind: i8, y5: [f64; 5], acc: &mut ExtremaAcc) {
+        // Least-squares parabola v = qa u² + qb u + qc (u in units of 1e-4
+        // nm⁻¹ for conditioning, offsets precomputed per band).
+        let us = &self.parabola_u[i];
+        let (mut t0, mut t1, mut t2, mut tvv) = (0.0, 0.0, 0.0, 0.0);
+        for (&u, &v) in us.iter().zip(&y5) {
+            t2 += v * u * u;
+            t1 += v * u;
+            t0 += v;
+            tvv += v * v;
+        }
+        let Some(minv) = self.parabola[i] else {
+            return;
+        };
+        let t = [t2, t1, t0];
+        let q: [f64; 3] = std::array::from_fn(|r| (0..3).map(|c| minv[r][c] * t[c]).sum());
+        let (qa, qb, qc) = (q[0], q[1], q[2]);
+        if qa * f64::from(kind) >= 0.0 {
+            return;
+        }
+        let u = -qb / (2.0 * qa);
+        let span = (us[4] - us[0]).abs();
+        if u.abs() > span {
+            return;
+        }
+        acc.rss += (tvv - (qa * t2 + qb * t1 + qc * t0)).max(0.0);
+        acc.rdof += 2.0;
+        // Delta method: ∂u/∂(a, b), ∂v/∂(a, b, c).
+        let gu = [qb / (2.0 * qa * qa), -1.0 / (2.0 * qa), 0.0];
+        let gv = [qb * qb / (4.0 * qa * qa), -qb / (2.0 * qa), 1.0];
+        let quad = |g: &[f64; 3]| -> f64 {
+            (0..3)
+                .map(|r| (0..3).map(|c| g[r] * minv[r][c] * g[c]).sum::<f64>())
+                .sum()
+        };
+        acc.push(Ext {
+            pos: self.sorted[i].2 + u * 1e-4,
+            val: qc - qb * qb / (4.0 * qa),
+            kind,
+            var_pos: quad(&gu) * 1e-8,
+            var_val: quad(&gv),
+        });
+    }
+
+    /// Lattice, angle and thickness from located extrema.
+    fn closed_form(
+        &self,
+        prep: &Prepared,
+        acc: &ExtremaAcc,
+        theta_known: Option<f64>,
+        noise: Option<f64>,
+    ) -> Option<PixelEstimate> {
+        let n_ext = acc.n;
         if n_ext < 2 {
             return None;
         }
-        let ext = &ext[..n_ext];
+        let (rss, rdof) = (acc.rss, acc.rdof);
+        let ext = &acc.ext[..n_ext];
         let var_r = match noise {
             Some(n) => n * n,
             None if rdof > 0.0 => rss / rdof,
