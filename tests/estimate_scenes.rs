@@ -490,3 +490,37 @@ fn accurate_mode_integrates_wide_passbands_where_they_matter() {
         "{acc:?} vs {point:?}"
     );
 }
+
+#[test]
+fn fast_rows_agree_with_the_per_pixel_fast_path() {
+    // The band-major row path must compute what the per-pixel path does.
+    let s = Scene::paper_cylinder();
+    let bands = scene_bands(&s).unwrap();
+    let cube = Renderer::new(&s).unwrap().render_cube(&bands).unwrap();
+    let mut solver = Solver::new(&s, &bands, Mode::Fast).unwrap();
+    solver.estimate_film_index(&cube).unwrap();
+    let mut scratch = irid::estimate::solver::Scratch::default();
+    let mut row = vec![irid::estimate::PixelEstimate::invalid(Reason::Masked); cube.width];
+    let mut spec = vec![0.0; bands.len()];
+    let (mut same, mut total) = (0, 0);
+    for y in 0..cube.height {
+        solver.solve_row(&cube, y, &mut row, &mut scratch);
+        for (x, r) in row.iter().enumerate() {
+            cube.spectrum_into(x, y, &mut spec);
+            let p = solver.solve_pixel(&spec, None, &mut scratch);
+            total += 1;
+            assert_eq!(r.is_valid(), p.is_valid(), "({x}, {y})");
+            if (r.thickness_nm - p.thickness_nm).abs() < 1e-9 {
+                same += 1;
+            } else {
+                // Only where both paths are legitimate closed forms of the
+                // same data: never more than a fraction of σ apart.
+                assert!(
+                    (r.thickness_nm - p.thickness_nm).abs() < r.sigma_thickness_nm,
+                    "({x}, {y}): {r:?} vs {p:?}"
+                );
+            }
+        }
+    }
+    assert!(same as f64 > 0.99 * total as f64, "{same} of {total}");
+}

@@ -609,6 +609,12 @@ impl Solver {
             },
             scratch,
         );
+        Self::with_index(prep, index, &mut est);
+        est
+    }
+
+    /// The global index and its share of the thickness error.
+    fn with_index(prep: &Prepared, index: &IndexEstimate, est: &mut PixelEstimate) {
         if est.is_valid() {
             est.n_film = index.n;
             // The global index's own error moves the thickness at fixed
@@ -618,7 +624,6 @@ impl Solver {
             let (a, b) = (est.sigma_thickness_nm, dd_dn * index.sigma);
             est.sigma_thickness_nm = (a * a + b * b).sqrt();
         }
-        est
     }
 
     /// Solve row `y` of the cube into `out` (length `cube.width`).
@@ -631,11 +636,115 @@ impl Solver {
     ) {
         let mut pixel = std::mem::take(&mut scratch.pixel);
         pixel.resize(cube.bands.len(), 0.0);
-        for (x, o) in out.iter_mut().enumerate().take(cube.width) {
+        let mut done = 0;
+        if self.mode == Mode::Fast {
+            done = self.solve_row_fast(cube, y, out, &mut pixel, scratch);
+        }
+        for (x, o) in out.iter_mut().enumerate().take(cube.width).skip(done) {
             cube.spectrum_into(x, y, &mut pixel);
             *o = self.solve_pixel(&pixel, self.scene.angle.known_at(x, y), scratch);
         }
         scratch.pixel = pixel;
+    }
+
+    /// `fast` on a whole row, band-major: the extremum candidates of 64
+    /// pixels at a time come from one branch-free pass over the band planes
+    /// (bit masks per pixel), so only the few candidates are visited per
+    /// pixel; the fits and closed forms are those of the per-pixel path, and
+    /// a pixel they cannot serve takes it. Returns the pixels written (the
+    /// whole row, or 0 when this path does not apply).
+    fn solve_row_fast(
+        &self,
+        cube: &Cube,
+        y: usize,
+        out: &mut [PixelEstimate],
+        pixel: &mut [f64],
+        scratch: &mut Scratch,
+    ) -> usize {
+        let (Some(prep), Some(index)) = (&self.prepared, &self.index) else {
+            return 0;
+        };
+        let nb = self.sorted.len();
+        let (w, n) = (cube.width, cube.plane_len());
+        if !(7..=66).contains(&nb) || cube.bands.len() != nb || out.len() < w || y >= cube.height {
+            return 0;
+        }
+        let noise = index.noise_sigma.is_finite().then_some(index.noise_sigma);
+        let data = &cube.data;
+        let base = y * w;
+        // Start of sorted band r's row in the cube.
+        let row_of = |r: usize| self.sorted[r].0 * n + base;
+        const CH: usize = 64;
+        let mut x0 = 0;
+        while x0 < w {
+            let m = (w - x0).min(CH);
+            let mut bad = [false; CH];
+            for r in 0..nb {
+                let row = &data[row_of(r) + x0..row_of(r) + x0 + m];
+                for (b, &v) in bad.iter_mut().zip(row) {
+                    *b |= !(-0.2..=1.2).contains(&v);
+                }
+            }
+            let smooth_into = |r: usize, dst: &mut [f64; CH]| {
+                let (ra, rb, rc) = (row_of(r - 1) + x0, row_of(r) + x0, row_of(r + 1) + x0);
+                let (ya, yb, yc) = (&data[ra..ra + m], &data[rb..rb + m], &data[rc..rc + m]);
+                for j in 0..m {
+                    dst[j] =
+                        0.25 * f64::from(ya[j]) + 0.5 * f64::from(yb[j]) + 0.25 * f64::from(yc[j]);
+                }
+            };
+            let (mut prev, mut cur, mut next) = ([0.0; CH], [0.0; CH], [0.0; CH]);
+            smooth_into(1, &mut prev);
+            smooth_into(2, &mut cur);
+            let (mut maxima, mut minima) = ([0u64; CH], [0u64; CH]);
+            for r in 2..nb - 2 {
+                smooth_into(r + 1, &mut next);
+                for j in 0..m {
+                    let (a, b, c) = (prev[j], cur[j], next[j]);
+                    maxima[j] |= u64::from((b > a) & (b >= c)) << r;
+                    minima[j] |= u64::from((b < a) & (b <= c)) << r;
+                }
+                std::mem::swap(&mut prev, &mut cur);
+                std::mem::swap(&mut cur, &mut next);
+            }
+            for j in 0..m {
+                let x = x0 + j;
+                let theta_known = self.scene.angle.known_at(x, y);
+                let theta_ok =
+                    theta_known.is_none_or(|t| t.is_finite() && (0.0..PI / 2.0).contains(&t));
+                let mut est = None;
+                if !bad[j] && theta_ok {
+                    let mut acc = ExtremaAcc::new(noise);
+                    let mut pending = maxima[j] | minima[j];
+                    let mut next_free = 2;
+                    while pending != 0 && !acc.full() {
+                        let i = pending.trailing_zeros() as usize;
+                        pending &= pending - 1;
+                        if i < next_free {
+                            // Inside the previous candidate's five points.
+                            continue;
+                        }
+                        let kind = if maxima[j] >> i & 1 == 1 { 1 } else { -1 };
+                        let y5 = std::array::from_fn(|k| f64::from(data[row_of(i + k - 2) + x]));
+                        self.fit_extremum(i, kind, y5, &mut acc);
+                        next_free = i + 2;
+                    }
+                    est = self.closed_form(prep, &acc, theta_known, noise);
+                }
+                out[x] = match est {
+                    Some(mut e) => {
+                        Self::with_index(prep, index, &mut e);
+                        e
+                    }
+                    None => {
+                        cube.spectrum_into(x, y, pixel);
+                        self.solve_pixel(pixel, theta_known, scratch)
+                    }
+                };
+            }
+            x0 += m;
+        }
+        w
     }
 
     /// Fit a whole cube: the film index first where unknown, then every
