@@ -27,6 +27,17 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
+/// Whether `irid run` tracks fringe extrema while bands arrive.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Tracking {
+    /// Always.
+    On,
+    /// Never.
+    Off,
+    /// Except in `fast` mode.
+    Auto,
+}
+
 /// Arguments of `irid run`.
 #[derive(clap::Args, Debug, Clone)]
 pub struct RunArgs {
@@ -58,11 +69,13 @@ pub struct RunArgs {
     /// Run every stage on one thread (deterministic).
     #[arg(long)]
     pub single_thread: bool,
-    /// Also track every pixel's fringe extrema while bands arrive
-    /// (sub-band peaks and valleys, in the sweep buffer; the solver finds
-    /// its own from the complete spectrum, so this is off by default).
-    #[arg(long)]
-    pub track_extrema: bool,
+    /// Track every pixel's fringe extrema while bands arrive (sub-band
+    /// peaks and valleys, kept in the sweep buffer): `on`, `off`, or `auto`
+    /// = on except in `fast` mode, whose CPU budget at line rate it would
+    /// eat (about 2 ms per 1280×1024 frame; the solver locates extrema again
+    /// from the complete spectrum).
+    #[arg(long, value_enum, default_value_t = Tracking::Auto)]
+    pub track_extrema: Tracking,
     /// Demo: image size (the scene's fields stretch to it).
     #[arg(long, value_name = "WxH")]
     pub size: Option<String>,
@@ -663,7 +676,11 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         mode,
         threads: args.threads,
         single_thread: args.single_thread,
-        track_extrema: args.track_extrema,
+        track_extrema: match args.track_extrema {
+            Tracking::On => true,
+            Tracking::Off => false,
+            Tracking::Auto => mode != crate::estimate::Mode::Fast,
+        },
         ..RunConfig::default()
     };
     let mut sink = CliSink {
