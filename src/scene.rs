@@ -8,7 +8,8 @@
 //! - `[film]`: a known index (`n`, `k` or `material`) — then it is never
 //!   re-estimated — or, with none of them, unknown: `search = [lo, hi]` bounds
 //!   the global index estimate and an optional `prior` breaks the
-//!   n2 ↔ n1·n3/n2 twin tie.
+//!   n2 ↔ n1·n3/n2 twin tie; `max_thickness_nm` bounds the thickness search
+//!   (default 2000 nm).
 //! - `[angle]`: known (`deg`, or a per-pixel `map` file in degrees) or unknown
 //!   (`search_deg = [lo, hi]`).
 //! - `[light]`: `polarization` = `"s"`, `"p"`, `"u"` or an s weight.
@@ -153,6 +154,8 @@ pub struct FilmSpec {
     /// Prior guess of an unknown index, used only to break a tie between
     /// indistinguishable twins.
     pub prior: Option<f64>,
+    /// Thickest film the estimator considers, nm (default 2000).
+    pub max_thickness_nm: Option<f64>,
 }
 
 /// The `[angle]` section.
@@ -292,6 +295,10 @@ pub struct SceneFile {
     pub truth: Option<TruthSpec>,
 }
 
+/// Thickest film the estimator considers unless `[film] max_thickness_nm`
+/// says otherwise, nm.
+pub const DEFAULT_MAX_THICKNESS_NM: f64 = 2000.0;
+
 /// The paper's simulated cylinder (the default scene of the demo and the
 /// reference scene of the benchmarks).
 pub const PAPER_CYLINDER: &str = include_str!("../data/scenes/paper-cylinder.toml");
@@ -365,6 +372,8 @@ pub struct Scene {
     pub bands: Option<Vec<Band>>,
     /// Ground truth, if given.
     pub truth: Option<Truth>,
+    /// Thickest film the estimator considers, nm.
+    pub max_thickness_nm: f64,
 }
 
 /// Resolved synthetic truth.
@@ -462,6 +471,17 @@ impl Scene {
                 prior: f.prior,
             }
         };
+        let max_thickness_nm = file
+            .film
+            .max_thickness_nm
+            .unwrap_or(DEFAULT_MAX_THICKNESS_NM);
+        if !(max_thickness_nm.is_finite() && max_thickness_nm > 0.0 && max_thickness_nm <= 20_000.0)
+        {
+            return Err(invalid(
+                "film.max_thickness_nm",
+                format!("must lie in (0, 20000] nm, not {max_thickness_nm}"),
+            ));
+        }
         let a = &file.angle;
         let angle = match (a.deg, &a.map) {
             (Some(_), Some(_)) => return Err(invalid("angle", "give `deg` or `map`, not both")),
@@ -514,6 +534,7 @@ impl Scene {
             polarization,
             bands,
             truth,
+            max_thickness_nm,
         })
     }
 }

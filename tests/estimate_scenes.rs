@@ -524,3 +524,38 @@ fn fast_rows_agree_with_the_per_pixel_fast_path() {
     }
     assert!(same as f64 > 0.99 * total as f64, "{same} of {total}");
 }
+
+#[test]
+fn the_thickness_range_is_a_scene_setting() {
+    let thick = r#"
+[substrate]
+n = 1.60
+[film]
+n = 1.37
+max_thickness_nm = 3000
+[angle]
+deg = 20.0
+[bands]
+start_nm = 400
+stop_nm = 700
+step_nm = 5
+fwhm_nm = 0
+[truth]
+width = 20
+height = 2
+thickness_nm = { linear_x = [2200.0, 2800.0] }
+noise_sigma = 0.001
+seed = 4
+"#;
+    let (maps, _, acc, _) = fit(&scene(thick), Mode::Balanced);
+    all_finite_or_flagged(&maps);
+    assert!(
+        acc.valid_fraction > 0.95 && acc.thickness_max_nm < 3.0,
+        "{acc:?}"
+    );
+    let bad = thick.replace("max_thickness_nm = 3000", "max_thickness_nm = -5");
+    let err = Scene::from_toml(&bad, "<test>", Path::new("."))
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("film.max_thickness_nm"), "{err}");
+}

@@ -354,9 +354,6 @@ pub struct Solver {
     parabola_u: Vec<[f64; 5]>,
 }
 
-/// Largest film thickness the solver considers, nm.
-pub const DEFAULT_D_MAX_NM: f64 = 2000.0;
-
 impl Solver {
     /// A solver for `scene` observed in `bands` (cube plane order).
     pub fn new(scene: &Scene, bands: &[Band], mode: Mode) -> Result<Solver, EstimateError> {
@@ -389,7 +386,7 @@ impl Solver {
                 .fold(1.0, f64::max),
             FilmKnowledge::Unknown { search, .. } => search.1,
         };
-        let d_max = DEFAULT_D_MAX_NM;
+        let d_max = scene.max_thickness_nm;
         let basis = FringeBasis::new(bands, d_max * n2_hi);
         let theta_range = match scene.angle {
             AngleKnowledge::Unknown { search } => search,
