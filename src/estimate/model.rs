@@ -169,6 +169,23 @@ fn uniform_kernel(w: &[f64], a: UniformArgs, r: &mut [f64], dd: &mut [f64], dth:
     }
 }
 
+/// Sine and cosine of an angle and of the angle one [`THETA_STEP`] beyond.
+#[derive(Clone, Copy, Debug)]
+struct AngleAt {
+    s: f64,
+    c: f64,
+    sh: f64,
+    ch: f64,
+}
+
+impl AngleAt {
+    fn new(theta: f64) -> Self {
+        let (s, c) = sin_cos(theta);
+        let (sh, ch) = sin_cos(theta + THETA_STEP);
+        AngleAt { s, c, sh, ch }
+    }
+}
+
 /// One quadrature node of a band.
 #[derive(Clone, Copy, Debug)]
 struct Node {
@@ -356,10 +373,13 @@ impl FilmModel {
     /// Model reflectance per band at thickness `d` (nm) and angle `theta`
     /// (rad); with `with_derivative`, also dR/dd and dR/dθ.
     pub fn eval(&self, d: f64, theta: f64, out: &mut ModelOut, with_derivative: bool) {
-        let real = self.real_at(theta) && self.real_at(theta + THETA_STEP);
+        // The angle's sines once per evaluation, shared by the real-path
+        // test and every node's coefficients.
+        let a = AngleAt::new(theta);
+        let real = self.real && a.s.max(a.sh) < self.sin_critical;
         if real && self.uniform && self.nodes.len() == self.n_bands {
             // Overwrites every band: no clearing needed.
-            self.eval_real_uniform(d, theta, out, with_derivative);
+            self.eval_real_uniform(d, &a, out, with_derivative);
             return;
         }
         out.r[..self.n_bands].fill(0.0);
@@ -368,7 +388,7 @@ impl FilmModel {
             out.dr_dth[..self.n_bands].fill(0.0);
         }
         if real {
-            self.eval_real(d, theta, out, with_derivative);
+            self.eval_real(d, &a, out, with_derivative);
         } else {
             self.eval_complex(d, theta, out, with_derivative);
         }
@@ -392,11 +412,9 @@ impl FilmModel {
     /// Both polarisations' coefficients at `theta` and their change over
     /// [`THETA_STEP`], with `q2` and `dq2/dθ`.
     #[inline]
-    fn coeffs_with_slope(&self, n: &Node, theta: f64) -> CoeffSet {
-        let (s, c) = sin_cos(theta);
-        let (sh, ch) = sin_cos(theta + THETA_STEP);
-        let (cs, cp, q2) = self.coeffs(n, s, c);
-        let (cs_h, cp_h, q2_h) = self.coeffs(n, sh, ch);
+    fn coeffs_with_slope(&self, n: &Node, a: &AngleAt) -> CoeffSet {
+        let (cs, cp, q2) = self.coeffs(n, a.s, a.c);
+        let (cs_h, cp_h, q2_h) = self.coeffs(n, a.sh, a.ch);
         CoeffSet {
             cs,
             cp,
@@ -429,8 +447,8 @@ impl FilmModel {
     /// The common case: lossless, non-dispersive media, one node per band.
     /// Written as straight loops over bands (phases, then `sin_cos`, then
     /// the rational function) so the compiler vectorises them.
-    fn eval_real_uniform(&self, d: f64, theta: f64, out: &mut ModelOut, deriv: bool) {
-        let k = self.coeffs_with_slope(&self.nodes[0], theta);
+    fn eval_real_uniform(&self, d: f64, a: &AngleAt, out: &mut ModelOut, deriv: bool) {
+        let k = self.coeffs_with_slope(&self.nodes[0], a);
         let nb = self.n_bands;
         let pol = Pol::new(self.s_weight, &k);
         let ModelOut {
@@ -451,9 +469,9 @@ impl FilmModel {
         );
     }
 
-    fn eval_real(&self, d: f64, theta: f64, out: &mut ModelOut, deriv: bool) {
+    fn eval_real(&self, d: f64, a: &AngleAt, out: &mut ModelOut, deriv: bool) {
         for n in &self.nodes {
-            let k = self.coeffs_with_slope(n, theta);
+            let k = self.coeffs_with_slope(n, a);
             let (rv, a, b) = self.node_value(&k, n.w, d, deriv);
             out.r[n.band] += n.weight * rv;
             if deriv {
