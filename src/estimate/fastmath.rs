@@ -25,6 +25,21 @@ const C4: f64 = -2.755_731_435_139_066e-7;
 const C5: f64 = 2.087_572_321_298_175e-9;
 const C6: f64 = -1.135_964_755_778_819_5e-11;
 
+/// 1.5·2⁵²: adding and subtracting it rounds a double to the nearest
+/// integer (ties to even) for |x| < 2⁵¹.
+const SHIFT: f64 = 6_755_399_441_055_744.0;
+
+/// Round to nearest for |x| < 2⁵¹ without a libm call (`f64::round` is one
+/// on baseline x86-64); larger values are returned as they are.
+#[inline(always)]
+pub fn round(x: f64) -> f64 {
+    if x.abs() < 2_251_799_813_685_248.0 {
+        (x + SHIFT) - SHIFT
+    } else {
+        x
+    }
+}
+
 /// `(sin x, cos x)` for |x| ≤ 1e5; larger or non-finite arguments fall back
 /// to the standard library.
 #[inline(always)]
@@ -40,9 +55,8 @@ pub fn sin_cos(x: f64) -> (f64, f64) {
 /// Branch-free, so loops over it vectorise.
 #[inline(always)]
 pub fn sin_cos_bounded(x: f64) -> (f64, f64) {
-    // Round to nearest by the 1.5·2⁵² trick (`f64::round` is a libm
-    // call); the low mantissa bits of `t` then hold k mod 4.
-    const SHIFT: f64 = 6_755_399_441_055_744.0;
+    // Round to nearest by the 1.5·2⁵² trick (see [`round`]); the low
+    // mantissa bits of `t` then hold k mod 4.
     let t = x * FRAC_2_PI + SHIFT;
     let k = t - SHIFT;
     let r = (x - k * PIO2_HI) - k * PIO2_LO;

@@ -29,6 +29,7 @@
 //! cannot.
 
 use super::angle::half_wave_angles;
+use super::fastmath::round;
 use super::model::{FilmModel, ModelOut};
 use super::{Cube, EstimateError, Mode, ParamMaps, PixelEstimate, Reason};
 use crate::optics::band::Band;
@@ -2027,17 +2028,6 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
         s += x * y;
     }
     s
-}
-
-/// Round to nearest for |x| < 2⁵¹ without a libm call.
-#[inline(always)]
-fn round(x: f64) -> f64 {
-    const SHIFT: f64 = 6_755_399_441_055_744.0;
-    if x.abs() < 4.0e15 {
-        (x + SHIFT) - SHIFT
-    } else {
-        x
-    }
 }
 
 /// Slope dR/dθ of the half-wave envelope at `theta`, from the table.
