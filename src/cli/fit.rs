@@ -132,8 +132,7 @@ pub fn run(a: &FitArgs) -> anyhow::Result<()> {
     let result = pool.install(|| solver.fit_cube(&cube));
     let elapsed = start.elapsed().as_secs_f64();
     let solve_s = elapsed - index_s;
-    let mut maps = result.context("fitting")?;
-    complete_meta(&mut maps, &solver, &scene, &cube, a.mode);
+    let maps = result.context("fitting")?;
     exr_maps::write_maps(&a.out, &maps)?;
     let pixels = cube.width * cube.height;
     let summary = Summary {
@@ -155,30 +154,6 @@ pub fn run(a: &FitArgs) -> anyhow::Result<()> {
         eprintln!("{}", human_summary(&summary, &maps, &a.out));
     }
     Ok(())
-}
-
-/// Fill what the solver left empty in the maps' metadata (the solver's film
-/// index, when it has one, is authoritative).
-fn complete_meta(maps: &mut ParamMaps, solver: &Solver, scene: &Scene, cube: &Cube, mode: Mode) {
-    let m = &mut maps.meta;
-    if m.mode.is_empty() {
-        m.mode = mode.name().to_string();
-    }
-    if m.wavelengths_nm.is_empty() {
-        m.wavelengths_nm = cube.bands.iter().map(|b| b.center_nm).collect();
-        m.fwhm_nm = cube.bands.iter().map(|b| b.fwhm_nm).collect();
-    }
-    if m.polarization.is_empty() {
-        m.polarization = scene.polarization.name();
-    }
-    if let Some(ix) = solver.film_index() {
-        m.n_film = ix.n;
-        m.n_film_sigma = ix.sigma;
-        m.n_film_estimated = ix.estimated;
-        if m.n_film_note.is_empty() {
-            m.n_film_note = ix.note.clone();
-        }
-    }
 }
 
 fn human_summary(s: &Summary, maps: &ParamMaps, out: &std::path::Path) -> String {
