@@ -26,6 +26,12 @@ use crate::optics::Polarization;
 /// (substrate). At most two; none for unpolarised or mixed light, or when
 /// no angle produces that reflectance.
 pub fn half_wave_angles(r_half: f64, n1: f64, n3: f64, pol: Polarization) -> [Option<f64>; 2] {
+    half_wave_sin2(r_half, n1, n3, pol).map(|s2| s2.map(|s2| s2.sqrt().asin()))
+}
+
+/// As [`half_wave_angles`], as `sin² θ` (what the thickness needs; the
+/// angle itself costs an arcsine more).
+pub fn half_wave_sin2(r_half: f64, n1: f64, n3: f64, pol: Polarization) -> [Option<f64>; 2] {
     let mut out = [None, None];
     if !(r_half.is_finite() && (0.0..1.0).contains(&r_half) && n1 > 0.0 && n3 > 0.0) {
         return out;
@@ -37,14 +43,16 @@ pub fn half_wave_angles(r_half: f64, n1: f64, n3: f64, pol: Polarization) -> [Op
     };
     let root = r_half.sqrt();
     for (slot, r) in out.iter_mut().zip([root, -root]) {
-        let t = scale * (1.0 - r) / (1.0 + r);
-        let den = n1 * n1 * (t * t - 1.0);
+        // t = a/c, and sin²θ with numerator and denominator times c² (one
+        // division instead of two; c = 1 + r > 0 as |r| < 1).
+        let (a, c) = (scale * (1.0 - r), 1.0 + r);
+        let den = n1 * n1 * (a * a - c * c);
         if den == 0.0 {
             continue;
         }
-        let s2 = (t * t * n1 * n1 - n3 * n3) / den;
+        let s2 = (a * a * n1 * n1 - n3 * n3 * c * c) / den;
         if (0.0..1.0).contains(&s2) {
-            *slot = Some(s2.sqrt().asin());
+            *slot = Some(s2);
         }
     }
     out

@@ -167,6 +167,46 @@ pub struct ParamMaps {
     pub meta: MapMeta,
 }
 
+/// One row of [`ParamMaps`], writable on its own.
+#[derive(Debug)]
+pub struct MapRowMut<'a> {
+    thickness_nm: &'a mut [f32],
+    n_film: &'a mut [f32],
+    theta_deg: &'a mut [f32],
+    sigma_thickness_nm: &'a mut [f32],
+    sigma_theta_deg: &'a mut [f32],
+    residual_rms: &'a mut [f32],
+    valid: &'a mut [f32],
+    reason: &'a mut [f32],
+}
+
+impl MapRowMut<'_> {
+    /// Store pixel `x`'s estimate (invalid pixels: NaN estimates, their
+    /// reason code).
+    pub fn set(&mut self, x: usize, e: &PixelEstimate) {
+        if x >= self.valid.len() {
+            return;
+        }
+        let valid = e.is_valid();
+        let v = |x: f64| if valid { x as f32 } else { f32::NAN };
+        self.thickness_nm[x] = v(e.thickness_nm);
+        self.n_film[x] = v(e.n_film);
+        self.theta_deg[x] = v(e.theta_deg);
+        self.sigma_thickness_nm[x] = v(e.sigma_thickness_nm);
+        self.sigma_theta_deg[x] = v(e.sigma_theta_deg);
+        self.residual_rms[x] = v(e.residual_rms);
+        self.valid[x] = if valid { 1.0 } else { 0.0 };
+        self.reason[x] = f32::from(e.reason as u8);
+    }
+
+    /// Store a whole row of estimates.
+    pub fn set_all(&mut self, est: &[PixelEstimate]) {
+        for (x, e) in est.iter().enumerate() {
+            self.set(x, e);
+        }
+    }
+}
+
 impl ParamMaps {
     /// Maps of the given size, every pixel invalid ([`Reason::Masked`]).
     pub fn new(width: usize, height: usize) -> Self {
@@ -195,16 +235,62 @@ impl ParamMaps {
 
     /// Store the estimate of the pixel with row-major index `i`.
     pub fn set_index(&mut self, i: usize, e: &PixelEstimate) {
-        let valid = e.is_valid();
-        let v = |x: f64| if valid { x as f32 } else { f32::NAN };
-        self.thickness_nm[i] = v(e.thickness_nm);
-        self.n_film[i] = v(e.n_film);
-        self.theta_deg[i] = v(e.theta_deg);
-        self.sigma_thickness_nm[i] = v(e.sigma_thickness_nm);
-        self.sigma_theta_deg[i] = v(e.sigma_theta_deg);
-        self.residual_rms[i] = v(e.residual_rms);
-        self.valid[i] = if valid { 1.0 } else { 0.0 };
-        self.reason[i] = f32::from(e.reason as u8);
+        if i >= self.valid.len() {
+            return;
+        }
+        let r = i..i + 1;
+        MapRowMut {
+            thickness_nm: &mut self.thickness_nm[r.clone()],
+            n_film: &mut self.n_film[r.clone()],
+            theta_deg: &mut self.theta_deg[r.clone()],
+            sigma_thickness_nm: &mut self.sigma_thickness_nm[r.clone()],
+            sigma_theta_deg: &mut self.sigma_theta_deg[r.clone()],
+            residual_rms: &mut self.residual_rms[r.clone()],
+            valid: &mut self.valid[r.clone()],
+            reason: &mut self.reason[r],
+        }
+        .set(0, e);
+    }
+
+    /// Rows `rows` as independent mutable views, one per row, so that
+    /// rows can be written in parallel (the vector is per block of rows,
+    /// not per pixel).
+    pub fn rows_mut(&mut self, rows: std::ops::Range<usize>) -> Vec<MapRowMut<'_>> {
+        let w = self.width;
+        let (a, b) = (
+            rows.start.min(self.height) * w,
+            rows.end.min(self.height) * w,
+        );
+        let mut out = Vec::with_capacity(rows.len());
+        if w == 0 || a >= b {
+            return out;
+        }
+        let mut ch = [
+            &mut self.thickness_nm[a..b],
+            &mut self.n_film[a..b],
+            &mut self.theta_deg[a..b],
+            &mut self.sigma_thickness_nm[a..b],
+            &mut self.sigma_theta_deg[a..b],
+            &mut self.residual_rms[a..b],
+            &mut self.valid[a..b],
+            &mut self.reason[a..b],
+        ]
+        .map(|c| c.chunks_mut(w));
+        while let [Some(t), Some(n), Some(th), Some(st), Some(sth), Some(r), Some(v), Some(re)] =
+            ch.each_mut().map(Iterator::next)
+        {
+            out.push(MapRowMut {
+                thickness_nm: t,
+                n_film: n,
+                theta_deg: th,
+                sigma_thickness_nm: st,
+                sigma_theta_deg: sth,
+                residual_rms: r,
+                valid: v,
+                reason: re,
+            });
+        }
+        out
     }
 
     /// Pixel (x, y)'s estimate read back.

@@ -5,6 +5,7 @@
 //! may run rows in parallel; [`Solver`] is `Sync`).
 //!
 //! - [`cube`]: the in-memory spectral cube (band-sequential reflectance).
+//! - [`detect`]: fringe-extremum candidates of many pixels at once.
 //! - [`maps`]: the parameter maps a fit produces, with validity reasons.
 //! - [`solver`]: the per-pixel solver and the global film-index search.
 //!
@@ -14,13 +15,14 @@
 
 pub mod angle;
 pub mod cube;
+pub mod detect;
 pub mod fastmath;
 pub mod maps;
 pub mod model;
 pub mod solver;
 
 pub use cube::Cube;
-pub use maps::{ParamMaps, PixelEstimate, Reason};
+pub use maps::{MapRowMut, ParamMaps, PixelEstimate, Reason};
 pub use solver::{IndexEstimate, Solver};
 
 /// Speed/accuracy trade-off of the per-pixel solver.

@@ -28,7 +28,7 @@
 //! the χ² difference between them is reported; a prior breaks a tie the data
 //! cannot.
 
-use super::angle::half_wave_angles;
+use super::angle::half_wave_sin2;
 use super::fastmath::round;
 use super::model::{FilmModel, ModelOut};
 use super::{Cube, EstimateError, Mode, ParamMaps, PixelEstimate, Reason};
@@ -240,8 +240,86 @@ struct Ext {
     var_val: f64,
 }
 
+/// The least-squares parabola `v = a u² + b u + c` (u: wavenumber offset
+/// from the candidate band, in 1e-4 nm⁻¹ for conditioning) through the
+/// samples around one sorted band: five samples inside the band range,
+/// four (0–3 or the last four) at the second and second-to-last bands, so
+/// an extremum next to either end of the range is still located.
+#[derive(Clone, Copy, Debug)]
+struct Window {
+    /// First sorted band of the window.
+    lo: usize,
+    /// Samples in the window (4 or 5).
+    len: usize,
+    /// Their wavenumber offsets (unused slots 0).
+    u: [f64; 5],
+    /// Inverse normal matrix.
+    minv: [[f64; 3]; 3],
+    /// The vertex must lie within this offset range.
+    vertex: (f64, f64),
+}
+
+impl Window {
+    fn new(sorted: &[(usize, f64, f64)], i: usize) -> Option<Window> {
+        let nb = sorted.len();
+        let (lo, len) = if i >= 2 && i + 2 < nb {
+            (i - 2, 5)
+        } else if i == 1 && nb >= 4 {
+            (0, 4)
+        } else if i + 2 == nb && nb >= 4 {
+            (nb - 4, 4)
+        } else {
+            return None;
+        };
+        let x0 = sorted[i].2;
+        let mut u = [0.0; 5];
+        let mut m = [[0.0; 3]; 3];
+        for k in 0..len {
+            u[k] = (sorted[lo + k].2 - x0) * 1e4;
+            let row = [u[k] * u[k], u[k], 1.0];
+            for r in 0..3 {
+                for c in 0..3 {
+                    m[r][c] += row[r] * row[c];
+                }
+            }
+        }
+        let (u_min, u_max) = u[..len]
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
+                (a.min(x), b.max(x))
+            });
+        // Inside the range: the vertex may sit up to the window's width from
+        // the candidate (the detection is on smoothed data); at an end, only
+        // within the samples, never extrapolated past the band range.
+        let vertex = if len == 5 {
+            let span = u_max - u_min;
+            (-span, span)
+        } else {
+            (u_min, u_max)
+        };
+        Some(Window {
+            lo,
+            len,
+            u,
+            minv: inv3(m)?,
+            vertex,
+        })
+    }
+}
+
 /// Most extrema kept per pixel.
 const MAX_EXT: usize = 16;
+
+/// 1/k for the small counts the closed form divides by (k ≤ 5·MAX_EXT).
+const INV_SMALL: [f64; 5 * MAX_EXT + 1] = {
+    let mut t = [0.0; 5 * MAX_EXT + 1];
+    let mut k = 1;
+    while k < t.len() {
+        t[k] = 1.0 / k as f64;
+        k += 1;
+    }
+    t
+};
 
 /// Extrema of one pixel as they are found, in wavelength order, with the
 /// merging rules, and the fits' residuals.
@@ -263,6 +341,14 @@ impl ExtremaAcc {
             rdof: 0.0,
             prominence: noise.map_or(0.0, |n| 3.0 * n),
         }
+    }
+
+    /// Empty again, for the next pixel (the slots are not cleared: only
+    /// the first `n` are ever read).
+    fn reset(&mut self) {
+        self.n = 0;
+        self.rss = 0.0;
+        self.rdof = 0.0;
     }
 
     fn full(&self) -> bool {
@@ -321,6 +407,8 @@ struct Prepared {
     sign: f64,
     /// Angle table for the start: (θ, R(cos Δ = 1), R(cos Δ = −1)).
     table: Vec<(f64, f64, f64)>,
+    /// The half-wave envelope's slope dR/dθ between table entries.
+    slopes: Slopes,
     /// Real ambient and substrate indices at the middle band, when the
     /// half-wave level can be inverted in closed form (lossless, s or p).
     closed_form: Option<(f64, f64, Polarization)>,
@@ -341,6 +429,8 @@ pub struct Solver {
     prepared: Option<Prepared>,
     basis: FringeBasis,
     theta_range: (f64, f64),
+    /// sin² of the angle range's ends.
+    sin2_range: (f64, f64),
     d_max: f64,
     /// Bands by increasing wavelength: (plane index, λ, wavenumber 1/λ).
     sorted: Vec<(usize, f64, f64)>,
@@ -348,11 +438,9 @@ pub struct Solver {
     sigma_center: f64,
     /// The planes are already in increasing wavelength.
     sorted_identity: bool,
-    /// Inverse normal matrices of the five-point parabola centred on each
-    /// sorted band (`None` at the ends or if singular).
-    parabola: Vec<Option<[[f64; 3]; 3]>>,
-    /// The five wavenumber offsets (1e-4 nm⁻¹) of each such parabola.
-    parabola_u: Vec<[f64; 5]>,
+    /// The least-squares parabola around each sorted band (`None` at the
+    /// two end bands or if singular).
+    parabola: Vec<Option<Window>>,
 }
 
 impl Solver {
@@ -401,6 +489,7 @@ impl Solver {
             prepared: None,
             basis,
             theta_range,
+            sin2_range: (theta_range.0.sin().powi(2), theta_range.1.sin().powi(2)),
             d_max,
             sorted: {
                 let mut v: Vec<(usize, f64, f64)> = bands
@@ -412,7 +501,6 @@ impl Solver {
                 v
             },
             parabola: Vec::new(),
-            parabola_u: Vec::new(),
             sigma_center: 0.0,
             sorted_identity: false,
         };
@@ -424,35 +512,8 @@ impl Solver {
                 (a.min(x.2), b.max(x.2))
             });
         solver.sigma_center = 0.5 * (s_lo + s_hi);
-        solver.parabola_u = (0..solver.sorted.len())
-            .map(|i| {
-                let mut u = [0.0; 5];
-                if i >= 2 && i + 2 < solver.sorted.len() {
-                    for (k, j) in (i - 2..=i + 2).enumerate() {
-                        u[k] = (solver.sorted[j].2 - solver.sorted[i].2) * 1e4;
-                    }
-                }
-                u
-            })
-            .collect();
         solver.parabola = (0..solver.sorted.len())
-            .map(|i| {
-                if i < 2 || i + 2 >= solver.sorted.len() {
-                    return None;
-                }
-                let x0 = solver.sorted[i].2;
-                let mut m = [[0.0; 3]; 3];
-                for j in i - 2..=i + 2 {
-                    let u = (solver.sorted[j].2 - x0) * 1e4;
-                    let row = [u * u, u, 1.0];
-                    for r in 0..3 {
-                        for c in 0..3 {
-                            m[r][c] += row[r] * row[c];
-                        }
-                    }
-                }
-                inv3(m)
-            })
+            .map(|i| Window::new(&solver.sorted, i))
             .collect();
         if let FilmKnowledge::Known(film) = &scene.film {
             let film = film.clone();
@@ -543,9 +604,11 @@ impl Solver {
             } else {
                 None
             };
+        let slopes = Slopes::new(&table);
         Ok(Prepared {
             model,
             sign,
+            slopes,
             table,
             closed_form,
             integrated,
@@ -665,7 +728,11 @@ impl Solver {
         };
         let nb = self.sorted.len();
         let (w, n) = (cube.width, cube.plane_len());
-        if !(7..=66).contains(&nb) || cube.bands.len() != nb || out.len() < w || y >= cube.height {
+        if !(7..=super::detect::MAX_DETECT_BANDS).contains(&nb)
+            || cube.bands.len() != nb
+            || out.len() < w
+            || y >= cube.height
+        {
             return 0;
         }
         let noise = index.noise_sigma.is_finite().then_some(index.noise_sigma);
@@ -673,39 +740,23 @@ impl Solver {
         let base = y * w;
         // Start of sorted band r's row in the cube.
         let row_of = |r: usize| self.sorted[r].0 * n + base;
-        const CH: usize = 64;
+        const CH: usize = super::detect::CHUNK;
+        let mut rows: [&[f32]; super::detect::MAX_DETECT_BANDS] =
+            [&[]; super::detect::MAX_DETECT_BANDS];
+        let mut cand = super::detect::Candidates::default();
+        let mut acc = ExtremaAcc::new(noise);
         let mut x0 = 0;
         while x0 < w {
             let m = (w - x0).min(CH);
-            let mut bad = [false; CH];
-            for r in 0..nb {
-                let row = &data[row_of(r) + x0..row_of(r) + x0 + m];
-                for (b, &v) in bad.iter_mut().zip(row) {
-                    *b |= !(-0.2..=1.2).contains(&v);
-                }
+            for (r, row) in rows[..nb].iter_mut().enumerate() {
+                *row = &data[row_of(r) + x0..row_of(r) + x0 + m];
             }
-            let smooth_into = |r: usize, dst: &mut [f64; CH]| {
-                let (ra, rb, rc) = (row_of(r - 1) + x0, row_of(r) + x0, row_of(r + 1) + x0);
-                let (ya, yb, yc) = (&data[ra..ra + m], &data[rb..rb + m], &data[rc..rc + m]);
-                for j in 0..m {
-                    dst[j] =
-                        0.25 * f64::from(ya[j]) + 0.5 * f64::from(yb[j]) + 0.25 * f64::from(yc[j]);
-                }
-            };
-            let (mut prev, mut cur, mut next) = ([0.0; CH], [0.0; CH], [0.0; CH]);
-            smooth_into(1, &mut prev);
-            smooth_into(2, &mut cur);
-            let (mut maxima, mut minima) = ([0u64; CH], [0u64; CH]);
-            for r in 2..nb - 2 {
-                smooth_into(r + 1, &mut next);
-                for j in 0..m {
-                    let (a, b, c) = (prev[j], cur[j], next[j]);
-                    maxima[j] |= u64::from((b > a) & (b >= c)) << r;
-                    minima[j] |= u64::from((b < a) & (b <= c)) << r;
-                }
-                std::mem::swap(&mut prev, &mut cur);
-                std::mem::swap(&mut cur, &mut next);
-            }
+            super::detect::detect(&rows[..nb], &mut cand);
+            let super::detect::Candidates {
+                maxima,
+                minima,
+                bad,
+            } = &cand;
             for j in 0..m {
                 let x = x0 + j;
                 let theta_known = self.scene.angle.known_at(x, y);
@@ -713,28 +764,32 @@ impl Solver {
                     theta_known.is_none_or(|t| t.is_finite() && (0.0..PI / 2.0).contains(&t));
                 let mut est = None;
                 if !bad[j] && theta_ok {
-                    let mut acc = ExtremaAcc::new(noise);
+                    acc.reset();
                     let mut pending = maxima[j] | minima[j];
-                    let mut next_free = 2;
+                    let mut next_free = 1;
                     while pending != 0 && !acc.full() {
                         let i = pending.trailing_zeros() as usize;
                         pending &= pending - 1;
                         if i < next_free {
-                            // Inside the previous candidate's five points.
+                            // Next to the previous candidate.
                             continue;
                         }
                         let kind = if maxima[j] >> i & 1 == 1 { 1 } else { -1 };
-                        let y5 = std::array::from_fn(|k| f64::from(data[row_of(i + k - 2) + x]));
+                        let (lo, len) = self.parabola[i].as_ref().map_or((0, 0), |w| (w.lo, w.len));
+                        let y5 = std::array::from_fn(|k| {
+                            if k < len {
+                                f64::from(rows[lo + k][j])
+                            } else {
+                                0.0
+                            }
+                        });
                         self.fit_extremum(i, kind, y5, &mut acc);
                         next_free = i + 2;
                     }
-                    est = self.closed_form(prep, &acc, theta_known, noise);
+                    est = self.closed_form(prep, &acc, theta_known, noise, Some(index));
                 }
                 out[x] = match est {
-                    Some(mut e) => {
-                        Self::with_index(prep, index, &mut e);
-                        e
-                    }
+                    Some(e) => e,
                     None => {
                         cube.spectrum_into(x, y, pixel);
                         self.solve_pixel(pixel, theta_known, scratch)
@@ -759,25 +814,23 @@ impl Solver {
         }
         let (w, h) = (cube.width, cube.height);
         let mut maps = ParamMaps::new(w, h);
-        // Blocks of rows: rows within a block in parallel, one block buffer
-        // reused, so memory stays bounded whatever the image size.
-        let block = 64.min(h).max(1);
-        let mut est = vec![PixelEstimate::invalid(Reason::Masked); block * w];
-        let mut y0 = 0;
-        while y0 < h {
-            let y1 = (y0 + block).min(h);
-            let part = &mut est[..(y1 - y0) * w];
-            part.par_chunks_mut(w.max(1)).enumerate().for_each_init(
-                Scratch::default,
-                |scratch, (dy, row)| {
-                    self.solve_row(cube, y0 + dy, row, scratch);
+        // Rows in parallel, each written straight into its row of the maps
+        // by the thread that solved it.
+        maps.rows_mut(0..h)
+            .into_par_iter()
+            .enumerate()
+            .for_each_init(
+                || {
+                    (
+                        Scratch::default(),
+                        vec![PixelEstimate::invalid(Reason::Masked); w],
+                    )
+                },
+                |(scratch, est), (y, mut row)| {
+                    self.solve_row(cube, y, est, scratch);
+                    row.set_all(est);
                 },
             );
-            for (k, e) in part.iter().enumerate() {
-                maps.set_index(y0 * w + k, e);
-            }
-            y0 = y1;
-        }
         maps.meta = self.map_meta();
         Ok(maps)
     }
@@ -1565,12 +1618,17 @@ impl Solver {
             }
             &sorted_y[..]
         };
-        // [1 2 1]-smoothed value at i, for detection only (fits use raw data).
-        let smooth = |i: usize| 0.25 * ys[i - 1] + 0.5 * ys[i] + 0.25 * ys[i + 1];
+        // [1 2 1]-smoothed value at i, for detection only (fits use raw
+        // data), the ends reflected.
+        let smooth = |i: usize| {
+            let a = ys[i.saturating_sub(1)] as f32;
+            let c = ys[(i + 1).min(nb - 1)] as f32;
+            super::detect::smooth3(a, ys[i] as f32, c)
+        };
         let mut acc = ExtremaAcc::new(noise);
-        let mut i = 2;
-        let (mut a, mut b) = (smooth(1), smooth(2));
-        while i + 2 < nb && !acc.full() {
+        let mut i = 1;
+        let (mut a, mut b) = (smooth(0), smooth(1));
+        while i + 1 < nb && !acc.full() {
             let c = smooth(i + 1);
             let kind: i8 = if b > a && b >= c {
                 1
@@ -1584,70 +1642,78 @@ impl Solver {
                 i += 1;
                 continue;
             }
-            let y5 = [ys[i - 2], ys[i - 1], ys[i], ys[i + 1], ys[i + 2]];
+            let win = self.parabola[i].as_ref().map_or((0, 0), |w| (w.lo, w.len));
+            let y5 = std::array::from_fn(|k| if k < win.1 { ys[win.0 + k] } else { 0.0 });
             self.fit_extremum(i, kind, y5, &mut acc);
             i += 2;
-            if i + 2 < nb {
+            if i + 1 < nb {
                 (a, b) = (smooth(i - 1), smooth(i));
             }
         }
-        self.closed_form(prep, &acc, theta_known, noise)
+        self.closed_form(prep, &acc, theta_known, noise, None)
     }
 
-    /// Fit the five-point parabola around sorted band `i` (a candidate
-    /// extremum of kind `kind`) and hand a usable extremum to `acc`.
+    /// Fit the parabola of sorted band `i`'s [`Window`] (a candidate
+    /// extremum of kind `kind`) to `y` (the window's samples, unused slots
+    /// 0) and hand a usable extremum to `acc`.
     #[inline]
-    fn fit_extremum(&self, i: usize, kind: i8, y5: [f64; 5], acc: &mut ExtremaAcc) {
-        // Least-squares parabola v = qa u² + qb u + qc (u in units of 1e-4
-        // nm⁻¹ for conditioning, offsets precomputed per band).
-        let us = &self.parabola_u[i];
+    fn fit_extremum(&self, i: usize, kind: i8, y: [f64; 5], acc: &mut ExtremaAcc) {
+        let Some(win) = &self.parabola[i] else {
+            return;
+        };
         let (mut t0, mut t1, mut t2, mut tvv) = (0.0, 0.0, 0.0, 0.0);
-        for (&u, &v) in us.iter().zip(&y5) {
-            t2 += v * u * u;
-            t1 += v * u;
+        for (&u, &v) in win.u.iter().zip(&y) {
+            let vu = v * u;
+            t2 += vu * u;
+            t1 += vu;
             t0 += v;
             tvv += v * v;
         }
-        let Some(minv) = self.parabola[i] else {
-            return;
-        };
-        let t = [t2, t1, t0];
-        let q: [f64; 3] = std::array::from_fn(|r| (0..3).map(|c| minv[r][c] * t[c]).sum());
-        let (qa, qb, qc) = (q[0], q[1], q[2]);
+        let m = &win.minv;
+        let qa = m[0][0] * t2 + m[0][1] * t1 + m[0][2] * t0;
+        let qb = m[1][0] * t2 + m[1][1] * t1 + m[1][2] * t0;
+        let qc = m[2][0] * t2 + m[2][1] * t1 + m[2][2] * t0;
         if qa * f64::from(kind) >= 0.0 {
             return;
         }
-        let u = -qb / (2.0 * qa);
-        let span = (us[4] - us[0]).abs();
-        if u.abs() > span {
+        let inv_a = 1.0 / qa;
+        let u = -0.5 * qb * inv_a;
+        if !(win.vertex.0..=win.vertex.1).contains(&u) {
             return;
         }
         acc.rss += (tvv - (qa * t2 + qb * t1 + qc * t0)).max(0.0);
-        acc.rdof += 2.0;
-        // Delta method: ∂u/∂(a, b), ∂v/∂(a, b, c).
-        let gu = [qb / (2.0 * qa * qa), -1.0 / (2.0 * qa), 0.0];
-        let gv = [qb * qb / (4.0 * qa * qa), -qb / (2.0 * qa), 1.0];
-        let quad = |g: &[f64; 3]| -> f64 {
-            (0..3)
-                .map(|r| (0..3).map(|c| g[r] * minv[r][c] * g[c]).sum::<f64>())
-                .sum()
-        };
+        acc.rdof += (win.len - 3) as f64;
+        // Delta method. Vertex u = −b/2a: ∂u/∂(a, b) = (−u/a, −1/2a);
+        // level v = c − b²/4a: ∂v/∂(a, b, c) = (u², u, 1).
+        let (ga, gb) = (-u * inv_a, -0.5 * inv_a);
+        let var_u = ga * ga * m[0][0] + 2.0 * ga * gb * m[0][1] + gb * gb * m[1][1];
+        let u2 = u * u;
+        let var_v = u2 * u2 * m[0][0]
+            + u2 * m[1][1]
+            + m[2][2]
+            + 2.0 * (u2 * u * m[0][1] + u2 * m[0][2] + u * m[1][2]);
         acc.push(Ext {
             pos: self.sorted[i].2 + u * 1e-4,
-            val: qc - qb * qb / (4.0 * qa),
+            val: qc + 0.5 * qb * u,
             kind,
-            var_pos: quad(&gu) * 1e-8,
-            var_val: quad(&gv),
+            var_pos: var_u * 1e-8,
+            var_val: var_v,
         });
     }
 
-    /// Lattice, angle and thickness from located extrema.
+    /// Lattice, angle and thickness from located extrema. With `index`
+    /// (the global film index), its value and its share of σ_d are
+    /// included, as [`Solver::with_index`] would.
+    ///
+    /// The divider is this path's bottleneck, so divisions and square
+    /// roots are kept to those the result needs.
     fn closed_form(
         &self,
         prep: &Prepared,
         acc: &ExtremaAcc,
         theta_known: Option<f64>,
         noise: Option<f64>,
+        index: Option<&IndexEstimate>,
     ) -> Option<PixelEstimate> {
         let n_ext = acc.n;
         if n_ext < 2 {
@@ -1668,105 +1734,133 @@ impl Solver {
         let g0 = (n_ext - 1) as f64 / (4.0 * span);
         // Lattice: at a half-wave point 2gσ = m, at a quarter-wave point
         // 2gσ = m + ½; which kind is the half-wave point follows the sign.
+        // Each extremum's g_i = k/(2σ) (k = m + offset) is weighted by its
+        // inverse variance var(g_i) = g_i² var(σ)/σ², i.e. by
+        // w_i = 4σ⁴/(k² var(σ)) with w_i g_i = 2σ³ k/(k² var(σ)); the
+        // common factor σ_R² cancels in g and returns in var(g).
+        let half_wave = |e: &Ext| f64::from(e.kind) * prep.sign > 0.0;
+        let offset = |e: &Ext| if half_wave(e) { 0.0 } else { 0.5 };
+        let mut orders = [0.0; MAX_EXT];
         let (mut wsum, mut gsum) = (0.0, 0.0);
-        for e in ext {
-            let off = if f64::from(e.kind) * prep.sign > 0.0 {
-                0.0
-            } else {
-                0.5
-            };
-            let m = round(2.0 * g0 * e.pos - off).max(0.0);
-            let gi = (m + off) / (2.0 * e.pos);
-            let var_g = gi * gi * (e.var_pos * var_r).max(1e-30) / (e.pos * e.pos);
-            wsum += 1.0 / var_g;
-            gsum += gi / var_g;
-        }
-        let g = gsum / wsum;
-        let var_g = 1.0 / wsum;
-        // Every extremum must sit on the same lattice: one that implies a
-        // different order means the spacing estimate was off.
-        for e in ext {
-            let off = if f64::from(e.kind) * prep.sign > 0.0 {
-                0.0
-            } else {
-                0.5
-            };
-            let m = round(2.0 * g * e.pos - off);
-            if m != round(2.0 * g0 * e.pos - off) || m < 0.0 {
+        for (e, order) in ext.iter().zip(&mut orders) {
+            let off = offset(e);
+            let m = round(2.0 * g0 * e.pos - off);
+            if m < 0.0 {
                 return None;
             }
-            let phase_err = 2.0 * g * e.pos - off - m;
-            if phase_err.abs() > 0.08 {
-                return None;
-            }
+            *order = m;
+            let k = m + off;
+            let b = 1.0 / (k * k * e.var_pos.max(f64::MIN_POSITIVE));
+            let p2 = e.pos * e.pos;
+            wsum += 4.0 * p2 * p2 * b;
+            gsum += 2.0 * p2 * e.pos * k * b;
         }
+        let inv_wsum = 1.0 / wsum;
+        let g = gsum * inv_wsum;
+        let var_g = var_r * inv_wsum;
         // Adjacent extrema must agree on the order they imply.
-        if !g.is_finite() || ((g - g0) / g0).abs() > 0.25 {
+        if !g.is_finite() || (g - g0).abs() > 0.25 * g0 {
             return None;
         }
-        let (theta, sigma_theta) = match theta_known {
-            Some(t) => (t, 0.0),
+        // Every extremum must sit on the same lattice: one that implies a
+        // different order means the spacing estimate was off.
+        for (e, &m) in ext.iter().zip(&orders) {
+            let phase = 2.0 * g * e.pos - offset(e);
+            if round(phase) != m || (phase - m).abs() > 0.08 {
+                return None;
+            }
+        }
+        let n1 = prep.model.n1_mid();
+        let (theta, s2, var_theta) = match theta_known {
+            Some(t) => {
+                let s = super::fastmath::sin_cos(t).0;
+                (t, s * s, 0.0)
+            }
             None => {
-                let (mut hw, mut qw, mut nh, mut nq) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+                let (mut hw, mut qw, mut nh, mut nq) = (0.0f64, 0.0f64, 0usize, 0usize);
                 let mut var_hw = 0.0;
                 for e in ext {
-                    if f64::from(e.kind) * prep.sign > 0.0 {
+                    if half_wave(e) {
                         hw += e.val;
-                        var_hw += e.var_val * var_r;
-                        nh += 1.0;
+                        var_hw += e.var_val;
+                        nh += 1;
                     } else {
                         qw += e.val;
-                        nq += 1.0;
+                        nq += 1;
                     }
                 }
                 let (lo, hi) = self.theta_range;
-                let half = (nh > 0.0).then(|| hw / nh);
-                let quarter = (nq > 0.0).then(|| qw / nq);
+                let half = (nh > 0).then(|| hw * INV_SMALL[nh]);
+                let quarter = (nq > 0).then(|| qw * INV_SMALL[nq]);
+                // sin²θ of the half-wave level, inverted exactly where the
+                // media allow it.
                 let exact = match (prep.closed_form, half) {
-                    (Some((n1, n3, pol)), Some(h)) => {
-                        let sols = half_wave_angles(h, n1, n3, pol);
-                        match sols {
-                            [Some(a), None] | [None, Some(a)] => Some(a),
-                            // Both sides of Brewster's angle: the quarter-wave
-                            // level (through the table) decides.
-                            [Some(a), Some(b)] => {
-                                let t = angle_start(&prep.table, half, quarter);
-                                Some(if (a - t).abs() <= (b - t).abs() { a } else { b })
-                            }
-                            // Below the normal-incidence level: noise on a
-                            // near-normal pixel.
-                            [None, None] if h < prep.table[0].1 && pol == Polarization::S => {
-                                Some(lo)
-                            }
-                            [None, None] => None,
+                    (Some((n1, n3, pol)), Some(h)) => match half_wave_sin2(h, n1, n3, pol) {
+                        [Some(a), None] | [None, Some(a)] => Some(a),
+                        // Both sides of Brewster's angle: the quarter-wave
+                        // level (through the table) decides.
+                        [Some(a), Some(b)] => {
+                            let t = angle_start(&prep.table, half, quarter);
+                            let (ta, tb) = (a.sqrt().asin(), b.sqrt().asin());
+                            Some(if (ta - t).abs() <= (tb - t).abs() {
+                                a
+                            } else {
+                                b
+                            })
                         }
-                    }
+                        // Below the normal-incidence level: noise on a
+                        // near-normal pixel.
+                        [None, None] if h < prep.table[0].1 && pol == Polarization::S => {
+                            Some(self.sin2_range.0)
+                        }
+                        [None, None] => None,
+                    },
                     _ => None,
                 };
-                let t = match exact {
-                    Some(a) => a.clamp(lo, hi),
-                    None => angle_start(&prep.table, half, quarter),
+                let (t, s2) = match exact {
+                    Some(s2) if s2 < self.sin2_range.0 => (lo, self.sin2_range.0),
+                    Some(s2) if s2 > self.sin2_range.1 => (hi, self.sin2_range.1),
+                    Some(s2) => (s2.sqrt().asin(), s2),
+                    None => {
+                        let t = angle_start(&prep.table, half, quarter);
+                        let s = super::fastmath::sin_cos(t).0;
+                        (t, s * s)
+                    }
                 };
-                // σ_R / |dR/dθ| of the half-wave level (Eq. 10's slope).
-                let slope = table_slope(&prep.table, t);
-                let sig = if nh > 0.0 && slope != 0.0 {
-                    (var_hw / (nh * nh)).sqrt() / slope.abs()
+                // σ_θ = σ_R / |dR/dθ| of the mean half-wave level (Eq.
+                // 10's slope), capped at a uniform spread over the range.
+                let slope = prep.slopes.at(t);
+                let cap = (hi - lo) * (hi - lo) / 12.0;
+                let var_t = if nh > 0 && slope != 0.0 {
+                    let nhf = nh as f64;
+                    (var_hw * var_r / (nhf * nhf * slope * slope)).min(cap)
                 } else {
-                    f64::INFINITY
+                    cap
                 };
-                (t, sig.min((hi - lo) / 12f64.sqrt()))
+                (t, s2, var_t)
             }
         };
-        let q2 = prep.model.q2_mid(theta);
-        let d = g / q2;
+        // q2 = n2 cos θ2 = √(n2² − n1² sin²θ), as `FilmModel::q2_mid`.
+        let n2 = prep.model.n2_mid();
+        let q2 = (n2 * n2 - n1 * n1 * s2).max(1e-12).sqrt();
+        let inv_q2 = 1.0 / q2;
+        let d = g * inv_q2;
         if !(d.is_finite() && d >= 0.0 && d <= self.d_max) {
             return None;
         }
-        // d = g/q2(θ): the angle's error moves d through q2.
-        let n1 = prep.model.n1_mid();
-        let (sin_t, cos_t) = super::fastmath::sin_cos(theta);
-        let dq2 = n1 * n1 * sin_t * cos_t / q2;
-        let sigma_d = ((var_g / (q2 * q2)) + (d * dq2 / q2 * sigma_theta).powi(2)).sqrt();
+        // d = g/q2(θ): the angle's error moves d through
+        // dq2/dθ = −n1² sinθ cosθ / q2; the global index's through
+        // ∂d/∂n2 = −d·n2/q2² at fixed optical thickness.
+        let dq2 = n1 * n1 * (s2 * (1.0 - s2)).max(0.0).sqrt() * inv_q2;
+        let dd_dtheta = d * dq2 * inv_q2;
+        let mut var_d = var_g * inv_q2 * inv_q2 + dd_dtheta * dd_dtheta * var_theta;
+        let mut n_film = n2;
+        if let Some(index) = index {
+            let dd_dn = d * index.n * inv_q2 * inv_q2;
+            var_d += dd_dn * dd_dn * index.sigma * index.sigma;
+            n_film = index.n;
+        }
+        let sigma_theta = var_theta.sqrt();
         let reason = if theta_known.is_none() && sigma_theta.to_degrees() > ANGLE_SIGMA_LIMIT_DEG {
             Reason::AngleNotIdentifiable
         } else {
@@ -1774,11 +1868,11 @@ impl Solver {
         };
         Some(PixelEstimate {
             thickness_nm: d,
-            n_film: prep.model.n2_mid(),
+            n_film,
             theta_deg: theta.to_degrees(),
-            sigma_thickness_nm: sigma_d,
+            sigma_thickness_nm: var_d.sqrt(),
             sigma_theta_deg: sigma_theta.to_degrees(),
-            residual_rms: (rss / (5.0 * n_ext as f64)).sqrt(),
+            residual_rms: (rss * INV_SMALL[5 * n_ext.min(MAX_EXT)]).sqrt(),
             reason,
         })
     }
@@ -2030,20 +2124,41 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
     s
 }
 
-/// Slope dR/dθ of the half-wave envelope at `theta`, from the table.
-fn table_slope(table: &[(f64, f64, f64)], theta: f64) -> f64 {
-    if table.len() < 2 {
-        return 0.0;
+/// Slope dR/dθ of the half-wave envelope, per interval of the (uniform)
+/// angle table, looked up without a division.
+#[derive(Clone, Debug)]
+struct Slopes {
+    t0: f64,
+    inv_step: f64,
+    slope: Vec<f64>,
+}
+
+impl Slopes {
+    fn new(table: &[(f64, f64, f64)]) -> Slopes {
+        let step = if table.len() >= 2 {
+            table[1].0 - table[0].0
+        } else {
+            0.0
+        };
+        Slopes {
+            t0: table.first().map_or(0.0, |e| e.0),
+            inv_step: if step > 0.0 { 1.0 / step } else { 0.0 },
+            slope: table
+                .windows(2)
+                .map(|w| (w[1].1 - w[0].1) / (w[1].0 - w[0].0))
+                .collect(),
+        }
     }
-    // The table is uniform in θ: index directly.
-    let (t0, step) = (table[0].0, table[1].0 - table[0].0);
-    let i = if step > 0.0 {
-        (((theta - t0) / step).max(0.0) as usize + 1).clamp(1, table.len() - 1)
-    } else {
-        1
-    };
-    let (a, b) = (table[i - 1], table[i]);
-    (b.1 - a.1) / (b.0 - a.0)
+
+    /// The slope at `theta` (the end intervals beyond the table).
+    #[inline]
+    fn at(&self, theta: f64) -> f64 {
+        let k = ((theta - self.t0) * self.inv_step).max(0.0) as usize;
+        self.slope
+            .get(k.min(self.slope.len().saturating_sub(1)))
+            .copied()
+            .unwrap_or(0.0)
+    }
 }
 
 /// Inverse of a 3×3 matrix by cofactors; `None` if singular.
