@@ -5,8 +5,10 @@
 //!
 //! `cargo bench --bench paper_scene` (add `-- --repeat N` to tile the scene
 //! N×N times for steadier speed numbers, `--best-of K` to time each fit K
-//! times and report the fastest, which a busy machine disturbs least, and
-//! `--mode M` for one mode only).
+//! times and report the fastest, which a busy machine disturbs least,
+//! `--mode M` for one mode only, and `--scene FILE` to run another scene
+//! TOML with a `[truth]` section instead of the paper's; `--bins` adds the
+//! accuracy per 100 nm of true thickness, `--worst` the worst pixel).
 
 use irid::estimate::{Mode, Solver};
 use irid::scene::{AngleKnowledge, Scene};
@@ -41,7 +43,14 @@ fn main() {
         .unwrap_or(1)
         .max(1);
     println!("machine: {}", machine());
-    let scene = Scene::paper_cylinder();
+    let scene_arg = args
+        .iter()
+        .position(|a| a == "--scene")
+        .and_then(|i| args.get(i + 1));
+    let scene = match scene_arg {
+        Some(p) => Scene::load(std::path::Path::new(p)).expect("scene"),
+        None => Scene::paper_cylinder(),
+    };
     let bands = scene_bands(&scene).unwrap();
     let renderer = Renderer::new(&scene).unwrap();
     let truth = renderer.truth_maps(&bands);
@@ -69,7 +78,8 @@ fn main() {
         cube = big;
     }
     println!(
-        "scene: paper cylinder {}x{} px, {} bands, sigma {}",
+        "scene: {} {}x{} px, {} bands, sigma {}",
+        scene_arg.map_or("paper cylinder", String::as_str),
         cube.width,
         cube.height,
         bands.len(),
@@ -144,6 +154,37 @@ fn main() {
             }
             let maps = maps.expect("at least one fit");
             let acc = compare(&maps, &truth_t);
+            if args.iter().any(|a| a == "--bins") {
+                // Accuracy per 100 nm of true thickness.
+                let mut bins: std::collections::BTreeMap<i64, (usize, usize, f64, f64, usize)> =
+                    Default::default();
+                for i in 0..maps.thickness_nm.len() {
+                    let t = f64::from(truth_t.thickness_nm[i]);
+                    let b = bins.entry((t / 100.0).floor() as i64).or_default();
+                    b.0 += 1;
+                    if maps.valid[i] > 0.5 {
+                        let e = (f64::from(maps.thickness_nm[i]) - t).abs();
+                        b.1 += 1;
+                        b.2 += e;
+                        b.3 = b.3.max(e);
+                        if e <= 2.0 * f64::from(maps.sigma_thickness_nm[i]) {
+                            b.4 += 1;
+                        }
+                    }
+                }
+                for (k, (n, v, sum, max, cov)) in bins {
+                    println!(
+                        "  d {:5}-{:5} nm: {:6} px valid {:5.1}% MAE {:7.3} max {:8.2} |e|<=2σ {:5.1}%",
+                        k * 100,
+                        k * 100 + 100,
+                        n,
+                        100.0 * v as f64 / n as f64,
+                        sum / v.max(1) as f64,
+                        max,
+                        100.0 * cov as f64 / v.max(1) as f64
+                    );
+                }
+            }
             if args.iter().any(|a| a == "--worst") {
                 let mut worst = (0.0f32, 0usize);
                 for i in 0..maps.thickness_nm.len() {

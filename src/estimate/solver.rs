@@ -235,9 +235,34 @@ struct Ext {
     val: f64,
     /// +1 maximum, −1 minimum.
     kind: i8,
-    /// Variance factors (× σ_R²) of the position and the level.
-    var_pos: f64,
-    var_val: f64,
+    /// The sorted band whose [`Window`] located it, the vertex offset in
+    /// that window and 1/a of its parabola: enough for the variances,
+    /// which are worked out only for the extrema the closed form keeps.
+    band: u16,
+    u: f64,
+    inv_a: f64,
+}
+
+impl Ext {
+    /// Variance factors (× σ_R²) of the position (nm⁻¹) and the level, by
+    /// the delta method. Vertex u = −b/2a: ∂u/∂(a, b) = (−u/a, −1/2a);
+    /// level v = c − b²/4a: ∂v/∂(a, b, c) = (u², u, 1).
+    #[inline]
+    fn var_pos(&self, win: &Window) -> f64 {
+        let m = &win.minv;
+        let (ga, gb) = (-self.u * self.inv_a, -0.5 * self.inv_a);
+        (ga * ga * m[0][0] + 2.0 * ga * gb * m[0][1] + gb * gb * m[1][1]) * 1e-8
+    }
+
+    #[inline]
+    fn var_val(&self, win: &Window) -> f64 {
+        let m = &win.minv;
+        let (u, u2) = (self.u, self.u * self.u);
+        u2 * u2 * m[0][0]
+            + u2 * m[1][1]
+            + m[2][2]
+            + 2.0 * (u2 * u * m[0][1] + u2 * m[0][2] + u * m[1][2])
+    }
 }
 
 /// The least-squares parabola `v = a u² + b u + c` (u: wavenumber offset
@@ -288,12 +313,13 @@ impl Window {
             .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
                 (a.min(x), b.max(x))
             });
-        // Inside the range: the vertex may sit up to the window's width from
-        // the candidate (the detection is on smoothed data); at an end, only
-        // within the samples, never extrapolated past the band range.
+        // The detection (on smoothed data) puts a real extremum within a
+        // band of the candidate: the vertex may sit up to 1.5 band spacings
+        // from it. A vertex further out is a flat noise parabola's, not an
+        // extremum (and would win the merge of two of a kind by being
+        // extrapolated). At an end, only within the samples.
         let vertex = if len == 5 {
-            let span = u_max - u_min;
-            (-span, span)
+            (1.5 * u[3], 1.5 * u[1])
         } else {
             (u_min, u_max)
         };
@@ -436,6 +462,11 @@ pub struct Solver {
     sorted: Vec<(usize, f64, f64)>,
     /// Centre of the band range in wavenumber, nm⁻¹.
     sigma_center: f64,
+    /// The band range in wavenumber, nm⁻¹.
+    sigma_range: (f64, f64),
+    /// That range less 1.5 band spacings at each end, where an extremum
+    /// is always found if it exists.
+    interior: (f64, f64),
     /// The planes are already in increasing wavelength.
     sorted_identity: bool,
     /// The least-squares parabola around each sorted band (`None` at the
@@ -502,6 +533,8 @@ impl Solver {
             },
             parabola: Vec::new(),
             sigma_center: 0.0,
+            sigma_range: (0.0, 0.0),
+            interior: (0.0, 0.0),
             sorted_identity: false,
         };
         solver.sorted_identity = solver.sorted.iter().enumerate().all(|(i, b)| b.0 == i);
@@ -512,6 +545,14 @@ impl Solver {
                 (a.min(x.2), b.max(x.2))
             });
         solver.sigma_center = 0.5 * (s_lo + s_hi);
+        solver.sigma_range = (s_lo, s_hi);
+        solver.interior = {
+            let sv: Vec<f64> = solver.sorted.iter().map(|b| b.2).collect();
+            let k = sv.len();
+            // sorted by increasing wavelength: wavenumber decreasing.
+            let (hi_step, lo_step) = (sv[0] - sv[1], sv[k - 2] - sv[k - 1]);
+            (s_lo + 1.5 * lo_step, s_hi - 1.5 * hi_step)
+        };
         solver.parabola = (0..solver.sorted.len())
             .map(|i| Window::new(&solver.sorted, i))
             .collect();
@@ -741,8 +782,11 @@ impl Solver {
         // Start of sorted band r's row in the cube.
         let row_of = |r: usize| self.sorted[r].0 * n + base;
         const CH: usize = super::detect::CHUNK;
-        let mut rows: [&[f32]; super::detect::MAX_DETECT_BANDS] =
-            [&[]; super::detect::MAX_DETECT_BANDS];
+        const NB: usize = super::detect::MAX_DETECT_BANDS;
+        let mut rows: [&[f32]; NB] = [&[]; NB];
+        // The chunk band-major in one block (band r's pixel j at r·CH + j),
+        // so a window's samples are read without bounds checks.
+        let mut flat = [0f32; CH * NB];
         let mut cand = super::detect::Candidates::default();
         let mut acc = ExtremaAcc::new(noise);
         let mut x0 = 0;
@@ -750,6 +794,7 @@ impl Solver {
             let m = (w - x0).min(CH);
             for (r, row) in rows[..nb].iter_mut().enumerate() {
                 *row = &data[row_of(r) + x0..row_of(r) + x0 + m];
+                flat[r * CH..r * CH + m].copy_from_slice(row);
             }
             super::detect::detect(&rows[..nb], &mut cand);
             let super::detect::Candidates {
@@ -777,8 +822,9 @@ impl Solver {
                         let kind = if maxima[j] >> i & 1 == 1 { 1 } else { -1 };
                         let (lo, len) = self.parabola[i].as_ref().map_or((0, 0), |w| (w.lo, w.len));
                         let y5 = std::array::from_fn(|k| {
+                            let v = f64::from(flat[((lo + k) % NB) * CH + j % CH]);
                             if k < len {
-                                f64::from(rows[lo + k][j])
+                                v
                             } else {
                                 0.0
                             }
@@ -1683,22 +1729,30 @@ impl Solver {
         }
         acc.rss += (tvv - (qa * t2 + qb * t1 + qc * t0)).max(0.0);
         acc.rdof += (win.len - 3) as f64;
-        // Delta method. Vertex u = −b/2a: ∂u/∂(a, b) = (−u/a, −1/2a);
-        // level v = c − b²/4a: ∂v/∂(a, b, c) = (u², u, 1).
-        let (ga, gb) = (-u * inv_a, -0.5 * inv_a);
-        let var_u = ga * ga * m[0][0] + 2.0 * ga * gb * m[0][1] + gb * gb * m[1][1];
-        let u2 = u * u;
-        let var_v = u2 * u2 * m[0][0]
-            + u2 * m[1][1]
-            + m[2][2]
-            + 2.0 * (u2 * u * m[0][1] + u2 * m[0][2] + u * m[1][2]);
         acc.push(Ext {
             pos: self.sorted[i].2 + u * 1e-4,
             val: qc + 0.5 * qb * u,
             kind,
-            var_pos: var_u * 1e-8,
-            var_val: var_v,
+            band: i as u16,
+            u,
+            inv_a,
         });
+    }
+
+    /// [`Ext::var_pos`] in its window.
+    #[inline]
+    fn ext_var_pos(&self, e: &Ext) -> f64 {
+        self.parabola[usize::from(e.band)]
+            .as_ref()
+            .map_or(f64::INFINITY, |w| e.var_pos(w))
+    }
+
+    /// [`Ext::var_val`] in its window.
+    #[inline]
+    fn ext_var_val(&self, e: &Ext) -> f64 {
+        self.parabola[usize::from(e.band)]
+            .as_ref()
+            .map_or(f64::INFINITY, |w| e.var_val(w))
     }
 
     /// Lattice, angle and thickness from located extrema. With `index`
@@ -1738,22 +1792,36 @@ impl Solver {
         // inverse variance var(g_i) = g_i² var(σ)/σ², i.e. by
         // w_i = 4σ⁴/(k² var(σ)) with w_i g_i = 2σ³ k/(k² var(σ)); the
         // common factor σ_R² cancels in g and returns in var(g).
-        let half_wave = |e: &Ext| f64::from(e.kind) * prep.sign > 0.0;
-        let offset = |e: &Ext| if half_wave(e) { 0.0 } else { 0.5 };
-        let mut orders = [0.0; MAX_EXT];
+        // One pass: the order and weight of each extremum, and the sums
+        // of the half- and quarter-wave levels for the angle.
+        let half_kind: i8 = if prep.sign > 0.0 { 1 } else { -1 };
+        let want_angle = theta_known.is_none();
         let (mut wsum, mut gsum) = (0.0, 0.0);
+        let (mut hw, mut qw, mut nh, mut nq, mut var_hw) = (0.0f64, 0.0f64, 0usize, 0usize, 0.0);
+        let mut orders = [0.0; MAX_EXT];
         for (e, order) in ext.iter().zip(&mut orders) {
-            let off = offset(e);
+            let half = e.kind == half_kind;
+            let off = if half { 0.0 } else { 0.5 };
             let m = round(2.0 * g0 * e.pos - off);
             if m < 0.0 {
                 return None;
             }
-            *order = m;
+            *order = m + off;
             let k = m + off;
-            let b = 1.0 / (k * k * e.var_pos.max(f64::MIN_POSITIVE));
+            let b = 1.0 / (k * k * self.ext_var_pos(e).max(f64::MIN_POSITIVE));
             let p2 = e.pos * e.pos;
             wsum += 4.0 * p2 * p2 * b;
             gsum += 2.0 * p2 * e.pos * k * b;
+            if want_angle {
+                if half {
+                    hw += e.val;
+                    var_hw += self.ext_var_val(e);
+                    nh += 1;
+                } else {
+                    qw += e.val;
+                    nq += 1;
+                }
+            }
         }
         let inv_wsum = 1.0 / wsum;
         let g = gsum * inv_wsum;
@@ -1762,13 +1830,26 @@ impl Solver {
         if !g.is_finite() || (g - g0).abs() > 0.25 * g0 {
             return None;
         }
-        // Every extremum must sit on the same lattice: one that implies a
-        // different order means the spacing estimate was off.
-        for (e, &m) in ext.iter().zip(&orders) {
-            let phase = 2.0 * g * e.pos - offset(e);
-            if round(phase) != m || (phase - m).abs() > 0.08 {
+        // Every extremum must sit on the same lattice (within 0.08 of its
+        // order k = m + offset): one that implies a different order means
+        // the spacing estimate was off.
+        for (e, &k) in ext.iter().zip(&orders) {
+            if (2.0 * g * e.pos - k).abs() > 0.08 {
                 return None;
             }
+        }
+        // Every lattice point well inside the band range must have been
+        // found: a spacing that predicts an extremum where the spectrum has
+        // none is not this pixel's (two extrema alone fit any spacing).
+        // Near an end, a fringe top flattened against it can escape the
+        // detection: only points an eighth wave inside are required.
+        let eighth = 0.125 / g;
+        let lo_s = self.interior.0.max(self.sigma_range.0 + eighth);
+        let hi_s = self.interior.1.min(self.sigma_range.1 - eighth);
+        let expected = (4.0 * g * hi_s).ceil() - (4.0 * g * lo_s).floor() - 1.0;
+        let found = ext.iter().filter(|e| e.pos > lo_s && e.pos < hi_s).count();
+        if expected > found as f64 {
+            return None;
         }
         let n1 = prep.model.n1_mid();
         let (theta, s2, var_theta) = match theta_known {
@@ -1777,18 +1858,6 @@ impl Solver {
                 (t, s * s, 0.0)
             }
             None => {
-                let (mut hw, mut qw, mut nh, mut nq) = (0.0f64, 0.0f64, 0usize, 0usize);
-                let mut var_hw = 0.0;
-                for e in ext {
-                    if half_wave(e) {
-                        hw += e.val;
-                        var_hw += e.var_val;
-                        nh += 1;
-                    } else {
-                        qw += e.val;
-                        nq += 1;
-                    }
-                }
                 let (lo, hi) = self.theta_range;
                 let half = (nh > 0).then(|| hw * INV_SMALL[nh]);
                 let quarter = (nq > 0).then(|| qw * INV_SMALL[nq]);
@@ -1840,6 +1909,22 @@ impl Solver {
                 (t, s2, var_t)
             }
         };
+        // Two extrema alone carry no check of their spacing (any spacing
+        // is a quarter wave of some g): a noise wiggle on a thin film's
+        // slope would pass as a fringe of a thick one. Their levels must
+        // then be the model's half- and quarter-wave levels at this angle.
+        if n_ext == 2 {
+            let (env_h, env_q) = prep.envelopes_at(theta);
+            let sd_r = var_r.sqrt();
+            let tol = 0.2 * (env_h - env_q).abs() + 5.0 * sd_r;
+            for e in ext {
+                let env = if e.kind == half_kind { env_h } else { env_q };
+                // (NaN fails too.)
+                if (e.val - env).abs().partial_cmp(&tol) != Some(std::cmp::Ordering::Less) {
+                    return None;
+                }
+            }
+        }
         // q2 = n2 cos θ2 = √(n2² − n1² sin²θ), as `FilmModel::q2_mid`.
         let n2 = prep.model.n2_mid();
         let q2 = (n2 * n2 - n1 * n1 * s2).max(1e-12).sqrt();
@@ -2122,6 +2207,23 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
         s += x * y;
     }
     s
+}
+
+impl Prepared {
+    /// The half- and quarter-wave levels at `theta`, interpolated in the
+    /// angle table (its ends beyond it).
+    fn envelopes_at(&self, theta: f64) -> (f64, f64) {
+        let t = &self.table;
+        let sl = &self.slopes;
+        if t.len() < 2 {
+            return t.first().map_or((f64::NAN, f64::NAN), |e| (e.1, e.2));
+        }
+        let x = ((theta - sl.t0) * sl.inv_step).clamp(0.0, (t.len() - 1) as f64);
+        let k = (x as usize).min(t.len() - 2);
+        let f = x - k as f64;
+        let (a, b) = (t[k], t[k + 1]);
+        (a.1 + f * (b.1 - a.1), a.2 + f * (b.2 - a.2))
+    }
 }
 
 /// Slope dR/dθ of the half-wave envelope, per interval of the (uniform)
