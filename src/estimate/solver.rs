@@ -183,7 +183,7 @@ impl Effort {
             Mode::Fast => Effort {
                 closed_form: true,
                 closed_form_only: true,
-                n_refine: 2,
+                n_refine: 1,
                 iters: 6,
                 verify_order: false,
             },
