@@ -277,17 +277,33 @@ fn main() {
         t_prof * 1e3,
         100.0 * (t_prof / t_ingest - 1.0)
     );
-    let mut ext = 0usize;
-    for i in 0..n {
-        ext += usize::from(buf.n_extrema[i]);
+    if let Some(cp) = &buf.candidates {
+        use irid::estimate::detect::{Candidates, CHUNK};
+        let mut c = Candidates::default();
+        let mut total = 0u64;
+        for y in 0..h {
+            for k in 0..w.div_ceil(CHUNK) {
+                cp.unpack(y, k, &mut c);
+                total += c
+                    .maxima
+                    .iter()
+                    .chain(&c.minima)
+                    .map(|m| u64::from(m.count_ones()))
+                    .sum::<u64>();
+            }
+        }
+        println!(
+            "  (extremum candidates tracked: {:.2} per pixel)",
+            total as f64 / n as f64
+        );
     }
-    println!(
-        "  (extrema tracked: {:.2} per pixel)",
-        ext as f64 / n as f64
-    );
     // The solver on the ingested sweep, one thread, for comparison.
     println!("  solver alone on this sweep, one thread (what the pipeline waits for):");
-    for mode in [Mode::Fast, Mode::Balanced] {
+    for (mode, tracked) in [
+        (Mode::Fast, false),
+        (Mode::Fast, true),
+        (Mode::Balanced, false),
+    ] {
         let mut solver = irid::estimate::Solver::new(&sc, &bands, mode).unwrap();
         let t = Instant::now();
         let est = solver.estimate_film_index(&buf.cube).unwrap();
@@ -299,13 +315,18 @@ fn main() {
         let mut scratch = irid::estimate::solver::Scratch::default();
         let t = Instant::now();
         for y in 0..rows {
-            solver.solve_row(&buf.cube, y * (h / rows), &mut out, &mut scratch);
+            let pre = if tracked {
+                buf.candidates.as_ref()
+            } else {
+                None
+            };
+            solver.solve_row_with(&buf.cube, y * (h / rows), &mut out, &mut scratch, pre);
             black_box(&out);
         }
         let px = (rows * w) as f64 / t.elapsed().as_secs_f64();
         println!(
-            "    {:<9} {:6.2} M px/s per thread → {:5.2} s per {w}×{h} sweep on one thread (index estimate {:.2} s)",
-            mode.name(),
+            "    {:<25} {:6.2} M px/s per thread → {:5.2} s per {w}×{h} sweep on one thread (index estimate {:.2} s)",
+            if tracked { "fast, tracked candidates" } else { mode.name() },
             px / 1e6,
             n as f64 / px,
             t_index

@@ -5,7 +5,7 @@
 mod pipeline_common;
 
 use irid::pipeline::output::SweepSummary;
-use irid::pipeline::runner::{run, CollectSink, SweepSink};
+use irid::pipeline::runner::{run, CollectSink, RunConfig, SweepSink};
 use pipeline_common::*;
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -101,6 +101,35 @@ fn single_thread_mode_is_bit_identical() {
     r.go(false, &config(2, false), &mut sink, &AtomicBool::new(false))
         .unwrap();
     assert_eq!(bits(&sink.maps[1]), bits(&a.maps[1]));
+}
+
+/// `fast` with the extremum candidates tracked while bands arrive (and
+/// its own detection pass skipped) computes the very maps it computes from
+/// the complete sweep alone, in an interleaved band order too.
+#[test]
+fn fast_maps_are_the_same_with_tracked_candidates() {
+    for order in ["ascending", "interleaved"] {
+        let go = |track: bool| {
+            let mut r = rig(5, order, false);
+            let mut sink = CollectSink::default();
+            let cfg = RunConfig {
+                mode: irid::estimate::Mode::Fast,
+                track_extrema: track,
+                ..config(1, true)
+            };
+            r.go(false, &cfg, &mut sink, &AtomicBool::new(false))
+                .unwrap();
+            sink
+        };
+        let (a, b) = (go(true), go(false));
+        assert_eq!(a.maps.len(), 1);
+        let valid = a.maps[0].valid.iter().filter(|&&v| v > 0.5).count();
+        assert!(
+            valid * 10 > a.maps[0].valid.len() * 9,
+            "{order}: {valid} valid"
+        );
+        assert_eq!(bits(&a.maps[0]), bits(&b.maps[0]), "{order}");
+    }
 }
 
 /// Sets the stop flag after the first map, as Ctrl-C would.

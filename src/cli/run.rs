@@ -34,7 +34,7 @@ pub enum Tracking {
     On,
     /// Never.
     Off,
-    /// Except in `fast` mode.
+    /// In `fast` mode, whose solver uses what is tracked.
     Auto,
 }
 
@@ -69,11 +69,11 @@ pub struct RunArgs {
     /// Run every stage on one thread (deterministic).
     #[arg(long)]
     pub single_thread: bool,
-    /// Track every pixel's fringe extrema while bands arrive (sub-band
-    /// peaks and valleys, kept in the sweep buffer): `on`, `off`, or `auto`
-    /// = on except in `fast` mode, whose CPU budget at line rate it would
-    /// eat (about 2 ms per 1280×1024 frame; the solver locates extrema again
-    /// from the complete spectrum).
+    /// Track every pixel's fringe-extremum candidates while bands arrive
+    /// (local maxima and minima of the smoothed spectrum, decided as soon
+    /// as a band's neighbours are in): `on`, `off`, or `auto` = on in
+    /// `fast` mode, whose solver then skips its own detection pass after
+    /// the last band (shorter latency); the other modes do not use them.
     #[arg(long, value_enum, default_value_t = Tracking::Auto)]
     pub track_extrema: Tracking,
     /// Demo: image size (the scene's fields stretch to it).
@@ -679,7 +679,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         track_extrema: match args.track_extrema {
             Tracking::On => true,
             Tracking::Off => false,
-            Tracking::Auto => mode != crate::estimate::Mode::Fast,
+            Tracking::Auto => mode == crate::estimate::Mode::Fast,
         },
         ..RunConfig::default()
     };

@@ -119,6 +119,188 @@ fn detect_impl(
     }
 }
 
+/// The candidates of a whole image kept band-major as bit planes, so they
+/// can be found incrementally as bands arrive (the live tracker) and
+/// handed to the fast solver, which then skips its own [`detect`] pass.
+///
+/// For each row, chunk of [`CHUNK`] pixels and sorted band: a word of
+/// candidate maxima and one of minima (bit `j`: pixel `x0 + j`); per row
+/// and chunk a word of `bad` pixels. A candidate band's words are final
+/// once its five samples (the smoothing's three neighbours either side,
+/// clipped at the ends) have all arrived; [`CandidatePlanes::unpack`]
+/// then gives exactly what [`detect`] gives on the same data.
+#[derive(Clone, Debug)]
+pub struct CandidatePlanes {
+    width: usize,
+    height: usize,
+    bands: usize,
+    chunks: usize,
+    /// `[(row · chunks + chunk) · bands + band] · 2 + {0: max, 1: min}`.
+    bits: Vec<u64>,
+    /// `row · chunks + chunk`.
+    bad: Vec<u64>,
+    scratch: Scratch,
+}
+
+/// Row buffers of [`CandidatePlanes::set_candidate`], sized on first use.
+#[derive(Clone, Debug, Default)]
+struct Scratch {
+    /// Three smoothed rows.
+    s: Vec<f32>,
+    /// Maxima then minima as 0/1 bytes, padded to whole chunks.
+    cmp: Vec<u8>,
+}
+
+impl CandidatePlanes {
+    /// Planes for `width × height` pixels and `bands` sorted bands (at
+    /// most [`MAX_DETECT_BANDS`]); `None` beyond that.
+    pub fn new(width: usize, height: usize, bands: usize) -> Option<CandidatePlanes> {
+        if !(3..=MAX_DETECT_BANDS).contains(&bands) {
+            return None;
+        }
+        let chunks = width.div_ceil(CHUNK);
+        Some(CandidatePlanes {
+            width,
+            height,
+            bands,
+            chunks,
+            bits: vec![0; height * chunks * bands * 2],
+            bad: vec![0; height * chunks],
+            scratch: Scratch {
+                s: vec![0.0; 3 * width],
+                cmp: vec![0; 2 * chunks * CHUNK],
+            },
+        })
+    }
+
+    /// Sorted bands.
+    pub fn bands(&self) -> usize {
+        self.bands
+    }
+
+    /// Image size.
+    pub fn size(&self) -> (usize, usize) {
+        (self.width, self.height)
+    }
+
+    /// Forget everything (a new sweep).
+    pub fn clear(&mut self) {
+        self.bits.fill(0);
+        self.bad.fill(0);
+    }
+
+    /// The sorted bands whose samples decide candidate band `c`.
+    pub fn window(&self, c: usize) -> std::ops::RangeInclusive<usize> {
+        c.saturating_sub(2)..=(c + 2).min(self.bands - 1)
+    }
+
+    /// Fold row `y` of a band that arrived (`row`, `width` samples) into the
+    /// row's bad pixels.
+    pub fn add_row(&mut self, y: usize, row: &[f32]) {
+        if y >= self.height {
+            return;
+        }
+        let (vmin, vmax) = VALID_RANGE;
+        for (k, px) in row.chunks(CHUNK).take(self.chunks).enumerate() {
+            let mut bytes = [0u8; CHUNK];
+            for (b, &v) in bytes.iter_mut().zip(px) {
+                *b = u8::from(!((v >= vmin) & (v <= vmax)));
+            }
+            self.bad[y * self.chunks + k] |= pack64(&bytes);
+        }
+    }
+
+    /// Decide candidate band `c` (1 ≤ c < bands − 1) of row `y` from
+    /// `rows`, that row of sorted bands `window(c)` in order. Branch-free
+    /// and vectorised over the row; no allocation (the scratch rows are
+    /// the planes' own).
+    pub fn set_candidate(&mut self, y: usize, c: usize, rows: &[&[f32]]) {
+        let (nb, w) = (self.bands, self.width);
+        let lo = c.saturating_sub(2);
+        if c == 0 || c + 1 >= nb || y >= self.height || rows.len() != self.window(c).count() {
+            return;
+        }
+        if rows.iter().any(|r| r.len() < w) {
+            return;
+        }
+        // Raw row of sorted band b, reflected at the ends.
+        let at = |b: isize| rows[(b.clamp(0, nb as isize - 1) as usize) - lo];
+        let ci = c as isize;
+        let Scratch { s, cmp } = &mut self.scratch;
+        s.resize(3 * w, 0.0);
+        cmp.resize(2 * w.div_ceil(CHUNK) * CHUNK, 0);
+        let (sa, rest) = s.split_at_mut(w);
+        let (sb, sc) = rest.split_at_mut(w);
+        smooth_rows(at(ci - 2), at(ci - 1), at(ci), sa);
+        smooth_rows(at(ci - 1), at(ci), at(ci + 1), sb);
+        smooth_rows(at(ci), at(ci + 1), at(ci + 2), sc);
+        let (cmax, cmin) = cmp.split_at_mut(w.div_ceil(CHUNK) * CHUNK);
+        compare_rows(sa, sb, sc, &mut cmax[..w], &mut cmin[..w]);
+        for k in 0..self.chunks {
+            let i = ((y * self.chunks + k) * nb + c) * 2;
+            self.bits[i] = pack64(&cmax[k * CHUNK..(k + 1) * CHUNK]);
+            self.bits[i + 1] = pack64(&cmin[k * CHUNK..(k + 1) * CHUNK]);
+        }
+    }
+
+    /// Chunk `k` of row `y` as per-pixel masks, as [`detect`] leaves them.
+    pub fn unpack(&self, y: usize, k: usize, out: &mut Candidates) {
+        out.maxima = [0; CHUNK];
+        out.minima = [0; CHUNK];
+        let base = (y * self.chunks + k) * self.bands;
+        for r in 0..self.bands {
+            for (kind, masks) in [&mut out.maxima, &mut out.minima].into_iter().enumerate() {
+                let mut w = self.bits.get((base + r) * 2 + kind).copied().unwrap_or(0);
+                while w != 0 {
+                    let j = w.trailing_zeros() as usize;
+                    w &= w - 1;
+                    masks[j] |= 1 << r;
+                }
+            }
+        }
+        let bad = self
+            .bad
+            .get(y * self.chunks + k)
+            .copied()
+            .unwrap_or(u64::MAX);
+        for (j, b) in out.bad.iter_mut().enumerate() {
+            *b = bad >> j & 1 == 1;
+        }
+    }
+}
+
+/// `out[x] = smooth3(a[x], b[x], c[x])`.
+#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+fn smooth_rows(a: &[f32], b: &[f32], c: &[f32], out: &mut [f32]) {
+    for (((o, &x), &y), &z) in out.iter_mut().zip(a).zip(b).zip(c) {
+        *o = smooth3(x, y, z);
+    }
+}
+
+/// Candidate maxima and minima of the middle row as 0/1 bytes.
+#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+fn compare_rows(sa: &[f32], sb: &[f32], sc: &[f32], cmax: &mut [u8], cmin: &mut [u8]) {
+    for ((((mx, mn), &a), &b), &c) in cmax.iter_mut().zip(cmin.iter_mut()).zip(sa).zip(sb).zip(sc) {
+        *mx = u8::from((b > a) & (b >= c));
+        *mn = u8::from((b < a) & (b <= c));
+    }
+}
+
+/// 64 bytes of 0 or 1 (fewer: the rest 0) as the bits of a word, byte `j`
+/// to bit `j`: eight bytes at a time by one multiplication that gathers
+/// their low bits into the top byte.
+#[inline]
+fn pack64(bytes: &[u8]) -> u64 {
+    let mut w = 0u64;
+    for (k, ch) in bytes.chunks(8).take(8).enumerate() {
+        let mut b = [0u8; 8];
+        b[..ch.len()].copy_from_slice(ch);
+        let byte = u64::from_le_bytes(b).wrapping_mul(0x0102_0408_1020_4080) >> 56;
+        w |= byte << (8 * k);
+    }
+    w
+}
+
 /// Smoothed band `r` of the chunk into `dst` (ends reflected); inlined
 /// into each version of [`detect_impl`].
 #[inline(always)]
@@ -176,6 +358,75 @@ mod tests {
                     assert_eq!(c.bad[j], bad, "nb {nb} m {m} pixel {j}");
                 }
             }
+        }
+    }
+
+    /// Planes filled band by band, in any order, unpack to what `detect`
+    /// finds on the whole cube.
+    #[test]
+    fn planes_filled_in_any_order_match_detect() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let (w, h) = (150, 3);
+        for nb in [5usize, 31, 40] {
+            let planes: Vec<Vec<f32>> = (0..nb)
+                .map(|_| {
+                    (0..w * h)
+                        .map(|_| f32::from(rng.random_range(0u8..6)) * 0.01)
+                        .collect()
+                })
+                .collect();
+            let mut order: Vec<usize> = (0..nb).collect();
+            for i in (1..nb).rev() {
+                order.swap(i, rng.random_range(0..=i));
+            }
+            let mut cp = CandidatePlanes::new(w, h, nb).unwrap();
+            let mut arrived = vec![false; nb];
+            for &b in &order {
+                arrived[b] = true;
+                for y in 0..h {
+                    cp.add_row(y, &planes[b][y * w..(y + 1) * w]);
+                }
+                for c in b.saturating_sub(2)..=(b + 2).min(nb - 1) {
+                    if cp.window(c).all(|r| arrived[r]) {
+                        for y in 0..h {
+                            let rows: Vec<&[f32]> = cp
+                                .window(c)
+                                .map(|r| &planes[r][y * w..(y + 1) * w])
+                                .collect();
+                            cp.set_candidate(y, c, &rows);
+                        }
+                    }
+                }
+            }
+            for y in 0..h {
+                for k in 0..w.div_ceil(CHUNK) {
+                    let x0 = k * CHUNK;
+                    let m = (w - x0).min(CHUNK);
+                    let rows: Vec<&[f32]> = planes
+                        .iter()
+                        .map(|p| &p[y * w + x0..y * w + x0 + m])
+                        .collect();
+                    let (mut a, mut b) = (Candidates::default(), Candidates::default());
+                    detect(&rows, &mut a);
+                    cp.unpack(y, k, &mut b);
+                    assert_eq!(a.maxima[..m], b.maxima[..m], "nb {nb} row {y} chunk {k}");
+                    assert_eq!(a.minima[..m], b.minima[..m], "nb {nb} row {y} chunk {k}");
+                    assert_eq!(a.bad[..m], b.bad[..m], "nb {nb} row {y} chunk {k}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn pack64_puts_byte_j_at_bit_j() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        for len in [0usize, 1, 7, 8, 9, 63, 64] {
+            let bytes: Vec<u8> = (0..len).map(|_| rng.random_range(0u8..2)).collect();
+            let want = bytes
+                .iter()
+                .enumerate()
+                .fold(0u64, |w, (j, &b)| w | u64::from(b) << j);
+            assert_eq!(pack64(&bytes), want, "{bytes:?}");
         }
     }
 

@@ -29,6 +29,7 @@
 //! cannot.
 
 use super::angle::half_wave_sin2;
+use super::detect::CandidatePlanes;
 use super::fastmath::round;
 use super::model::{FilmModel, ModelOut};
 use super::{Cube, EstimateError, Mode, ParamMaps, PixelEstimate, Reason};
@@ -737,11 +738,28 @@ impl Solver {
         out: &mut [PixelEstimate],
         scratch: &mut Scratch,
     ) {
+        self.solve_row_with(cube, y, out, scratch, None);
+    }
+
+    /// As [`Solver::solve_row`], with the extremum candidates already found
+    /// (by the live tracker, as the bands arrived): `fast` then skips its
+    /// detection pass. Planes of another size are ignored.
+    pub fn solve_row_with(
+        &self,
+        cube: &Cube,
+        y: usize,
+        out: &mut [PixelEstimate],
+        scratch: &mut Scratch,
+        candidates: Option<&CandidatePlanes>,
+    ) {
         let mut pixel = std::mem::take(&mut scratch.pixel);
         pixel.resize(cube.bands.len(), 0.0);
         let mut done = 0;
         if self.mode == Mode::Fast {
-            done = self.solve_row_fast(cube, y, out, &mut pixel, scratch);
+            let pre = candidates.filter(|c| {
+                c.size() == (cube.width, cube.height) && c.bands() == self.sorted.len()
+            });
+            done = self.solve_row_fast(cube, y, out, &mut pixel, scratch, pre);
         }
         for (x, o) in out.iter_mut().enumerate().take(cube.width).skip(done) {
             cube.spectrum_into(x, y, &mut pixel);
@@ -763,6 +781,7 @@ impl Solver {
         out: &mut [PixelEstimate],
         pixel: &mut [f64],
         scratch: &mut Scratch,
+        pre: Option<&CandidatePlanes>,
     ) -> usize {
         let (Some(prep), Some(index)) = (&self.prepared, &self.index) else {
             return 0;
@@ -796,7 +815,10 @@ impl Solver {
                 *row = &data[row_of(r) + x0..row_of(r) + x0 + m];
                 flat[r * CH..r * CH + m].copy_from_slice(row);
             }
-            super::detect::detect(&rows[..nb], &mut cand);
+            match pre {
+                Some(p) => p.unpack(y, x0 / CH, &mut cand),
+                None => super::detect::detect(&rows[..nb], &mut cand),
+            }
             let super::detect::Candidates {
                 maxima,
                 minima,

@@ -133,10 +133,10 @@ pub struct RunConfig {
     pub sweep_buffers: usize,
     /// How long to wait for a frame before giving up.
     pub frame_timeout: Duration,
-    /// Track per-pixel fringe extrema (sub-band peaks and valleys) while
-    /// bands arrive. The solver locates extrema again from the complete
-    /// spectrum (smoothed, five-point fits); tracking them here costs about
-    /// 2 ms per 1280×1024 frame, which `fast` at 100 bands/s still affords.
+    /// Track every pixel's fringe-extremum candidates while bands arrive
+    /// (see [`crate::pipeline::tracker`]): `fast` then skips its detection
+    /// pass after the last band, which shortens the map's latency, at a
+    /// cost on each frame's ingest.
     pub track_extrema: bool,
     /// Rows solved (in parallel) and emitted together; 0: a sixteenth of
     /// the image.
@@ -470,6 +470,7 @@ impl Solve {
         }
         let (w, h) = (cube.width, cube.height);
         let solver = &self.solver;
+        let candidates = buf.candidates.as_ref();
         // Row blocks in order: rows within a block are solved in parallel,
         // and each block is emitted as soon as it is done, so at most one
         // block is in flight and rows leave in order.
@@ -487,7 +488,7 @@ impl Solve {
                 est.par_chunks_mut(w.max(1)).enumerate().for_each_init(
                     Scratch::default,
                     |scr, (dy, row)| {
-                        solver.solve_row(cube, y0 + dy, row, scr);
+                        solver.solve_row_with(cube, y0 + dy, row, scr, candidates);
                     },
                 );
             };
@@ -495,7 +496,7 @@ impl Solve {
                 Some(p) => p.install(|| run_rows(est)),
                 None => {
                     for (dy, row) in est.chunks_mut(w.max(1)).enumerate() {
-                        solver.solve_row(cube, y0 + dy, row, &mut self.scratch);
+                        solver.solve_row_with(cube, y0 + dy, row, &mut self.scratch, candidates);
                     }
                 }
             }

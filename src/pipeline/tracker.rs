@@ -6,11 +6,14 @@
 //! the solver reads, which bands have arrived (or were given up as
 //! missing: NaN planes, which the solver treats as missing bands), the
 //! metadata of every frame used (enough for a recording to replay the run),
-//! and per-pixel fringe extrema (peaks and valleys with sub-band positions,
-//! from a parabola in wavenumber through three neighbouring bands), found as
-//! soon as a band and its two spectral neighbours have all arrived. Bands may
-//! arrive in any order: each triple of spectral neighbours is examined once,
-//! when its last member arrives.
+//! and each pixel's fringe-extremum candidates
+//! ([`crate::estimate::detect::CandidatePlanes`]: local maxima and minima
+//! of the smoothed spectrum, as bit planes), decided as soon as a band and
+//! the neighbours its smoothing needs have all arrived. Bands may arrive in
+//! any order: each candidate band is decided once, when the last of its
+//! window arrives. The `fast` solver takes the candidates from here and
+//! skips its own detection pass, so when the last band arrives only the
+//! fits and closed forms remain.
 //!
 //! Buffers are sized once ([`Tracker::new_sweep_buf`]) and reused sweep
 //! after sweep: nothing in the per-frame path allocates.
@@ -22,12 +25,9 @@
 
 use super::calibration::Calibrator;
 use crate::device::camera::{Frame, FrameMeta};
+use crate::estimate::detect::CandidatePlanes;
 use crate::estimate::Cube;
 use crate::optics::band::Band;
-
-/// Most extrema kept per pixel (31 bands over 400–700 nm show at most 3–4
-/// fringes for the films irid is for; extra ones are counted, not kept).
-pub const MAX_EXTREMA: usize = 4;
 
 /// Tracking errors (per frame; the frame is refused, the run goes on).
 #[derive(Debug, thiserror::Error)]
@@ -62,17 +62,6 @@ pub enum BandState {
     Missing,
 }
 
-/// One fringe extremum of a pixel.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Extremum {
-    /// Sub-band position, nm.
-    pub nm: f32,
-    /// Interpolated reflectance at the extremum.
-    pub value: f32,
-    /// Peak (true) or valley.
-    pub peak: bool,
-}
-
 /// A sweep being filled, or filled.
 #[derive(Clone, Debug)]
 pub struct SweepBuf {
@@ -86,11 +75,9 @@ pub struct SweepBuf {
     pub frames: Vec<Option<FrameMeta>>,
     /// Bands present or missing.
     pub done: usize,
-    /// Extrema per pixel: count (may exceed [`MAX_EXTREMA`]).
-    pub n_extrema: Vec<u8>,
-    /// Extrema slots, `MAX_EXTREMA` per pixel: position (nm, negative for a
-    /// valley) and value.
-    pub extrema: Vec<(f32, f32)>,
+    /// Extremum candidates, when tracked (and at most
+    /// [`crate::estimate::detect::MAX_DETECT_BANDS`] bands).
+    pub candidates: Option<CandidatePlanes>,
     /// Frames lost or refused while this sweep was filled.
     pub frames_dropped: u64,
 }
@@ -108,24 +95,6 @@ impl SweepBuf {
             .filter(|s| **s == BandState::Missing)
             .count()
     }
-
-    /// Pixel `i`'s extrema (at most [`MAX_EXTREMA`]), in arrival order.
-    pub fn extrema_of(&self, i: usize) -> impl Iterator<Item = Extremum> + '_ {
-        let k = self
-            .n_extrema
-            .get(i)
-            .map_or(0, |&k| usize::from(k).min(MAX_EXTREMA));
-        // Empty when extrema are not tracked (no slots were allocated).
-        self.extrema
-            .get(i * MAX_EXTREMA..i * MAX_EXTREMA + k)
-            .unwrap_or(&[])
-            .iter()
-            .map(|&(p, v)| Extremum {
-                nm: p.abs(),
-                value: v,
-                peak: p > 0.0,
-            })
-    }
 }
 
 /// Per-sweep incremental tracking (see the module header).
@@ -138,9 +107,8 @@ pub struct Tracker {
     sorted: Vec<usize>,
     /// Position of each band in `sorted`.
     rank: Vec<usize>,
-    /// Whether to track extrema (the solver finds its own; tracking them
-    /// here is what a moving-web mode or an extrema-fed fast path needs).
-    extrema: bool,
+    /// Whether to track extremum candidates.
+    candidates: bool,
 }
 
 impl Tracker {
@@ -158,13 +126,13 @@ impl Tracker {
             bands: bands.to_vec(),
             sorted,
             rank,
-            extrema: true,
+            candidates: true,
         }
     }
 
-    /// Turn extrema tracking on or off.
+    /// Turn the tracking of extremum candidates on or off.
     pub fn track_extrema(mut self, on: bool) -> Tracker {
-        self.extrema = on;
+        self.candidates = on;
         self
     }
 
@@ -187,7 +155,6 @@ impl Tracker {
 
     /// A sweep buffer of the right size: the one allocation per buffer.
     pub fn new_sweep_buf(&self) -> SweepBuf {
-        let n = self.width * self.height;
         // Filled (NaN: nothing arrived yet) rather than calloc'ed, so every
         // page is touched here, once, and not faulted in on the frame path.
         let mut cube = Cube::zeros(self.width, self.height, self.bands.clone());
@@ -198,11 +165,10 @@ impl Tracker {
             state: vec![BandState::Empty; self.bands.len()],
             frames: vec![None; self.bands.len()],
             done: 0,
-            n_extrema: vec![0; n],
-            extrema: if self.extrema {
-                vec![(f32::NAN, f32::NAN); n * MAX_EXTREMA]
+            candidates: if self.candidates {
+                CandidatePlanes::new(self.width, self.height, self.bands.len())
             } else {
-                Vec::new()
+                None
             },
             frames_dropped: 0,
         }
@@ -214,7 +180,9 @@ impl Tracker {
         buf.state.fill(BandState::Empty);
         buf.frames.fill(None);
         buf.done = 0;
-        buf.n_extrema.fill(0);
+        if let Some(c) = &mut buf.candidates {
+            c.clear();
+        }
         buf.frames_dropped = 0;
     }
 
@@ -247,7 +215,13 @@ impl Tracker {
         }
         let sat = m.format.max_value();
         let w = self.width;
-        let plane = buf.cube.plane_mut(band);
+        buf.state[band] = BandState::Present;
+        let decide = self.newly_decided(buf, band);
+        let SweepBuf {
+            cube, candidates, ..
+        } = buf;
+        // Row by row: calibrate, then (the new row still in cache) decide
+        // the candidate bands whose window this band completed.
         for y in 0..self.height {
             let row = self.scene_row(y);
             cal.apply_row(
@@ -256,18 +230,64 @@ impl Tracker {
                 &px[y * w..(y + 1) * w],
                 sat,
                 m.exposure_us,
-                &mut plane[row * w..(row + 1) * w],
+                &mut cube.plane_mut(band)[row * w..(row + 1) * w],
             );
+            if let Some(cp) = candidates {
+                self.candidates_row(cube, cp, band, row, &decide);
+            }
         }
         buf.frames[band] = Some(*m);
         if state == BandState::Empty {
             buf.done += 1;
         }
-        buf.state[band] = BandState::Present;
-        if self.extrema {
-            self.update_extrema(buf, band);
-        }
         Ok(buf.complete())
+    }
+
+    /// The sorted candidate bands (up to five) whose window `band`'s
+    /// arrival completes; `band` is already marked arrived.
+    fn newly_decided(&self, buf: &SweepBuf, band: usize) -> [Option<usize>; 5] {
+        let mut out = [None; 5];
+        let Some(cp) = &buf.candidates else {
+            return out;
+        };
+        let (nb, r) = (self.sorted.len(), self.rank[band]);
+        for (slot, c) in out
+            .iter_mut()
+            .zip(r.saturating_sub(2)..=(r + 2).min(nb - 1))
+        {
+            if c >= 1
+                && c + 1 < nb
+                && cp
+                    .window(c)
+                    .all(|p| buf.state[self.sorted[p]] != BandState::Empty)
+            {
+                *slot = Some(c);
+            }
+        }
+        out
+    }
+
+    /// Row `row` of the candidate planes after `band`'s row arrived.
+    fn candidates_row(
+        &self,
+        cube: &Cube,
+        cp: &mut CandidatePlanes,
+        band: usize,
+        row: usize,
+        decide: &[Option<usize>; 5],
+    ) {
+        let w = self.width;
+        let row_of = |b: usize| &cube.plane(b)[row * w..(row + 1) * w];
+        cp.add_row(row, row_of(band));
+        for c in decide.iter().flatten() {
+            let mut rows: [&[f32]; 5] = [&[]; 5];
+            let win = cp.window(*c);
+            let k = win.clone().count();
+            for (slot, p) in rows.iter_mut().zip(win) {
+                *slot = row_of(self.sorted[p]);
+            }
+            cp.set_candidate(row, *c, &rows[..k]);
+        }
     }
 
     /// Give band `band` up for this sweep: its plane becomes NaN.
@@ -277,81 +297,20 @@ impl Tracker {
             buf.cube.plane_mut(band).fill(f32::NAN);
             buf.state[band] = BandState::Missing;
             buf.done += 1;
+            // A missing band's NaN samples flag its pixels, as the solver's
+            // own detection would.
+            let decide = self.newly_decided(buf, band);
+            let SweepBuf {
+                cube, candidates, ..
+            } = buf;
+            if let Some(cp) = candidates {
+                for row in 0..self.height {
+                    self.candidates_row(cube, cp, band, row, &decide);
+                }
+            }
         }
         Ok(buf.complete())
     }
-
-    fn update_extrema(&self, buf: &mut SweepBuf, band: usize) {
-        let nb = self.sorted.len();
-        let r = self.rank[band];
-        for p in r.saturating_sub(1)..=(r + 1).min(nb.saturating_sub(1)) {
-            if p == 0 || p + 1 >= nb {
-                continue;
-            }
-            let (a, b, c) = (self.sorted[p - 1], self.sorted[p], self.sorted[p + 1]);
-            if [a, b, c]
-                .iter()
-                .any(|&i| buf.state[i] != BandState::Present)
-            {
-                continue;
-            }
-            let x = [
-                1.0 / self.bands[a].center_nm as f32,
-                1.0 / self.bands[b].center_nm as f32,
-                1.0 / self.bands[c].center_nm as f32,
-            ];
-            let n = self.width * self.height;
-            let (data, counts, slots) = (&buf.cube.data, &mut buf.n_extrema, &mut buf.extrema);
-            let (pa, pb, pc) = (
-                &data[a * n..(a + 1) * n],
-                &data[b * n..(b + 1) * n],
-                &data[c * n..(c + 1) * n],
-            );
-            // Two passes per block of 64 pixels: a branch-free, vectorisable
-            // scan for extrema into a bit mask, then the (rare) sub-band fits.
-            for base in (0..n).step_by(64) {
-                let end = (base + 64).min(n);
-                let (qa, qb, qc) = (&pa[base..end], &pb[base..end], &pc[base..end]);
-                let mut mask = 0u64;
-                for j in 0..qa.len() {
-                    let (y0, y1, y2) = (qa[j], qb[j], qc[j]);
-                    let e = (y1 > y0) & (y1 >= y2) | (y1 < y0) & (y1 <= y2);
-                    mask |= u64::from(e) << j;
-                }
-                while mask != 0 {
-                    let j = mask.trailing_zeros() as usize;
-                    mask &= mask - 1;
-                    let i = base + j;
-                    let (y0, y1, y2) = (qa[j], qb[j], qc[j]);
-                    let (nm, v) = vertex(x, [y0, y1, y2]);
-                    let k = usize::from(counts[i]);
-                    if k < MAX_EXTREMA {
-                        slots[i * MAX_EXTREMA + k] = (if y1 > y0 { nm } else { -nm }, v);
-                    }
-                    counts[i] = counts[i].saturating_add(1);
-                }
-            }
-        }
-    }
-}
-
-/// Vertex of the parabola through three points in wavenumber, as (nm,
-/// value); falls back to the middle sample if the fit degenerates.
-#[inline]
-fn vertex(x: [f32; 3], y: [f32; 3]) -> (f32, f32) {
-    let (d0, d2) = (x[1] - x[0], x[1] - x[2]);
-    let (e0, e2) = (y[1] - y[0], y[1] - y[2]);
-    let den = d0 * e2 - d2 * e0;
-    if den == 0.0 || !den.is_finite() {
-        return (1.0 / x[1], y[1]);
-    }
-    let xv = x[1] - 0.5 * (d0 * d0 * e2 - d2 * d2 * e0) / den;
-    let xv = xv.clamp(x[0].min(x[2]), x[0].max(x[2]));
-    // Value from the Lagrange form at xv.
-    let l0 = (xv - x[1]) * (xv - x[2]) / ((x[0] - x[1]) * (x[0] - x[2]));
-    let l1 = (xv - x[0]) * (xv - x[2]) / ((x[1] - x[0]) * (x[1] - x[2]));
-    let l2 = (xv - x[0]) * (xv - x[1]) / ((x[2] - x[0]) * (x[2] - x[1]));
-    (1.0 / xv, l0 * y[0] + l1 * y[1] + l2 * y[2])
 }
 
 #[cfg(test)]
@@ -375,33 +334,68 @@ mod tests {
         (60000.0 - 2.0e10 * x * x) as u16
     }
 
-    fn run(order: &[usize]) -> Vec<Extremum> {
+    /// Ingest a `w × h` sweep in `order`, band `missing` given up, and
+    /// return the buffer.
+    fn run(w: usize, h: usize, order: &[usize], missing: Option<usize>) -> SweepBuf {
         let b = bands();
-        let t = Tracker::new(1, 1, &b);
-        let cal = Calibrator::identity(1, 1, b.len(), PixelFormat::Y16, 1000);
+        let t = Tracker::new(w, h, &b);
+        let cal = Calibrator::identity(w as u32, h as u32, b.len(), PixelFormat::Y16, 1000);
         let mut buf = t.new_sweep_buf();
         t.begin(&mut buf, 0);
-        let mut f = Frame::with_size(1, 1, PixelFormat::Y16);
+        let mut f = Frame::with_size(w as u32, h as u32, PixelFormat::Y16);
         f.meta.exposure_us = 1000;
         for (k, &i) in order.iter().enumerate() {
-            f.data[0] = value(b[i].center_nm);
-            let done = t.ingest(&mut buf, i, &f, &cal).unwrap();
+            let done = if Some(i) == missing {
+                t.mark_missing(&mut buf, i).unwrap()
+            } else {
+                for (p, v) in f.data.iter_mut().enumerate() {
+                    // A peak near 560 nm, tilted and varied per pixel, and
+                    // one saturated (NaN) sample.
+                    *v = value(b[i].center_nm).saturating_sub((p * 37 % 11) as u16 * 300);
+                    if p == 5 && i == 2 {
+                        *v = u16::MAX;
+                    }
+                }
+                t.ingest(&mut buf, i, &f, &cal).unwrap()
+            };
             assert_eq!(done, k + 1 == order.len());
         }
-        buf.extrema_of(0).collect()
+        buf
     }
 
+    /// The candidates tracked band by band, in any order and with a band
+    /// missing, are those the solver's own detection finds on the complete
+    /// cube; the peak is at the 550 nm band.
     #[test]
-    fn peak_found_sub_band_in_any_order() {
-        for order in [
-            vec![0, 1, 2, 3, 4, 5, 6],
-            vec![6, 5, 4, 3, 2, 1, 0],
-            vec![3, 0, 6, 1, 5, 2, 4],
+    fn candidates_tracked_in_any_order_match_detection_on_the_cube() {
+        use crate::estimate::detect::{detect, Candidates, CHUNK};
+        let (w, h) = (70, 2);
+        for (order, missing) in [
+            (vec![0, 1, 2, 3, 4, 5, 6], None),
+            (vec![6, 5, 4, 3, 2, 1, 0], None),
+            (vec![3, 0, 6, 1, 5, 2, 4], None),
+            (vec![3, 0, 6, 1, 5, 2, 4], Some(5)),
         ] {
-            let e = run(&order);
-            assert_eq!(e.len(), 1, "{order:?}");
-            assert!(e[0].peak);
-            assert!((e[0].nm - 560.0).abs() < 1.0, "{:?}", e[0]);
+            let buf = run(w, h, &order, missing);
+            let cp = buf.candidates.as_ref().unwrap();
+            for y in 0..h {
+                for k in 0..w.div_ceil(CHUNK) {
+                    let (x0, m) = (k * CHUNK, (w - k * CHUNK).min(CHUNK));
+                    let rows: Vec<&[f32]> = (0..7)
+                        .map(|b| &buf.cube.plane(b)[y * w + x0..y * w + x0 + m])
+                        .collect();
+                    let (mut want, mut got) = (Candidates::default(), Candidates::default());
+                    detect(&rows, &mut want);
+                    cp.unpack(y, k, &mut got);
+                    assert_eq!(want.maxima[..m], got.maxima[..m], "{order:?} {missing:?}");
+                    assert_eq!(want.minima[..m], got.minima[..m], "{order:?} {missing:?}");
+                    assert_eq!(want.bad[..m], got.bad[..m], "{order:?} {missing:?}");
+                    if missing.is_none() && y == 0 && k == 0 {
+                        assert_eq!(got.maxima[0], 1 << 3, "{order:?}");
+                        assert!(got.bad[5] && !got.bad[0]);
+                    }
+                }
+            }
         }
     }
 
