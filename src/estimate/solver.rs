@@ -1869,7 +1869,13 @@ impl Solver {
         let lo_s = self.interior.0.max(self.sigma_range.0 + eighth);
         let hi_s = self.interior.1.min(self.sigma_range.1 - eighth);
         let expected = (4.0 * g * hi_s).ceil() - (4.0 * g * lo_s).floor() - 1.0;
-        let found = ext.iter().filter(|e| e.pos > lo_s && e.pos < hi_s).count();
+        // Found extrema count by their lattice points, so one measured
+        // just across a bound is not told apart from its prediction.
+        let (k_lo, k_hi) = (2.0 * g * lo_s, 2.0 * g * hi_s);
+        let found = orders[..n_ext]
+            .iter()
+            .filter(|&&k| k > k_lo && k < k_hi)
+            .count();
         if expected > found as f64 {
             return None;
         }
