@@ -495,6 +495,12 @@ impl Calibrator {
         self.n
     }
 
+    /// Bytes of calibration read per pixel-band by [`Calibrator::apply_row`]
+    /// (for the benchmark's bandwidth account).
+    pub fn bytes_per_pixel_band(&self) -> f64 {
+        8.0
+    }
+
     /// Convert `counts` (band `band`, exposure `exposure_us`) to reflectance
     /// in `out`. Saturated samples (`>= sat`) become NaN.
     pub fn apply(&self, band: usize, counts: &[u16], sat: u16, exposure_us: u32, out: &mut [f32]) {
