@@ -192,7 +192,14 @@ fn main() {
     );
 
     // 1. Ingest vs memcpy, one core.
+    let t = Instant::now();
     let cal = Calibrator::new(&calibration(w as u32, h as u32, &nm, sensor().exposure_us));
+    println!(
+        "calibrator prepared in {:.2} s: {} of 31 bands packed, {:.1} B per pixel-band",
+        t.elapsed().as_secs_f64(),
+        cal.packed_bands(),
+        cal.bytes_per_pixel_band()
+    );
     let tracker = Tracker::new(w, h, &bands);
     let mut buf = tracker.new_sweep_buf();
     let order = order_for("ascending", 31, &nm).unwrap();
