@@ -18,6 +18,7 @@
 
 use crate::device::camera::{CameraInfo, Frame, PixelFormat};
 use multiversion::multiversion;
+use rayon::prelude::*;
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 
@@ -515,9 +516,10 @@ impl Packing {
     }
 
     /// Pack one band: `dark` and `scale` (NaN where flagged) in, the codes
-    /// out in `code`. `None` if some pixel cannot be packed within the
-    /// budget (the band then stays f32); `gain` is scratch.
-    fn pack(dark: &[f32], scale: &[f32], code: &mut [u32], gain: &mut Vec<u32>) -> Option<Packing> {
+    /// out in `code`, as f32 bit patterns (the codes go over the white plane
+    /// they were computed from). `None` if some pixel cannot be packed
+    /// within the budget (the band then stays f32); `gain` is scratch.
+    fn pack(dark: &[f32], scale: &[f32], code: &mut [f32], gain: &mut Vec<u32>) -> Option<Packing> {
         let (mut smin, mut smax, mut dmin) = (f32::INFINITY, 0.0f32, f32::INFINITY);
         let mut any = false;
         for (&d, &s) in dark.iter().zip(scale) {
@@ -533,7 +535,7 @@ impl Packing {
             dmin = dmin.min(d);
         }
         if !any {
-            code.fill(FLAGGED);
+            code.fill(f32::from_bits(FLAGGED));
             return Some(Packing::PLAIN);
         }
         let dark_base = f64::from(dmin).floor();
@@ -600,7 +602,7 @@ impl Packing {
         let mut worst = 0.0f64;
         for (((c, &d), &s), &q) in code.iter_mut().zip(dark).zip(scale).zip(gain.iter()) {
             if s.is_nan() {
-                *c = FLAGGED;
+                *c = f32::from_bits(FLAGGED);
                 continue;
             }
             let g = f64::from(p.gamma(q));
@@ -610,7 +612,7 @@ impl Packing {
             let qd = ((x * inv_unit + 0.5) as u32).min(dmax);
             let e = (x - unit * f64::from(qd)).abs() * sc + (sc * g / f64::from(s) - 1.0).abs();
             worst = worst.max(e);
-            *c = (qd << gain_bits) | q;
+            *c = f32::from_bits((qd << gain_bits) | q);
         }
         if worst > QUANT_BUDGET {
             return None;
@@ -668,29 +670,45 @@ impl Calibrator {
             mut white,
             flags,
         } = cal;
+        // Bands in parallel; each keeps its codes in its white plane, or
+        // hands back its scale plane if it stays f32. The codes are stored
+        // as f32 bit patterns (to_bits/from_bits are transmutes: bits
+        // survive), and collecting into Vec<u32> below reuses the
+        // allocation.
+        let packed: Vec<(Option<Packing>, Vec<f32>)> = if bands == 0 {
+            Vec::new()
+        } else {
+            white[..bands * n]
+                .par_chunks_mut(n)
+                .zip(dark.par_chunks(n))
+                .zip(flags.par_chunks(n))
+                .map_init(
+                    || (vec![0.0f32; n], Vec::new()),
+                    |(s, gain), ((w, d), f)| {
+                        for (((s, &w), &d), &f) in s.iter_mut().zip(w.iter()).zip(d).zip(f) {
+                            *s = if f == 0 { rw / (w - d) } else { f32::NAN };
+                        }
+                        match Packing::pack(d, s, w, gain) {
+                            Some(p) => (Some(p), Vec::new()),
+                            None => {
+                                w.fill(f32::from_bits(FLAGGED));
+                                (None, s.clone())
+                            }
+                        }
+                    },
+                )
+                .collect()
+        };
         let mut forms = Vec::with_capacity(bands);
         let (mut offset, mut scale) = (Vec::new(), Vec::new());
-        let (mut s, mut code, mut gain) = (vec![0.0f32; n], vec![0u32; n], Vec::new());
-        for b in 0..bands {
-            let r = b * n..(b + 1) * n;
-            let (d, w, f) = (&dark[r.clone()], &mut white[r.clone()], &flags[r]);
-            for (((s, &w), &d), &f) in s.iter_mut().zip(w.iter()).zip(d).zip(f) {
-                *s = if f == 0 { rw / (w - d) } else { f32::NAN };
-            }
-            match Packing::pack(d, &s, &mut code, &mut gain) {
+        for (b, (p, s)) in packed.into_iter().enumerate() {
+            match p {
                 Some(p) => forms.push(BandForm::Packed(p)),
                 None => {
                     forms.push(BandForm::Full { at: offset.len() });
-                    offset.extend_from_slice(d);
+                    offset.extend_from_slice(&dark[b * n..(b + 1) * n]);
                     scale.extend_from_slice(&s);
-                    code.fill(FLAGGED);
                 }
-            }
-            // The codes go over the white plane (bit patterns survive f32
-            // moves: to_bits/from_bits are transmutes), and collecting into
-            // Vec<u32> below reuses the allocation.
-            for (w, &c) in w.iter_mut().zip(&code) {
-                *w = f32::from_bits(c);
             }
         }
         drop(dark);
