@@ -463,8 +463,9 @@ const ONE_BITS: u32 = 0x3F80_0000;
 /// dark_unit × qd / γ` (`qd` the high bits): stored in steps proportional
 /// to `1/s`, its error costs every pixel the same reflectance, `scale ×
 /// dark_unit / 2`, and a pixel of high contrast may lie far from the base.
-/// Then `R = k × scale × ((c − dark_base) × γ − dark_unit × qd)`: two
-/// conversions, a shift, an add, three multiplies and a subtract per pixel.
+/// Then `R = k × scale × ((c − dark_base) × γ − dark_unit × qd)`: per
+/// pixel a mask, two shifts, an add, two conversions, two subtracts, three
+/// multiplies and the NaN select.
 /// How the 32 bits split between gain and dark is chosen per band for the
 /// smallest bound; each pixel's error is then checked, not assumed.
 #[derive(Clone, Copy, Debug, PartialEq)]
