@@ -11,7 +11,12 @@
 //! Frame generation is precomputed (rendered planes and a per-band noisy
 //! frame cache) and measured apart.
 //!
-//! `cargo bench --bench pipeline [-- quick]` (`quick`: 640×512, fewer sweeps).
+//! Each line of section 1 also gives the bytes moved per pixel-band (read +
+//! written, the least the stage must move) and the rate that makes, beside
+//! memcpy's (2 + 2 bytes): the memory-bandwidth reference.
+//!
+//! `cargo bench --bench pipeline [-- quick] [-- ingest]` (`quick`: 640×512,
+//! fewer sweeps; `ingest`: section 1 only, without the solver and keeps-up).
 
 use irid::device::camera::synthetic::{
     lctf_transmission, FilterView, SensorModel, SyntheticCamera, SyntheticConfig,
@@ -133,6 +138,7 @@ impl SweepSink for Keep {
 
 fn main() {
     let quick = std::env::args().any(|a| a == "quick");
+    let ingest_only = std::env::args().any(|a| a == "ingest");
     if let Some(case) = std::env::args().find_map(|a| a.strip_prefix("case=").map(str::to_string)) {
         keeps_up(&case, quick);
         return;
@@ -186,7 +192,14 @@ fn main() {
     );
 
     // 1. Ingest vs memcpy, one core.
+    let t = Instant::now();
     let cal = Calibrator::new(&calibration(w as u32, h as u32, &nm, sensor().exposure_us));
+    println!(
+        "calibrator prepared in {:.2} s: {} of 31 bands packed, {:.1} B per pixel-band",
+        t.elapsed().as_secs_f64(),
+        cal.packed_bands(),
+        cal.bytes_per_pixel_band()
+    );
     let tracker = Tracker::new(w, h, &bands);
     let mut buf = tracker.new_sweep_buf();
     let order = order_for("ascending", 31, &nm).unwrap();
@@ -239,34 +252,39 @@ fn main() {
         }
     }) / 31.0;
     let pbs = |t: f64| n as f64 / t / 1e6;
+    // Bytes each stage must move per pixel-band: memcpy reads and writes
+    // u16; calibration reads u16 counts and its per-pixel planes and writes
+    // f32; candidate tracking (ascending order: each new band completes
+    // one candidate's five-band window) reads four f32 planes more.
+    let b_copy = 4.0;
+    let b_cal = 2.0 + cal.bytes_per_pixel_band() + 4.0;
+    let b_ext = b_cal + 16.0;
+    let gbs = |bytes: f64, t: f64| bytes * n as f64 / t / 1e9;
     println!(
-        "\n1. ingest, one core, per band frame ({} MB of u16):",
+        "\n1. ingest, one core, per band frame ({} MB of u16); bytes moved per pixel-band, read + written:",
         2 * n / 1_000_000
     );
     println!(
-        "  memcpy of the frame        {:7.3} ms  {:8.1} M pixel-bands/s  ({:.1} GB/s)",
+        "  memcpy of the frame        {:7.3} ms  {:8.1} M pixel-bands/s  ({:.1} GB/s)  {:4.1} B  (the reference)",
         t_copy * 1e3,
         pbs(t_copy),
-        2.0 * n as f64 / t_copy / 1e9
+        gbs(b_copy, t_copy),
+        b_copy
     );
-    println!(
-        "  calibrate only             {:7.3} ms  {:8.1} M pixel-bands/s  ({:.2}× memcpy)",
-        t_cal * 1e3,
-        pbs(t_cal),
-        t_cal / t_copy
-    );
-    println!(
-        "  ingest (calibrate + track) {:7.3} ms  {:8.1} M pixel-bands/s  ({:.2}× memcpy)",
-        t_ingest * 1e3,
-        pbs(t_ingest),
-        t_ingest / t_copy
-    );
-    println!(
-        "  ingest without extrema      {:7.3} ms  {:8.1} M pixel-bands/s  ({:.2}× memcpy)",
-        t_noext * 1e3,
-        pbs(t_noext),
-        t_noext / t_copy
-    );
+    for (label, t, b) in [
+        ("calibrate only            ", t_cal, b_cal),
+        ("ingest (calibrate + track)", t_ingest, b_ext),
+        ("ingest, tracking off      ", t_noext, b_cal),
+    ] {
+        println!(
+            "  {label} {:7.3} ms  {:8.1} M pixel-bands/s  ({:.2}× memcpy)  {b:4.1} B  {:5.1} GB/s ({:.0}% of memcpy's)",
+            t * 1e3,
+            pbs(t),
+            t / t_copy,
+            gbs(b, t),
+            100.0 * gbs(b, t) / gbs(b_copy, t_copy)
+        );
+    }
     println!(
         "  … with a span per frame, no subscriber   {:7.3} ms ({:+.2}%)",
         t_span * 1e3,
@@ -296,6 +314,9 @@ fn main() {
             "  (extremum candidates tracked: {:.2} per pixel)",
             total as f64 / n as f64
         );
+    }
+    if ingest_only {
+        return;
     }
     // The solver on the ingested sweep, one thread, for comparison.
     println!("  solver alone on this sweep, one thread (what the pipeline waits for):");

@@ -17,6 +17,8 @@
 //! that says what differs.
 
 use crate::device::camera::{CameraInfo, Frame, PixelFormat};
+use multiversion::multiversion;
+use rayon::prelude::*;
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 
@@ -433,12 +435,218 @@ fn fmt_bands(b: &[f64]) -> String {
     }
 }
 
-/// The calibration prepared for the per-frame path: per band an offset and
-/// a scale per pixel (NaN where flagged), so converting a frame is one
-/// multiply-add per pixel.
+/// The systematic error of the packed calibration against the f32 formula
+/// `(counts − dark) × white_reflectance / (white − dark)`, in reflectance,
+/// for |R| ≤ 1 (relative to |R| above): a band whose pixels cannot all be
+/// packed within it keeps f32 planes. Reflectance noise is ~1e-3.
+pub const PACKED_ERROR_BOUND: f32 = 2e-5;
+
+/// Share of [`PACKED_ERROR_BOUND`] for the quantisation of dark and gain;
+/// the rest covers f32 rounding (≲ 1e-6 for |R| ≤ 1; see `Packing`).
+const QUANT_BUDGET: f64 = 1.9e-5;
+
+/// Code of a flagged pixel (never a valid code: the dark field of a valid
+/// code is at most its maximum − 1).
+const FLAGGED: u32 = u32::MAX;
+
+/// Bits of 1.0f32.
+const ONE_BITS: u32 = 0x3F80_0000;
+
+/// How one band's calibration is packed into one u32 per pixel.
+///
+/// A pixel's scale `s = R_white / (white − dark)` is `scale × γ` with
+/// `γ ≥ 1` a small float: its code `qg` (the low `gain_bits` bits) is the
+/// bit pattern of `γ` above 1.0 shifted down by `gain_shift` (`23 −
+/// gain_shift` mantissa bits, the rest exponent bits), so decoding is a
+/// shift and an add, and its relative error is at most 2^-(mantissa + 1)
+/// (7.6e-6 with 16 bits, 1.5e-5 with 15). The dark `d` is `dark_base +
+/// dark_unit × qd / γ` (`qd` the high bits): stored in steps proportional
+/// to `1/s`, its error costs every pixel the same reflectance, `scale ×
+/// dark_unit / 2`, and a pixel of high contrast may lie far from the base.
+/// Then `R = k × scale × ((c − dark_base) × γ − dark_unit × qd)`: per
+/// pixel a mask, two shifts, an add, two conversions, two subtracts, three
+/// multiplies and the NaN select.
+/// How the 32 bits split between gain and dark is chosen per band for the
+/// smallest bound; each pixel's error is then checked, not assumed.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Packing {
+    /// Reflectance per count at γ = 1 (the band's least scale).
+    scale: f32,
+    /// Integer-valued, at or below every dark of the band.
+    dark_base: f32,
+    /// Dark step × γ.
+    dark_unit: f32,
+    /// Bits of the gain code (low bits).
+    gain_bits: u32,
+    /// 23 − mantissa bits of the gain code.
+    gain_shift: u32,
+    /// Largest quantisation error over the band's pixels, reflectance for
+    /// |R| ≤ 1 (checked at preparation).
+    max_error: f32,
+}
+
+impl Packing {
+    /// A band with no usable pixel, or the identity's: γ = 1, dark 0.
+    const PLAIN: Packing = Packing {
+        scale: 1.0,
+        dark_base: 0.0,
+        dark_unit: 1.0,
+        gain_bits: 16,
+        gain_shift: 7,
+        max_error: 0.0,
+    };
+
+    fn gain_mask(&self) -> u32 {
+        (1u32 << self.gain_bits) - 1
+    }
+
+    fn dark_max(&self) -> u32 {
+        // Leave the all-ones dark field free so no valid code is FLAGGED.
+        (1u32 << (32 - self.gain_bits)) - 2
+    }
+
+    fn gamma(&self, q: u32) -> f32 {
+        f32::from_bits(((q & self.gain_mask()) << self.gain_shift) + ONE_BITS)
+    }
+
+    fn gain_code(&self, s: f32, inv_scale: f64) -> u32 {
+        let g = (f64::from(s) * inv_scale) as f32;
+        let above = g.to_bits().saturating_sub(ONE_BITS);
+        let half = 1u32 << (self.gain_shift - 1);
+        ((above + half) >> self.gain_shift).min(self.gain_mask())
+    }
+
+    /// Pack one band: `dark` and `scale` (NaN where flagged) in, the codes
+    /// out in `code`, as f32 bit patterns (the codes go over the white plane
+    /// they were computed from). `None` if some pixel cannot be packed
+    /// within the budget (the band then stays f32); `gain` is scratch.
+    fn pack(dark: &[f32], scale: &[f32], code: &mut [f32], gain: &mut Vec<u32>) -> Option<Packing> {
+        let (mut smin, mut smax, mut dmin) = (f32::INFINITY, 0.0f32, f32::INFINITY);
+        let mut any = false;
+        for (&d, &s) in dark.iter().zip(scale) {
+            if s.is_nan() {
+                continue;
+            }
+            if !(s.is_finite() && s > 0.0 && d.is_finite()) {
+                return None;
+            }
+            any = true;
+            smin = smin.min(s);
+            smax = smax.max(s);
+            dmin = dmin.min(d);
+        }
+        if !any {
+            code.fill(f32::from_bits(FLAGGED));
+            return Some(Packing::PLAIN);
+        }
+        let dark_base = f64::from(dmin).floor();
+        if dark_base.abs() >= f64::from(1u32 << 23) {
+            return None;
+        }
+        // Spread of the darks in reflectance: what the dark field must span.
+        let mut spread = 0.0f64;
+        for (&d, &s) in dark.iter().zip(scale) {
+            if !s.is_nan() {
+                spread = spread.max((f64::from(d) - dark_base) * f64::from(s));
+            }
+        }
+        let range = f64::from(smax) / f64::from(smin);
+        // The split with the least bound: gain error 2^-(m+1) for m
+        // mantissa bits, dark error spread / (2 × dark steps); γ spans up
+        // to 2^(2^x) with x exponent bits (less a rounding margin).
+        let mut best: Option<(f64, u32, u32)> = None;
+        for m in 15u32..=18 {
+            for x in 0u32..=3 {
+                if range * (1.0 + 2f64.powi(-(m as i32))) >= 2f64.powi(1 << x) {
+                    continue;
+                }
+                let gain_bits = m + x;
+                let steps = f64::from((1u32 << (32 - gain_bits)) - 2);
+                let bound = 2f64.powi(-(m as i32 + 1)) + spread / (2.0 * steps);
+                if best.is_none_or(|(b, _, _)| bound < b) {
+                    best = Some((bound, gain_bits, 23 - m));
+                }
+            }
+        }
+        let (_, gain_bits, gain_shift) = best?;
+        let mut p = Packing {
+            scale: smin,
+            dark_base: dark_base as f32,
+            dark_unit: 1.0,
+            gain_bits,
+            gain_shift,
+            max_error: 0.0,
+        };
+        // Gain codes, and the dark step from the decoded γ so the largest
+        // dark fits.
+        let inv = 1.0 / f64::from(smin);
+        gain.clear();
+        let mut top = 0.0f64;
+        for (&d, &s) in dark.iter().zip(scale) {
+            let q = if s.is_nan() { 0 } else { p.gain_code(s, inv) };
+            gain.push(q);
+            if !s.is_nan() {
+                top = top.max((f64::from(d) - dark_base) * f64::from(p.gamma(q)));
+            }
+        }
+        let unit = (top / f64::from(p.dark_max())) as f32;
+        // Rounded up, so the largest dark does not clamp.
+        p.dark_unit = if unit > 0.0 {
+            f32::from_bits(unit.to_bits() + 1)
+        } else {
+            1.0
+        };
+        // Dark codes, and each pixel's error `|d − d'| s' + |s' − s| / s`
+        // with `s' = scale γ'`, `(d − d') s' = ((d − base) γ' − unit qd) scale`.
+        let (unit, sc, dmax) = (f64::from(p.dark_unit), f64::from(p.scale), p.dark_max());
+        let inv_unit = 1.0 / unit;
+        let mut worst = 0.0f64;
+        for (((c, &d), &s), &q) in code.iter_mut().zip(dark).zip(scale).zip(gain.iter()) {
+            if s.is_nan() {
+                *c = f32::from_bits(FLAGGED);
+                continue;
+            }
+            let g = f64::from(p.gamma(q));
+            let x = (f64::from(d) - dark_base) * g;
+            // x ≥ 0; round to nearest by truncation (f64::round is a libm
+            // call on the baseline target).
+            let qd = ((x * inv_unit + 0.5) as u32).min(dmax);
+            let e = (x - unit * f64::from(qd)).abs() * sc + (sc * g / f64::from(s) - 1.0).abs();
+            worst = worst.max(e);
+            *c = f32::from_bits((qd << gain_bits) | q);
+        }
+        if worst > QUANT_BUDGET {
+            return None;
+        }
+        p.max_error = worst as f32;
+        Some(p)
+    }
+}
+
+/// How one band is stored.
+#[derive(Clone, Copy, Debug)]
+enum BandForm {
+    /// Packed codes at `band × n` of `code`.
+    Packed(Packing),
+    /// f32 offset and scale planes at `at` of `offset`/`scale` (a band the
+    /// packed form cannot hold within [`PACKED_ERROR_BOUND`]).
+    Full { at: usize },
+}
+
+/// The calibration prepared for the per-frame path, per band and pixel one
+/// u32 packing dark and gain (4 bytes read per pixel-band; see `Packing`),
+/// within [`PACKED_ERROR_BOUND`] of the f32 formula (at the reference
+/// exposure; the error scales with the exposure ratio, as R does). A band
+/// that cannot be packed that closely keeps f32 dark and scale planes (8
+/// bytes): one whose white − dark varies more than 256× across the band, or
+/// whose darks spread far more than the contrast of its dimmest pixels
+/// (dark 0…4000 at 50 counts of contrast, say). Flagged pixels and
+/// saturated samples come out NaN.
 #[derive(Clone, Debug)]
 pub struct Calibrator {
     n: usize,
+    forms: Vec<BandForm>,
+    code: Vec<u32>,
     offset: Vec<f32>,
     scale: Vec<f32>,
     exposure_us: u32,
@@ -450,10 +658,12 @@ impl Calibrator {
         Calibrator::from_calibration(cal.clone())
     }
 
-    /// Prepare `cal`, reusing its planes (no second copy of a large
-    /// calibration in memory).
+    /// Prepare `cal`, reusing its planes (the codes are written over the
+    /// white plane: no second copy of a large calibration in memory).
     pub fn from_calibration(cal: Calibration) -> Calibrator {
         let n = cal.meta.width as usize * cal.meta.height as usize;
+        let len = cal.dark.len().min(cal.white.len()).min(cal.flags.len());
+        let bands = len.checked_div(n).unwrap_or(0);
         let rw = cal.meta.white_reflectance as f32;
         let Calibration {
             meta,
@@ -461,13 +671,55 @@ impl Calibrator {
             mut white,
             flags,
         } = cal;
-        for ((w, d), &f) in white.iter_mut().zip(&dark).zip(&flags) {
-            *w = if f == 0 { rw / (*w - d) } else { f32::NAN };
+        // Bands in parallel; each keeps its codes in its white plane, or
+        // hands back its scale plane if it stays f32. The codes are stored
+        // as f32 bit patterns (to_bits/from_bits are transmutes: bits
+        // survive), and collecting into Vec<u32> below reuses the
+        // allocation.
+        let packed: Vec<(Option<Packing>, Vec<f32>)> = if bands == 0 {
+            Vec::new()
+        } else {
+            white[..bands * n]
+                .par_chunks_mut(n)
+                .zip(dark.par_chunks(n))
+                .zip(flags.par_chunks(n))
+                .map_init(
+                    || (vec![0.0f32; n], Vec::new()),
+                    |(s, gain), ((w, d), f)| {
+                        for (((s, &w), &d), &f) in s.iter_mut().zip(w.iter()).zip(d).zip(f) {
+                            *s = if f == 0 { rw / (w - d) } else { f32::NAN };
+                        }
+                        match Packing::pack(d, s, w, gain) {
+                            Some(p) => (Some(p), Vec::new()),
+                            None => {
+                                w.fill(f32::from_bits(FLAGGED));
+                                (None, s.clone())
+                            }
+                        }
+                    },
+                )
+                .collect()
+        };
+        let mut forms = Vec::with_capacity(bands);
+        let (mut offset, mut scale) = (Vec::new(), Vec::new());
+        for (b, (p, s)) in packed.into_iter().enumerate() {
+            match p {
+                Some(p) => forms.push(BandForm::Packed(p)),
+                None => {
+                    forms.push(BandForm::Full { at: offset.len() });
+                    offset.extend_from_slice(&dark[b * n..(b + 1) * n]);
+                    scale.extend_from_slice(&s);
+                }
+            }
         }
+        drop(dark);
+        let code = white.into_iter().map(f32::to_bits).collect();
         Calibrator {
             n,
-            offset: dark,
-            scale: white,
+            forms,
+            code,
+            offset,
+            scale,
             exposure_us: meta.exposure_us,
         }
     }
@@ -482,10 +734,16 @@ impl Calibrator {
         exposure_us: u32,
     ) -> Calibrator {
         let n = width as usize * height as usize;
+        let p = Packing {
+            scale: 1.0 / f32::from(format.max_value()),
+            ..Packing::PLAIN
+        };
         Calibrator {
             n,
-            offset: vec![0.0; n * bands],
-            scale: vec![1.0 / f32::from(format.max_value()); n * bands],
+            forms: vec![BandForm::Packed(p); bands],
+            code: vec![0; n * bands],
+            offset: Vec::new(),
+            scale: Vec::new(),
             exposure_us,
         }
     }
@@ -495,6 +753,35 @@ impl Calibrator {
         self.n
     }
 
+    /// Bands held packed (the rest keep f32 planes).
+    pub fn packed_bands(&self) -> usize {
+        self.forms
+            .iter()
+            .filter(|f| matches!(f, BandForm::Packed(_)))
+            .count()
+    }
+
+    /// The largest error of the packed bands against the f32 formula,
+    /// reflectance for |R| ≤ 1, as checked at preparation (quantisation
+    /// only; f32 rounding adds ≲ 1e-6). At most [`PACKED_ERROR_BOUND`].
+    pub fn packed_error(&self) -> f32 {
+        self.forms
+            .iter()
+            .map(|f| match f {
+                BandForm::Packed(p) => p.max_error,
+                BandForm::Full { .. } => 0.0,
+            })
+            .fold(0.0, f32::max)
+    }
+
+    /// Bytes of calibration read per pixel-band by [`Calibrator::apply_row`]
+    /// (for the benchmark's bandwidth account): 4 packed, 8 in f32.
+    pub fn bytes_per_pixel_band(&self) -> f64 {
+        let bands = self.forms.len().max(1) as f64;
+        let packed = self.packed_bands() as f64;
+        (4.0 * packed + 8.0 * (bands - packed)) / bands
+    }
+
     /// Convert `counts` (band `band`, exposure `exposure_us`) to reflectance
     /// in `out`. Saturated samples (`>= sat`) become NaN.
     pub fn apply(&self, band: usize, counts: &[u16], sat: u16, exposure_us: u32, out: &mut [f32]) {
@@ -502,7 +789,7 @@ impl Calibrator {
     }
 
     /// As [`Calibrator::apply`] for the pixels starting at `first` (a row):
-    /// the hot loop of ingest, branch-free, vectorisable, no allocation.
+    /// the hot loop of ingest, branch-free, vectorised, no allocation.
     #[inline]
     pub fn apply_row(
         &self,
@@ -517,15 +804,59 @@ impl Calibrator {
             .len()
             .min(out.len())
             .min(self.n.saturating_sub(first));
-        let o = band * self.n + first;
-        let (Some(off), Some(sc)) = (self.offset.get(o..o + n), self.scale.get(o..o + n)) else {
+        let Some(&form) = self.forms.get(band) else {
             return;
         };
         let k = self.exposure_us as f32 / exposure_us.max(1) as f32;
-        for (((o, &c), &d), &s) in out[..n].iter_mut().zip(&counts[..n]).zip(off).zip(sc) {
-            let r = (f32::from(c) - d) * (s * k);
-            *o = if c >= sat { f32::NAN } else { r };
+        match form {
+            BandForm::Packed(p) => {
+                let o = band * self.n + first;
+                if let Some(code) = self.code.get(o..o + n) {
+                    apply_packed(&counts[..n], code, &mut out[..n], p, k, sat);
+                }
+            }
+            BandForm::Full { at } => {
+                let o = at + first;
+                if let (Some(off), Some(sc)) = (self.offset.get(o..o + n), self.scale.get(o..o + n))
+                {
+                    apply_full(&counts[..n], off, sc, &mut out[..n], k, sat);
+                }
+            }
         }
+    }
+}
+
+/// The packed hot loop (see `Packing`), compiled for the best vector unit
+/// the CPU offers. Flagged pixels and saturated samples give NaN by a
+/// select, not a branch.
+#[multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+sse4.1",
+    "aarch64+neon"
+))]
+fn apply_packed(counts: &[u16], code: &[u32], out: &mut [f32], p: Packing, k: f32, sat: u16) {
+    let n = counts.len().min(code.len()).min(out.len());
+    let (mask, shift, bits) = (p.gain_mask(), p.gain_shift, p.gain_bits);
+    let (base, unit, ks) = (p.dark_base, p.dark_unit, p.scale * k);
+    for ((o, &c), &q) in out[..n].iter_mut().zip(&counts[..n]).zip(&code[..n]) {
+        let g = f32::from_bits(((q & mask) << shift).wrapping_add(ONE_BITS));
+        let qd = q.wrapping_shr(bits) as i32 as f32;
+        let r = ((f32::from(c) - base) * g - unit * qd) * ks;
+        *o = if c >= sat || q == FLAGGED {
+            f32::NAN
+        } else {
+            r
+        };
+    }
+}
+
+/// The f32 loop for a band kept unpacked.
+#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+fn apply_full(counts: &[u16], off: &[f32], sc: &[f32], out: &mut [f32], k: f32, sat: u16) {
+    for (((o, &c), &d), &s) in out.iter_mut().zip(counts).zip(off).zip(sc) {
+        let r = (f32::from(c) - d) * (s * k);
+        *o = if c >= sat { f32::NAN } else { r };
     }
 }
 
@@ -624,6 +955,289 @@ mod tests {
         let bytes = std::fs::read(&p).unwrap();
         for cut in [0, 5, 20, bytes.len() - 1] {
             assert!(Calibration::from_bytes(&bytes[..cut]).is_err());
+        }
+    }
+
+    /// The unpacked f32 formula the packed form must match.
+    fn reference(d: f32, w: f32, f: u8, rw: f32, c: u16, sat: u16, k: f32) -> f32 {
+        let s = if f == 0 { rw / (w - d) } else { f32::NAN };
+        let r = (f32::from(c) - d) * (s * k);
+        if c >= sat {
+            f32::NAN
+        } else {
+            r
+        }
+    }
+
+    /// A calibration of `bands` planes of `w × 1` pixels.
+    fn calibration(
+        w: u32,
+        format: PixelFormat,
+        dark: Vec<f32>,
+        white: Vec<f32>,
+        flags: Vec<u8>,
+    ) -> Calibration {
+        let bands = dark.len() / w as usize;
+        Calibration {
+            meta: CalMeta {
+                width: w,
+                height: 1,
+                bands_nm: (0..bands).map(|b| 500.0 + b as f64).collect(),
+                format,
+                ..meta()
+            },
+            dark,
+            white,
+            flags,
+        }
+    }
+
+    /// Counts that probe a pixel: below and at dark, across the white
+    /// range, past white, up to saturation, and a few at random.
+    fn probes(d: f32, w: f32, sat: u16, rng: &mut impl rand::Rng) -> Vec<u16> {
+        let mut c: Vec<f32> = vec![0.0, d - 1.0, d, d + 1.0];
+        for t in [0.001, 0.01, 0.1, 0.5, 0.9, 1.0, 1.2] {
+            c.push(d + t * (w - d));
+        }
+        c.extend([f32::from(sat) - 1.0, f32::from(sat)]);
+        c.extend((0..4).map(|_| rng.random::<f32>() * f32::from(sat)));
+        c.into_iter()
+            .map(|v| v.round().clamp(0.0, f32::from(sat)) as u16)
+            .collect()
+    }
+
+    /// Apply `c` to every band of `cal` at every probe and compare with
+    /// the f32 formula; returns the worst error, normalised by max(1, |R|).
+    fn worst_error(cal: &Calibration, c: &Calibrator, k: f32, rng: &mut impl rand::Rng) -> f64 {
+        let n = cal.meta.width as usize;
+        let sat = cal.meta.format.max_value();
+        let rw = cal.meta.white_reflectance as f32;
+        let e_us = (cal.meta.exposure_us as f32 / k).round() as u32;
+        let k = cal.meta.exposure_us as f32 / e_us as f32;
+        let mut worst = 0.0f64;
+        let mut out = vec![0.0f32; n];
+        for b in 0..cal.dark.len() / n {
+            let r = b * n..(b + 1) * n;
+            let (d, w, f) = (&cal.dark[r.clone()], &cal.white[r.clone()], &cal.flags[r]);
+            let probes: Vec<Vec<u16>> = (0..n).map(|i| probes(d[i], w[i], sat, rng)).collect();
+            for j in 0..probes[0].len() {
+                let counts: Vec<u16> = probes.iter().map(|p| p[j]).collect();
+                c.apply(b, &counts, sat, e_us, &mut out);
+                for i in 0..n {
+                    let want = reference(d[i], w[i], f[i], rw, counts[i], sat, k);
+                    let got = out[i];
+                    assert_eq!(
+                        want.is_nan(),
+                        got.is_nan(),
+                        "band {b} pixel {i} counts {}: {got} for {want}",
+                        counts[i]
+                    );
+                    if !want.is_nan() {
+                        let e = f64::from((got - want).abs()) / f64::from(want.abs()).max(1.0);
+                        worst = worst.max(e);
+                    }
+                }
+            }
+        }
+        worst
+    }
+
+    /// One band per (sensor, dark level, contrast): `n` pixels with dark
+    /// non-uniformity (± 1 count + 0.5 % of the dark, non-integer means),
+    /// the contrast `white − dark` spread 2.5× (vignetting) up to `top`,
+    /// and a few flagged pixels.
+    fn sensor_bands(
+        format: PixelFormat,
+        darks: &[f32],
+        tops: &[f32],
+        n: usize,
+        rng: &mut impl rand::Rng,
+    ) -> Calibration {
+        let max = f32::from(format.max_value());
+        let (mut dark, mut white, mut flags) = (Vec::new(), Vec::new(), Vec::new());
+        for &d0 in darks {
+            for &top in tops {
+                let top = top.min(max - 2.0 - 1.02 * d0 - 1.0);
+                if top < 50.0 {
+                    continue;
+                }
+                for i in 0..n {
+                    let d = (d0 + (1.0 + 0.005 * d0) * (2.0 * rng.random::<f32>() - 1.0)).max(0.0);
+                    let d = (d * 16.0).round() / 16.0 + 1.0 / 64.0;
+                    let contrast = top * (0.4 + 0.6 * rng.random::<f32>());
+                    dark.push(d);
+                    white.push(d + contrast);
+                    flags.push(if i % 97 == 5 { flag::DARK } else { 0 });
+                }
+            }
+        }
+        calibration(n as u32, format, dark, white, flags)
+    }
+
+    const SENSORS: [(PixelFormat, [f32; 4]); 4] = [
+        (PixelFormat::Grey8, [0.0, 4.0, 16.0, 60.0]),
+        (PixelFormat::Y10, [0.0, 16.0, 64.0, 300.0]),
+        (PixelFormat::Y12, [0.0, 64.0, 256.0, 1200.0]),
+        (PixelFormat::Y16, [0.0, 256.0, 1000.0, 4000.0]),
+    ];
+    /// Largest contrast per band (the least is 0.4× that: 50 counts and up).
+    const TOPS: [f32; 6] = [125.0, 500.0, 2500.0, 10000.0, 40000.0, 65000.0];
+
+    #[test]
+    fn packed_matches_the_f32_formula_over_sensor_ranges() {
+        use rand::SeedableRng;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        for (format, darks) in SENSORS {
+            let cal = sensor_bands(format, &darks, &TOPS, 256, &mut rng);
+            let c = Calibrator::new(&cal);
+            let bands = cal.dark.len() / 256;
+            assert!(bands > 0);
+            // The packed form holds every one of these bands.
+            assert_eq!(c.packed_bands(), bands, "{format:?}");
+            assert_eq!(c.bytes_per_pixel_band(), 4.0);
+            assert!(c.packed_error() <= 1.9e-5);
+            for k in [1.0, 0.5, 2.0] {
+                let e = worst_error(&cal, &c, k, &mut rng);
+                // The error scales with the exposure ratio, like R.
+                assert!(
+                    e <= f64::from(PACKED_ERROR_BOUND) * f64::from(k.max(1.0)),
+                    "{format:?} k {k}: error {e:e}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn bands_that_cannot_be_packed_keep_f32_and_stay_exact() {
+        use rand::SeedableRng;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(8);
+        let n = 64;
+        let (mut dark, mut white) = (Vec::new(), Vec::new());
+        // Band 0: contrast from 50 to 65000 counts in one band (gain range
+        // 1300×). Band 1: darks 0…4000 at 50 counts of contrast. Band 2:
+        // realistic, packs.
+        for i in 0..n {
+            let t = i as f32 / (n - 1) as f32;
+            dark.push(100.0);
+            white.push(150.0 + t * 65000.0);
+        }
+        for i in 0..n {
+            dark.push(4000.0 * (i as f32 / (n - 1) as f32) + 0.3);
+            white.push(dark[n + i] + 50.0);
+        }
+        for i in 0..n {
+            dark.push(200.0 + 0.25 * (i % 5) as f32);
+            white.push(dark[2 * n + i] + 3000.0 + 20.0 * i as f32);
+        }
+        let flags = vec![0; 3 * n];
+        let cal = calibration(n as u32, PixelFormat::Y16, dark, white, flags);
+        let c = Calibrator::new(&cal);
+        assert_eq!(c.packed_bands(), 1);
+        assert!((c.bytes_per_pixel_band() - 20.0 / 3.0).abs() < 1e-9);
+        let e = worst_error(&cal, &c, 1.0, &mut rng);
+        assert!(e <= f64::from(PACKED_ERROR_BOUND), "error {e:e}");
+        // The f32 bands compute exactly the formula.
+        let mut out = vec![0.0; n];
+        let counts: Vec<u16> = (0..n).map(|i| (i * 997 % 65535) as u16).collect();
+        for b in 0..2 {
+            c.apply(b, &counts, 65535, 1000, &mut out);
+            for i in 0..n {
+                let j = b * n + i;
+                let want = reference(cal.dark[j], cal.white[j], 0, 0.9, counts[i], 65535, 1.0);
+                assert!(want.to_bits() == out[i].to_bits() || want.is_nan() && out[i].is_nan());
+            }
+        }
+    }
+
+    #[test]
+    fn flagged_pixels_and_saturated_samples_are_nan_packed_or_not() {
+        let n = 8;
+        let mut dark = vec![64.0f32; 2 * n];
+        let mut white: Vec<f32> = (0..2 * n).map(|i| 1000.0 + 10.0 * i as f32).collect();
+        // Band 1 cannot be packed (gain range 500×).
+        dark[n..].fill(10.0);
+        white[n + 1] = 12.0;
+        white[n + 2] = 1020.0;
+        let mut flags = vec![0u8; 2 * n];
+        for b in 0..2 {
+            flags[b * n + 3] = flag::SATURATED;
+            flags[b * n + 4] = flag::DARK;
+            flags[b * n + 5] = flag::DEAD | flag::SATURATED;
+        }
+        let cal = calibration(n as u32, PixelFormat::Y10, dark, white, flags.clone());
+        let c = Calibrator::new(&cal);
+        assert_eq!(c.packed_bands(), 1);
+        let mut out = vec![0.0f32; n];
+        for b in 0..2 {
+            for v in [0u16, 64, 500, 1022, 1023, 5000] {
+                let counts = vec![v; n];
+                c.apply(b, &counts, 1023, 1000, &mut out);
+                for i in 0..n {
+                    let nan = flags[b * n + i] != 0 || v >= 1023;
+                    assert_eq!(out[i].is_nan(), nan, "band {b} pixel {i} counts {v}");
+                }
+            }
+        }
+        // Rows: the same through apply_row at an offset.
+        let mut row = vec![0.0f32; 3];
+        c.apply_row(0, 3, &[500, 500, 500], 1023, 1000, &mut row);
+        assert!(row.iter().all(|r| r.is_nan()));
+        // Past the end of the plane: only the pixels it has are written.
+        row.fill(0.0);
+        c.apply_row(0, 6, &[500, 1023, 500], 1023, 1000, &mut row);
+        assert!(row[0].is_finite() && row[1].is_nan() && row[2] == 0.0);
+    }
+
+    #[test]
+    fn exposure_normalisation_packed() {
+        let n = 4;
+        let dark = vec![100.0, 100.5, 101.0, 99.25];
+        let white = vec![2100.0, 2300.5, 1901.0, 2099.25];
+        let cal = calibration(n as u32, PixelFormat::Y12, dark, white, vec![0; n]);
+        let c = Calibrator::new(&cal);
+        assert_eq!(c.packed_bands(), 1);
+        let mut at_cal = vec![0.0f32; n];
+        let mut at_twice = vec![0.0f32; n];
+        c.apply(0, &[1100, 1100, 1100, 1100], 4095, 1000, &mut at_cal);
+        // Twice the exposure, twice the counts above dark: the same R.
+        let twice: Vec<u16> = cal
+            .dark
+            .iter()
+            .map(|&d| (d + 2.0 * (1100.0 - d)).round() as u16)
+            .collect();
+        c.apply(0, &twice, 4095, 2000, &mut at_twice);
+        for i in 0..n {
+            let want = 0.9 * (1100.0 - cal.dark[i]) / (cal.white[i] - cal.dark[i]);
+            assert!((at_cal[i] - want).abs() < 2e-5, "{} {want}", at_cal[i]);
+            // Rounding the doubled counts costs at most half a count.
+            let half = 0.5 * 0.9 / (cal.white[i] - cal.dark[i]) / 2.0;
+            assert!((at_twice[i] - want).abs() < half + 2e-5);
+        }
+    }
+
+    #[test]
+    fn identity_is_counts_over_full_scale() {
+        for format in [PixelFormat::Grey8, PixelFormat::Y12, PixelFormat::Y16] {
+            let max = format.max_value();
+            let c = Calibrator::identity(4, 2, 3, format, 1000);
+            assert_eq!((c.plane_len(), c.packed_bands()), (8, 3));
+            let counts: Vec<u16> = (0..8).map(|i| (u32::from(max) * i / 7) as u16).collect();
+            let mut out = vec![0.0f32; 8];
+            c.apply(2, &counts, max, 1000, &mut out);
+            for i in 0..8 {
+                let want = f32::from(counts[i]) * (1.0 / f32::from(max));
+                assert_eq!(out[i].is_nan(), counts[i] >= max);
+                if counts[i] < max {
+                    assert_eq!(out[i], want, "{format:?} {}", counts[i]);
+                }
+            }
+            // At half the exposure of the reference: twice the reflectance.
+            c.apply(0, &counts[..4], max, 500, &mut out[..4]);
+            assert_eq!(out[1], 2.0 * f32::from(counts[1]) / f32::from(max));
+            // A band it does not have leaves the output alone.
+            out.fill(7.0);
+            c.apply(3, &counts, max, 1000, &mut out);
+            assert!(out.iter().all(|&v| v == 7.0));
         }
     }
 }
