@@ -152,7 +152,7 @@ fn main() {
                 t_fit = t_fit.min(t1.elapsed().as_secs_f64());
                 maps = Some(m);
             }
-            let maps = maps.expect("at least one fit"); eprintln!("reasons {:?}", irid::estimate::solver::RSN.iter().map(|a| a.swap(0, std::sync::atomic::Ordering::Relaxed)).collect::<Vec<_>>());
+            let maps = maps.expect("at least one fit");
             let acc = compare(&maps, &truth_t);
             if args.iter().any(|a| a == "--bins") {
                 // Accuracy per 100 nm of true thickness.
