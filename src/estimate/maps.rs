@@ -227,6 +227,27 @@ impl ParamMaps {
         }
     }
 
+    /// Maps of the given size whose every pixel the caller is about to
+    /// write: zeroed, which for large maps means fresh pages from the OS
+    /// that the writing threads fault in, in parallel (no serial fill).
+    /// Not a valid state to publish as is.
+    pub(crate) fn for_overwrite(width: usize, height: usize) -> Self {
+        let n = width * height;
+        ParamMaps {
+            width,
+            height,
+            thickness_nm: vec![0.0; n],
+            n_film: vec![0.0; n],
+            theta_deg: vec![0.0; n],
+            sigma_thickness_nm: vec![0.0; n],
+            sigma_theta_deg: vec![0.0; n],
+            residual_rms: vec![0.0; n],
+            valid: vec![0.0; n],
+            reason: vec![0.0; n],
+            meta: MapMeta::default(),
+        }
+    }
+
     /// Store pixel (x, y)'s estimate.
     pub fn set(&mut self, x: usize, y: usize, e: &PixelEstimate) {
         let i = y * self.width + x;

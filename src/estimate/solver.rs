@@ -700,15 +700,21 @@ impl Solver {
         theta_known: Option<f64>,
         scratch: &mut Scratch,
     ) -> PixelEstimate {
+        self.solve_pixel_with(spectrum, theta_known, scratch, Effort::of(self.mode))
+    }
+
+    /// [`Solver::solve_pixel`] at a given effort.
+    fn solve_pixel_with(
+        &self,
+        spectrum: &[f64],
+        theta_known: Option<f64>,
+        scratch: &mut Scratch,
+        effort: Effort,
+    ) -> PixelEstimate {
         let (Some(prep), Some(index)) = (&self.prepared, &self.index) else {
             return PixelEstimate::invalid(Reason::Masked);
         };
-        let noise = if index.noise_sigma.is_finite() {
-            Some(index.noise_sigma)
-        } else {
-            None
-        };
-        let effort = Effort::of(self.mode);
+        let noise = index.noise_sigma.is_finite().then_some(index.noise_sigma);
         let (mut est, _) = self.solve_with(
             prep,
             Job {
@@ -866,8 +872,14 @@ impl Solver {
                 out[x] = match est {
                     Some(e) => e,
                     None => {
+                        // The closed form was just tried on these very
+                        // samples: straight to the fitted path.
                         cube.spectrum_into(x, y, pixel);
-                        self.solve_pixel(pixel, theta_known, scratch)
+                        let effort = Effort {
+                            closed_form: false,
+                            ..Effort::of(Mode::Fast)
+                        };
+                        self.solve_pixel_with(pixel, theta_known, scratch, effort)
                     }
                 };
             }
@@ -888,7 +900,7 @@ impl Solver {
             self.estimate_film_index(cube)?;
         }
         let (w, h) = (cube.width, cube.height);
-        let mut maps = ParamMaps::new(w, h);
+        let mut maps = ParamMaps::for_overwrite(w, h);
         // Rows in parallel, each written straight into its row of the maps
         // by the thread that solved it.
         maps.rows_mut(0..h)
@@ -1889,7 +1901,9 @@ impl Solver {
         let eighth = 0.125 / g;
         let lo_s = self.interior.0.max(self.sigma_range.0 + eighth);
         let hi_s = self.interior.1.min(self.sigma_range.1 - eighth);
-        let expected = (4.0 * g * hi_s).ceil() - (4.0 * g * lo_s).floor() - 1.0;
+        // Half-integers strictly between: ⌈4g·hi⌉ − ⌊4g·lo⌋ − 1, with the
+        // rounding of `fastmath` (libm's floor is a call without SSE4.1).
+        let expected = round(4.0 * g * hi_s + 0.5) - round(4.0 * g * lo_s - 0.5) - 1.0;
         // Found extrema count by their lattice points, so one measured
         // just across a bound is not told apart from its prediction.
         let (k_lo, k_hi) = (2.0 * g * lo_s, 2.0 * g * hi_s);
