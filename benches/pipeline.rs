@@ -360,7 +360,7 @@ fn main() {
     // 2. Keeps up, each case in its own process so its peak RSS is its own.
     println!("\n2. keeps up: threaded pipeline, triggered camera (settled frame per band), {w}×{h}, 31 bands, 2 solver threads");
     let exe = std::env::current_exe().unwrap();
-    for case in ["balanced", "fast", "fast-no-extrema"] {
+    for case in ["balanced", "fast", "fast-tracked"] {
         let mut c = std::process::Command::new(&exe);
         c.arg(format!("case={case}"));
         if quick {
@@ -428,7 +428,7 @@ fn keeps_up(case: &str, quick: bool) {
             sweeps: Some(sweeps),
             mode,
             threads: Some(2),
-            track_extrema: case != "fast-no-extrema",
+            track_extrema: case == "fast-tracked",
             ..RunConfig::default()
         };
         let mut sink = Keep {

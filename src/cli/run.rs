@@ -34,7 +34,9 @@ pub enum Tracking {
     On,
     /// Never.
     Off,
-    /// In `fast` mode, whose solver uses what is tracked.
+    /// Off: measured, the ingest it costs outweighs the solve it saves on
+    /// two cores (see README); kept as a choice for machines with spare
+    /// ingest CPU.
     Auto,
 }
 
@@ -71,9 +73,10 @@ pub struct RunArgs {
     pub single_thread: bool,
     /// Track every pixel's fringe-extremum candidates while bands arrive
     /// (local maxima and minima of the smoothed spectrum, decided as soon
-    /// as a band's neighbours are in): `on`, `off`, or `auto` = on in
-    /// `fast` mode, whose solver then skips its own detection pass after
-    /// the last band (shorter latency); the other modes do not use them.
+    /// as a band's neighbours are in), so that `fast` skips its own
+    /// detection pass after the last band: `on`, `off`, or `auto` (= off:
+    /// on two cores the ~1.6 ms per 1280×1024 frame it adds to ingest
+    /// outweighs the ~5 % of `fast`'s solve it saves).
     #[arg(long, value_enum, default_value_t = Tracking::Auto)]
     pub track_extrema: Tracking,
     /// Demo: image size (the scene's fields stretch to it).
@@ -679,7 +682,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         track_extrema: match args.track_extrema {
             Tracking::On => true,
             Tracking::Off => false,
-            Tracking::Auto => mode == crate::estimate::Mode::Fast,
+            Tracking::Auto => false,
         },
         ..RunConfig::default()
     };

@@ -139,16 +139,9 @@ pub struct CandidatePlanes {
     bits: Vec<u64>,
     /// `row · chunks + chunk`.
     bad: Vec<u64>,
-    scratch: Scratch,
-}
-
-/// Row buffers of [`CandidatePlanes::set_candidate`], sized on first use.
-#[derive(Clone, Debug, Default)]
-struct Scratch {
-    /// Three smoothed rows.
-    s: Vec<f32>,
-    /// Maxima then minima as 0/1 bytes, padded to whole chunks.
-    cmp: Vec<u8>,
+    /// [`CandidatePlanes::set_candidate`]'s maxima then minima of a row as
+    /// 0/1 bytes, padded to whole chunks (the padding stays 0).
+    scratch: Vec<u8>,
 }
 
 impl CandidatePlanes {
@@ -166,10 +159,7 @@ impl CandidatePlanes {
             chunks,
             bits: vec![0; height * chunks * bands * 2],
             bad: vec![0; height * chunks],
-            scratch: Scratch {
-                s: vec![0.0; 3 * width],
-                cmp: vec![0; 2 * chunks * CHUNK],
-            },
+            scratch: vec![0; 2 * chunks * CHUNK],
         })
     }
 
@@ -226,16 +216,11 @@ impl CandidatePlanes {
         // Raw row of sorted band b, reflected at the ends.
         let at = |b: isize| rows[(b.clamp(0, nb as isize - 1) as usize) - lo];
         let ci = c as isize;
-        let Scratch { s, cmp } = &mut self.scratch;
-        s.resize(3 * w, 0.0);
+        let cmp = &mut self.scratch;
         cmp.resize(2 * w.div_ceil(CHUNK) * CHUNK, 0);
-        let (sa, rest) = s.split_at_mut(w);
-        let (sb, sc) = rest.split_at_mut(w);
-        smooth_rows(at(ci - 2), at(ci - 1), at(ci), sa);
-        smooth_rows(at(ci - 1), at(ci), at(ci + 1), sb);
-        smooth_rows(at(ci), at(ci + 1), at(ci + 2), sc);
         let (cmax, cmin) = cmp.split_at_mut(w.div_ceil(CHUNK) * CHUNK);
-        compare_rows(sa, sb, sc, &mut cmax[..w], &mut cmin[..w]);
+        let five = [at(ci - 2), at(ci - 1), at(ci), at(ci + 1), at(ci + 2)];
+        compare_rows(five, &mut cmax[..w], &mut cmin[..w]);
         for k in 0..self.chunks {
             let i = ((y * self.chunks + k) * nb + c) * 2;
             self.bits[i] = pack64(&cmax[k * CHUNK..(k + 1) * CHUNK]);
@@ -269,20 +254,25 @@ impl CandidatePlanes {
     }
 }
 
-/// `out[x] = smooth3(a[x], b[x], c[x])`.
+/// Candidate maxima and minima of the middle of five rows (sorted bands
+/// c − 2 … c + 2, ends already reflected) as 0/1 bytes: the three smoothed
+/// values and their comparison in one pass.
 #[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
-fn smooth_rows(a: &[f32], b: &[f32], c: &[f32], out: &mut [f32]) {
-    for (((o, &x), &y), &z) in out.iter_mut().zip(a).zip(b).zip(c) {
-        *o = smooth3(x, y, z);
-    }
-}
-
-/// Candidate maxima and minima of the middle row as 0/1 bytes.
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
-fn compare_rows(sa: &[f32], sb: &[f32], sc: &[f32], cmax: &mut [u8], cmin: &mut [u8]) {
-    for ((((mx, mn), &a), &b), &c) in cmax.iter_mut().zip(cmin.iter_mut()).zip(sa).zip(sb).zip(sc) {
-        *mx = u8::from((b > a) & (b >= c));
-        *mn = u8::from((b < a) & (b <= c));
+fn compare_rows(rows: [&[f32]; 5], cmax: &mut [u8], cmin: &mut [u8]) {
+    let n = cmax.len().min(cmin.len());
+    let [r0, r1, r2, r3, r4] = rows.map(|r| &r[..n.min(r.len())]);
+    let n = r0
+        .len()
+        .min(r1.len())
+        .min(r2.len())
+        .min(r3.len())
+        .min(r4.len());
+    for x in 0..n {
+        let a = smooth3(r0[x], r1[x], r2[x]);
+        let b = smooth3(r1[x], r2[x], r3[x]);
+        let c = smooth3(r2[x], r3[x], r4[x]);
+        cmax[x] = u8::from((b > a) & (b >= c));
+        cmin[x] = u8::from((b < a) & (b <= c));
     }
 }
 

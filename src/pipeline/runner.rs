@@ -135,8 +135,8 @@ pub struct RunConfig {
     pub frame_timeout: Duration,
     /// Track every pixel's fringe-extremum candidates while bands arrive
     /// (see [`crate::pipeline::tracker`]): `fast` then skips its detection
-    /// pass after the last band, which shortens the map's latency, at a
-    /// cost on each frame's ingest.
+    /// pass after the last band, at a cost on each frame's ingest that on
+    /// two cores outweighs what it saves (off by default).
     pub track_extrema: bool,
     /// Rows solved (in parallel) and emitted together; 0: a sixteenth of
     /// the image.
@@ -153,7 +153,7 @@ impl Default for RunConfig {
             frame_pool: 32,
             sweep_buffers: 3,
             frame_timeout: Duration::from_secs(2),
-            track_extrema: true,
+            track_extrema: false,
             row_block: 0,
         }
     }

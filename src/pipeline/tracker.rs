@@ -232,7 +232,7 @@ impl Tracker {
                 m.exposure_us,
                 &mut cube.plane_mut(band)[row * w..(row + 1) * w],
             );
-            if let Some(cp) = candidates {
+            if let Some(cp) = candidates.as_mut().filter(|_| self.candidates) {
                 self.candidates_row(cube, cp, band, row, &decide);
             }
         }
@@ -247,7 +247,7 @@ impl Tracker {
     /// arrival completes; `band` is already marked arrived.
     fn newly_decided(&self, buf: &SweepBuf, band: usize) -> [Option<usize>; 5] {
         let mut out = [None; 5];
-        let Some(cp) = &buf.candidates else {
+        let Some(cp) = buf.candidates.as_ref().filter(|_| self.candidates) else {
             return out;
         };
         let (nb, r) = (self.sorted.len(), self.rank[band]);
@@ -303,7 +303,7 @@ impl Tracker {
             let SweepBuf {
                 cube, candidates, ..
             } = buf;
-            if let Some(cp) = candidates {
+            if let Some(cp) = candidates.as_mut().filter(|_| self.candidates) {
                 for row in 0..self.height {
                     self.candidates_row(cube, cp, band, row, &decide);
                 }
