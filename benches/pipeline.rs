@@ -200,8 +200,11 @@ fn main() {
         cal.packed_bands(),
         cal.bytes_per_pixel_band()
     );
-    let tracker = Tracker::new(w, h, &bands);
-    let mut buf = tracker.new_sweep_buf();
+    // `irid run`'s default ingest (no candidate tracking), and the one that
+    // tracks extremum candidates (`--track-extrema on`).
+    let tracker = Tracker::new(w, h, &bands).track_extrema(false);
+    let tracking = Tracker::new(w, h, &bands).track_extrema(true);
+    let mut buf = tracking.new_sweep_buf();
     let order = order_for("ascending", 31, &nm).unwrap();
     let n = w * h;
     let reps = if quick { 3 } else { 5 };
@@ -212,6 +215,16 @@ fn main() {
             black_box(&dst);
         }
     }) / 31.0;
+    // The same copies into a destination as far out of cache as the sweep
+    // cube ingest writes into: a ring of 31 frames (81 MB), pre-faulted.
+    let mut ring = vec![1u16; n * frames.len()];
+    let t_copy_ring = time(reps, || {
+        for (f, d) in frames.iter().zip(ring.chunks_mut(n)) {
+            d.copy_from_slice(&f.data);
+            black_box(&d[0]);
+        }
+    }) / 31.0;
+    drop(ring);
     let sweep = |span: bool, buf: &mut irid::pipeline::tracker::SweepBuf| {
         tracker.begin(buf, 0);
         for &b in &order {
@@ -221,16 +234,13 @@ fn main() {
         black_box(&buf.cube.data[0]);
     };
     let t_ingest = time(reps, || sweep(false, &mut buf)) / 31.0;
-    let t_noext = {
-        let plain = Tracker::new(w, h, &bands).track_extrema(false);
-        time(reps, || {
-            plain.begin(&mut buf, 0);
-            for &b in &order {
-                plain.ingest(&mut buf, b, &frames[b], &cal).unwrap();
-            }
-            black_box(&buf.cube.data[0]);
-        }) / 31.0
-    };
+    let t_tracked = time(reps, || {
+        tracking.begin(&mut buf, 0);
+        for &b in &order {
+            tracking.ingest(&mut buf, b, &frames[b], &cal).unwrap();
+        }
+        black_box(&buf.cube.data[0]);
+    }) / 31.0;
     let t_span = time(reps, || sweep(true, &mut buf)) / 31.0;
     let profile = irid::pipeline::profile::ProfileLayer::new();
     let t_prof = {
@@ -271,10 +281,18 @@ fn main() {
         gbs(b_copy, t_copy),
         b_copy
     );
+    println!(
+        "  … into a 31-frame ring      {:7.3} ms  {:8.1} M pixel-bands/s  ({:.1} GB/s)  {:4.1} B  (out of cache, as the sweep cube; ingest = {:.2}× this)",
+        t_copy_ring * 1e3,
+        pbs(t_copy_ring),
+        gbs(b_copy, t_copy_ring),
+        b_copy,
+        t_ingest / t_copy_ring
+    );
     for (label, t, b) in [
         ("calibrate only            ", t_cal, b_cal),
-        ("ingest (calibrate + track)", t_ingest, b_ext),
-        ("ingest, tracking off      ", t_noext, b_cal),
+        ("ingest (calibrate + track)", t_ingest, b_cal),
+        ("… + candidate tracking    ", t_tracked, b_ext),
     ] {
         println!(
             "  {label} {:7.3} ms  {:8.1} M pixel-bands/s  ({:.2}× memcpy)  {b:4.1} B  {:5.1} GB/s ({:.0}% of memcpy's)",
@@ -295,6 +313,11 @@ fn main() {
         t_prof * 1e3,
         100.0 * (t_prof / t_ingest - 1.0)
     );
+    // One tracked sweep again, for its candidates.
+    tracking.begin(&mut buf, 0);
+    for &b in &order {
+        tracking.ingest(&mut buf, b, &frames[b], &cal).unwrap();
+    }
     if let Some(cp) = &buf.candidates {
         use irid::estimate::detect::{Candidates, CHUNK};
         let mut c = Candidates::default();
