@@ -35,7 +35,7 @@ use super::sequencer::{BandTuner, Discard, SeqMode, Sequencer, SequencerError, V
 use super::tracker::{SweepBuf, TrackError, Tracker};
 use crate::device::camera::{CameraError, Frame, FrameSource};
 use crate::estimate::solver::Scratch;
-use crate::estimate::{EstimateError, Mode, ParamMaps, PixelEstimate, Solver};
+use crate::estimate::{EstimateError, MapRowMut, Mode, ParamMaps, PixelEstimate, Solver};
 use crate::optics::band::Band;
 use crate::scene::Scene;
 use ringbuf::traits::{Consumer, Producer, Split};
@@ -483,26 +483,30 @@ impl Solve {
         while y0 < h {
             let y1 = (y0 + block).min(h);
             let est = &mut self.estimates[y0 * w..y1 * w];
-            let run_rows = |est: &mut [PixelEstimate]| {
+            // Each row is solved and written into its row of the maps by
+            // the same thread (no serial copy after the block).
+            let mut map_rows = maps.rows_mut(y0..y1);
+            let run_rows = |est: &mut [PixelEstimate], map_rows: &mut [MapRowMut<'_>]| {
                 use rayon::prelude::*;
-                est.par_chunks_mut(w.max(1)).enumerate().for_each_init(
-                    Scratch::default,
-                    |scr, (dy, row)| {
+                est.par_chunks_mut(w.max(1))
+                    .zip(map_rows.par_iter_mut())
+                    .enumerate()
+                    .for_each_init(Scratch::default, |scr, (dy, (row, out))| {
                         solver.solve_row_with(cube, y0 + dy, row, scr, candidates);
-                    },
-                );
+                        out.set_all(row);
+                    });
             };
             match pool {
-                Some(p) => p.install(|| run_rows(est)),
+                Some(p) => p.install(|| run_rows(est, &mut map_rows)),
                 None => {
-                    for (dy, row) in est.chunks_mut(w.max(1)).enumerate() {
+                    for (dy, (row, out)) in est.chunks_mut(w.max(1)).zip(&mut map_rows).enumerate()
+                    {
                         solver.solve_row_with(cube, y0 + dy, row, &mut self.scratch, candidates);
+                        out.set_all(row);
                     }
                 }
             }
-            for i in y0 * w..y1 * w {
-                maps.set_index(i, &self.estimates[i]);
-            }
+            drop(map_rows);
             rows.on_rows(buf.sweep, y0..y1, maps);
             y0 = y1;
         }
