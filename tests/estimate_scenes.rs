@@ -499,33 +499,13 @@ fn accurate_mode_integrates_wide_passbands_where_they_matter() {
 /// with 10 nm passbands the thick end needs `accurate`'s integration.)
 #[test]
 fn a_wide_thickness_range_keeps_orders_and_honest_sigma_in_every_mode() {
-    let s = scene(
-        r#"
-[ambient]
-n = 1.0
-[substrate]
-n = 1.60
-[film]
-search = [1.0, 1.6]
-[angle]
-search_deg = [0.0, 80.0]
-[light]
-polarization = "s"
-[bands]
-start_nm = 400
-stop_nm = 700
-step_nm = 10
-fwhm_nm = 0
-[truth]
-width = 280
-height = 14
-film_n = 1.37
-thickness_nm = { linear_x = [100.0, 1500.0] }
-angle_deg = { rows = [10.0, 2.5] }
-noise_sigma = 0.001
-seed = 3
-"#,
-    );
+    // The benchmark's wide-range scene, cut to 280 × 14 pixels with the
+    // angle in the paper's 2.5° steps.
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/scenes/wide-range.toml");
+    let mut s = Scene::load(&path).expect("the bundled scene loads");
+    let t = s.truth.as_mut().expect("the scene has a truth");
+    (t.width, t.height, t.seed) = (280, 14, 3);
+    t.angle_deg = irid::scene::Field::Rows([10.0, 2.5]);
     for mode in [Mode::Fast, Mode::Balanced] {
         let (maps, truth, acc, _) = fit(&s, mode);
         all_finite_or_flagged(&maps);
