@@ -434,8 +434,11 @@ impl Ingest {
 struct Solve {
     solver: Solver,
     scratch: Scratch,
-    row_block: usize,
+    /// Rows solved (in parallel) and emitted together.
+    block: usize,
     index_tried: bool,
+    /// One block of rows' estimates (each row is written into the maps by
+    /// the thread that solved it).
     estimates: Vec<PixelEstimate>,
     counters: Arc<Counters>,
     reported_frames: u64,
@@ -474,15 +477,11 @@ impl Solve {
         // Row blocks in order: rows within a block are solved in parallel,
         // and each block is emitted as soon as it is done, so at most one
         // block is in flight and rows leave in order.
-        let block = if self.row_block > 0 {
-            self.row_block
-        } else {
-            h.div_ceil(16).max(1)
-        };
+        let block = self.block;
         let mut y0 = 0;
         while y0 < h {
             let y1 = (y0 + block).min(h);
-            let est = &mut self.estimates[y0 * w..y1 * w];
+            let est = &mut self.estimates[..(y1 - y0) * w];
             // Each row is solved and written into its row of the maps by
             // the same thread (no serial copy after the block).
             let mut map_rows = maps.rows_mut(y0..y1);
@@ -583,12 +582,17 @@ pub fn run_with_rows(
         floor: None,
         counters: counters.clone(),
     };
+    let block = if cfg.row_block > 0 {
+        cfg.row_block.min(h.max(1))
+    } else {
+        h.div_ceil(16).max(1)
+    };
     let mut solve = Solve {
         solver,
         scratch: Scratch::default(),
-        row_block: cfg.row_block,
+        block,
         index_tried: false,
-        estimates: vec![PixelEstimate::invalid(crate::estimate::Reason::Masked); w * h],
+        estimates: vec![PixelEstimate::invalid(crate::estimate::Reason::Masked); block * w],
         counters: counters.clone(),
         reported_frames: 0,
         reported_sweeps: 0,
