@@ -7,6 +7,10 @@
 //! - [`cube`]: the in-memory spectral cube (band-sequential reflectance).
 //! - [`detect`]: fringe-extremum candidates of many pixels at once.
 //! - [`maps`]: the parameter maps a fit produces, with validity reasons.
+//! - [`noise`]: the reflectance noise model, independent of any fit.
+//! - [`quality`]: the χ² test every pixel's fit must pass.
+//! - [`level`]: the instrument's gain and offset, modelled where the data need it.
+//! - [`range`]: the thickness range the bands resolve.
 //! - [`solver`]: the per-pixel solver and the global film-index search.
 //!
 //! Only what the scene leaves unknown is estimated: a known angle, index or
@@ -17,8 +21,12 @@ pub mod angle;
 pub mod cube;
 pub mod detect;
 pub mod fastmath;
+pub mod level;
 pub mod maps;
 pub mod model;
+pub mod noise;
+pub mod quality;
+pub mod range;
 pub mod solver;
 
 pub use cube::Cube;

@@ -1,0 +1,532 @@
+//! The instrument's level: what stands between the calibrated data and the
+//! film's reflectance, modelled only where the data need it.
+//!
+//! - `absolute`: the calibration is trusted, `y = R`.
+//! - `scaled`: the whole image shares an unknown gain and offset per band,
+//!   `y_k = g_k·R_k + o_k` (a white reference a few percent off, lamp drift,
+//!   stray light). They are estimated once, with the film index, from a
+//!   sample of pixels: Gauss–Newton on the joint problem, the pixels' own
+//!   parameters eliminated by the Schur complement, so the gain is never
+//!   confused with what a pixel's thickness or angle explains. Where the
+//!   sample cannot separate a gain per band (too few pixels, or a uniform
+//!   film), the gain is a quadratic in wavenumber and the offset one
+//!   constant. Their covariance enters every pixel's σ.
+//! - `free`: every pixel has its own scale, offset and slow envelope (see
+//!   the solver's free-level path): for normalised or uncalibrated
+//!   intensities.
+//! - `auto`: `absolute` unless the sample shows a correctable, systematic
+//!   misfit: a likelihood-ratio test of `scaled` against `absolute` at
+//!   [`AUTO_PROBABILITY`].
+
+/// How the level is modelled.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, clap::ValueEnum)]
+pub enum LevelMode {
+    /// `absolute` unless the data show a correctable calibration error.
+    Auto,
+    /// Calibrated reflectance, trusted.
+    Absolute,
+    /// An image-wide gain and offset per band, estimated.
+    Scaled,
+    /// A scale, offset and slow envelope per pixel (normalised intensities).
+    Free,
+}
+
+impl LevelMode {
+    /// Name as on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            LevelMode::Auto => "auto",
+            LevelMode::Absolute => "absolute",
+            LevelMode::Scaled => "scaled",
+            LevelMode::Free => "free",
+        }
+    }
+
+    /// From a name.
+    pub fn from_name(s: &str) -> Option<LevelMode> {
+        match s {
+            "auto" => Some(LevelMode::Auto),
+            "absolute" => Some(LevelMode::Absolute),
+            "scaled" => Some(LevelMode::Scaled),
+            "free" => Some(LevelMode::Free),
+            _ => None,
+        }
+    }
+}
+
+/// Upper-tail probability of the likelihood-ratio test with which `auto`
+/// switches to `scaled`: clean data switch about once in a thousand images.
+pub const AUTO_PROBABILITY: f64 = 1e-3;
+
+/// Prior σ of a band's gain about 1 and of its offset about 0 (weak: they
+/// only keep an unidentifiable direction finite).
+pub const GAIN_PRIOR_SIGMA: f64 = 0.5;
+/// See [`GAIN_PRIOR_SIGMA`].
+pub const OFFSET_PRIOR_SIGMA: f64 = 0.2;
+
+/// An image-wide level: `y_k = gain[k]·R_k + offset[k]`, with covariances.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Level {
+    /// Gain per band (cube plane order).
+    pub gain: Vec<f64>,
+    /// Offset per band.
+    pub offset: Vec<f64>,
+    /// Variance of each gain.
+    pub var_gain: Vec<f64>,
+    /// Variance of each offset.
+    pub var_offset: Vec<f64>,
+    /// Covariance of each band's gain and offset.
+    pub cov: Vec<f64>,
+}
+
+impl Level {
+    /// The identity level (absolute reflectance).
+    pub fn identity(n_bands: usize) -> Level {
+        Level {
+            gain: vec![1.0; n_bands],
+            offset: vec![0.0; n_bands],
+            var_gain: vec![0.0; n_bands],
+            var_offset: vec![0.0; n_bands],
+            cov: vec![0.0; n_bands],
+        }
+    }
+
+    /// Whether this is the identity with no uncertainty.
+    pub fn is_identity(&self) -> bool {
+        self.gain.iter().all(|&g| g == 1.0)
+            && self.offset.iter().all(|&o| o == 0.0)
+            && self.var_gain.iter().all(|&v| v == 0.0)
+            && self.var_offset.iter().all(|&v| v == 0.0)
+    }
+
+    /// Reflectance from a measured value of band `k`.
+    #[inline]
+    pub fn correct(&self, k: usize, y: f64) -> f64 {
+        (y - self.offset[k]) / self.gain[k]
+    }
+
+    /// Variance the level's own uncertainty adds to a corrected value of
+    /// band `k` at reflectance `r`.
+    #[inline]
+    pub fn var_at(&self, k: usize, r: f64) -> f64 {
+        let g = self.gain[k];
+        (self.var_offset[k] + r * r * self.var_gain[k] + 2.0 * r * self.cov[k]) / (g * g)
+    }
+
+    /// The mean gain and offset over bands (for summaries).
+    pub fn mean(&self) -> (f64, f64) {
+        let n = self.gain.len().max(1) as f64;
+        (
+            self.gain.iter().sum::<f64>() / n,
+            self.offset.iter().sum::<f64>() / n,
+        )
+    }
+}
+
+/// How the level's free parameters map onto per-band gains and offsets.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LevelBasis {
+    /// A gain and an offset per band (`2·bands` parameters).
+    PerBand,
+    /// Gain quadratic in wavenumber, one offset (4 parameters).
+    Smooth,
+}
+
+impl LevelBasis {
+    /// Number of free parameters for `nb` bands.
+    pub fn n_params(self, nb: usize) -> usize {
+        match self {
+            LevelBasis::PerBand => 2 * nb,
+            LevelBasis::Smooth => 4,
+        }
+    }
+
+    /// `∂(gain_k, offset_k)/∂γ_j` for band `k` at normalised wavenumber `u`
+    /// (in [−1, 1]): the two rows, as a closure over `j`.
+    fn rows(self, k: usize, u: f64, j: usize) -> (f64, f64) {
+        match self {
+            LevelBasis::PerBand => (
+                if j == 2 * k { 1.0 } else { 0.0 },
+                if j == 2 * k + 1 { 1.0 } else { 0.0 },
+            ),
+            LevelBasis::Smooth => match j {
+                0 => (1.0, 0.0),
+                1 => (u, 0.0),
+                2 => (u * u, 0.0),
+                _ => (0.0, 1.0),
+            },
+        }
+    }
+}
+
+/// One sample pixel as the level fit sees it: raw values, the model at the
+/// pixel's current parameters and its derivatives with respect to them.
+#[derive(Clone, Debug, Default)]
+pub struct LevelPixel {
+    /// Measured values per band (NaN: missing).
+    pub y: Vec<f64>,
+    /// Model reflectance per band.
+    pub r: Vec<f64>,
+    /// Derivatives of the model per band, one vector per local parameter
+    /// (thickness, and the angle when it is estimated).
+    pub jac: Vec<Vec<f64>>,
+}
+
+/// Result of one Gauss–Newton step of the level.
+#[derive(Clone, Debug)]
+pub struct LevelStep {
+    /// The updated level (with its covariance).
+    pub level: Level,
+    /// Largest change of a gain or offset in this step.
+    pub change: f64,
+    /// χ² of the sample at the level before the step.
+    pub chi2: f64,
+    /// Observations used.
+    pub n_obs: usize,
+}
+
+/// One Gauss–Newton step for the level from the sample's current fits,
+/// the pixels' own parameters eliminated (Schur complement). `wavenumber`
+/// holds each band's 1/λ; `var[k]` the noise variance of band `k`.
+pub fn level_step(
+    pixels: &[LevelPixel],
+    level: &Level,
+    basis: LevelBasis,
+    wavenumber: &[f64],
+    var: &[f64],
+) -> Option<LevelStep> {
+    let nb = level.gain.len();
+    let m = basis.n_params(nb);
+    let (s_lo, s_hi) = wavenumber
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &s| {
+            (a.min(s), b.max(s))
+        });
+    let half = 0.5 * (s_hi - s_lo).max(1e-12);
+    let u: Vec<f64> = wavenumber.iter().map(|s| (s - s_lo) / half - 1.0).collect();
+    // Per band: the dense rows of ∂(g_k, o_k)/∂γ.
+    let drow: Vec<Vec<(f64, f64)>> = (0..nb)
+        .map(|k| (0..m).map(|j| basis.rows(k, u[k], j)).collect())
+        .collect();
+    let mut s = vec![0.0; m * m];
+    let mut rhs = vec![0.0; m];
+    let mut chi2 = 0.0;
+    let mut n_obs = 0;
+    // K_p (nb × m): ∂y_k/∂γ_j = R_k·∂g_k/∂γ_j + ∂o_k/∂γ_j.
+    let mut kmat = vec![0.0; nb * m];
+    for px in pixels {
+        let nl = px.jac.len();
+        if nl == 0 || px.y.len() != nb || px.r.len() != nb {
+            continue;
+        }
+        // Local normal equations A (nl×nl), coupling B (nl×m), gradients.
+        let mut a = [[0.0f64; 2]; 2];
+        let mut b = vec![[0.0f64; 2]; m];
+        let mut al = [0.0f64; 2];
+        for k in 0..nb {
+            let (y, r) = (px.y[k], px.r[k]);
+            if !(y.is_finite() && r.is_finite()) {
+                for j in 0..m {
+                    kmat[k * m + j] = 0.0;
+                }
+                continue;
+            }
+            let w = 1.0 / var[k];
+            let g = level.gain[k];
+            let e = y - g * r - level.offset[k];
+            chi2 += w * e * e;
+            n_obs += 1;
+            let jl = [
+                g * px.jac[0][k],
+                if nl > 1 { g * px.jac[1][k] } else { 0.0 },
+            ];
+            for i in 0..nl {
+                al[i] += w * jl[i] * e;
+                for l in 0..nl {
+                    a[i][l] += w * jl[i] * jl[l];
+                }
+            }
+            for j in 0..m {
+                let (dg, doff) = drow[k][j];
+                let kv = r * dg + doff;
+                kmat[k * m + j] = kv;
+                if kv != 0.0 {
+                    rhs[j] += w * kv * e;
+                    for i in 0..nl {
+                        b[j][i] += w * jl[i] * kv;
+                    }
+                }
+            }
+            // C += Kᵀ W K, only the non-zero entries of this band's row.
+            for j in 0..m {
+                let kj = kmat[k * m + j];
+                if kj == 0.0 {
+                    continue;
+                }
+                for l in 0..m {
+                    let kl = kmat[k * m + l];
+                    if kl != 0.0 {
+                        s[j * m + l] += w * kj * kl;
+                    }
+                }
+            }
+        }
+        // Eliminate the pixel: S −= Bᵀ A⁻¹ B, rhs −= Bᵀ A⁻¹ a.
+        let ainv = if nl == 1 {
+            let d = a[0][0] + 1e-12;
+            [[1.0 / d, 0.0], [0.0, 0.0]]
+        } else {
+            let (p, q, r) = (a[0][0] + 1e-12, a[0][1], a[1][1] + 1e-12);
+            let det = p * r - q * q;
+            if det <= 0.0 {
+                continue;
+            }
+            [[r / det, -q / det], [-q / det, p / det]]
+        };
+        let t: Vec<[f64; 2]> = b
+            .iter()
+            .map(|bj| {
+                [
+                    ainv[0][0] * bj[0] + ainv[0][1] * bj[1],
+                    ainv[1][0] * bj[0] + ainv[1][1] * bj[1],
+                ]
+            })
+            .collect();
+        for j in 0..m {
+            if b[j] == [0.0, 0.0] {
+                continue;
+            }
+            rhs[j] -= t[j][0] * al[0] + t[j][1] * al[1];
+            for l in 0..m {
+                s[j * m + l] -= t[j][0] * b[l][0] + t[j][1] * b[l][1];
+            }
+        }
+    }
+    if n_obs == 0 {
+        return None;
+    }
+    // Weak priors toward the identity keep unidentifiable directions finite.
+    let gamma = params_of(level, basis, &u);
+    for j in 0..m {
+        let (dg, doff) = drow.iter().map(|r| r[j]).fold((0.0f64, 0.0f64), |a, v| {
+            (a.0.max(v.0.abs()), a.1.max(v.1.abs()))
+        });
+        let ps = if dg > 0.0 {
+            GAIN_PRIOR_SIGMA
+        } else if doff > 0.0 {
+            OFFSET_PRIOR_SIGMA
+        } else {
+            1.0
+        };
+        let p = 1.0 / (ps * ps);
+        s[j * m + j] += p;
+        rhs[j] -= p * gamma[j];
+    }
+    let l = cholesky(&s, m)?;
+    let delta = chol_solve(&l, m, &rhs);
+    let inv = chol_inverse(&l, m);
+    let new_gamma: Vec<f64> = gamma.iter().zip(&delta).map(|(g, d)| g + d).collect();
+    let mut out = Level::identity(nb);
+    let mut change: f64 = 0.0;
+    for k in 0..nb {
+        let (mut g, mut o) = (1.0, 0.0);
+        let (mut vg, mut vo, mut c) = (0.0, 0.0, 0.0);
+        for j in 0..m {
+            let (dgj, doj) = drow[k][j];
+            g += dgj * new_gamma[j];
+            o += doj * new_gamma[j];
+            for l2 in 0..m {
+                let (dgl, dol) = drow[k][l2];
+                let v = inv[j * m + l2];
+                vg += dgj * dgl * v;
+                vo += doj * dol * v;
+                c += dgj * dol * v;
+            }
+        }
+        change = change
+            .max((g - level.gain[k]).abs())
+            .max((o - level.offset[k]).abs());
+        out.gain[k] = g;
+        out.offset[k] = o;
+        out.var_gain[k] = vg;
+        out.var_offset[k] = vo;
+        out.cov[k] = c;
+    }
+    Some(LevelStep {
+        level: out,
+        change,
+        chi2,
+        n_obs,
+    })
+}
+
+/// The basis parameters of a level (gain − 1 and offset in the basis's
+/// terms): per band exactly; smooth by least squares.
+fn params_of(level: &Level, basis: LevelBasis, u: &[f64]) -> Vec<f64> {
+    match basis {
+        LevelBasis::PerBand => level
+            .gain
+            .iter()
+            .zip(&level.offset)
+            .flat_map(|(g, o)| [g - 1.0, *o])
+            .collect(),
+        LevelBasis::Smooth => {
+            // Gain − 1 ≈ c0 + c1 u + c2 u²; offset = mean.
+            let mut m = [[0.0; 3]; 3];
+            let mut v = [0.0; 3];
+            for (k, &uk) in u.iter().enumerate() {
+                let f = [1.0, uk, uk * uk];
+                for i in 0..3 {
+                    v[i] += f[i] * (level.gain[k] - 1.0);
+                    for j in 0..3 {
+                        m[i][j] += f[i] * f[j];
+                    }
+                }
+            }
+            let flat: Vec<f64> = m.iter().flatten().copied().collect();
+            let c = cholesky(&flat, 3)
+                .map(|l| chol_solve(&l, 3, &v))
+                .unwrap_or_else(|| vec![0.0; 3]);
+            let o = level.offset.iter().sum::<f64>() / level.offset.len().max(1) as f64;
+            vec![c[0], c[1], c[2], o]
+        }
+    }
+}
+
+/// Cholesky factor (lower, row-major) of a symmetric positive definite
+/// `n × n` matrix; `None` if it is not.
+fn cholesky(a: &[f64], n: usize) -> Option<Vec<f64>> {
+    let mut l = vec![0.0; n * n];
+    for i in 0..n {
+        for j in 0..=i {
+            let mut s = a[i * n + j];
+            for k in 0..j {
+                s -= l[i * n + k] * l[j * n + k];
+            }
+            if i == j {
+                if !(s > 0.0) {
+                    return None;
+                }
+                l[i * n + i] = s.sqrt();
+            } else {
+                l[i * n + j] = s / l[j * n + j];
+            }
+        }
+    }
+    Some(l)
+}
+
+fn chol_solve(l: &[f64], n: usize, b: &[f64]) -> Vec<f64> {
+    let mut y = b.to_vec();
+    for i in 0..n {
+        for k in 0..i {
+            y[i] -= l[i * n + k] * y[k];
+        }
+        y[i] /= l[i * n + i];
+    }
+    for i in (0..n).rev() {
+        for k in i + 1..n {
+            y[i] -= l[k * n + i] * y[k];
+        }
+        y[i] /= l[i * n + i];
+    }
+    y
+}
+
+fn chol_inverse(l: &[f64], n: usize) -> Vec<f64> {
+    let mut inv = vec![0.0; n * n];
+    let mut e = vec![0.0; n];
+    for j in 0..n {
+        e.iter_mut().for_each(|v| *v = 0.0);
+        e[j] = 1.0;
+        let col = chol_solve(l, n, &e);
+        for i in 0..n {
+            inv[i * n + j] = col[i];
+        }
+    }
+    inv
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Pixels of a toy model `R_k = a_p + b·sin(φ_p + c_k)` with a local
+    /// parameter φ_p; the data carry a known gain and offset per band.
+    fn toy(gain: &[f64], offset: &[f64], phases: &[f64]) -> (Vec<LevelPixel>, Vec<f64>) {
+        let nb = gain.len();
+        let model = |phi: f64, k: usize| 0.05 + 0.03 * (phi + 0.4 * k as f64).sin();
+        let dmodel = |phi: f64, k: usize| 0.03 * (phi + 0.4 * k as f64).cos();
+        let px = phases
+            .iter()
+            .map(|&phi| LevelPixel {
+                y: (0..nb)
+                    .map(|k| gain[k] * model(phi, k) + offset[k])
+                    .collect(),
+                r: (0..nb).map(|k| model(phi, k)).collect(),
+                jac: vec![(0..nb).map(|k| dmodel(phi, k)).collect()],
+            })
+            .collect();
+        let wn = (0..nb).map(|k| 1.0 / (400.0 + 10.0 * k as f64)).collect();
+        (px, wn)
+    }
+
+    #[test]
+    fn per_band_gain_and_offset_are_recovered_in_one_step() {
+        // The model is linear in the level; with the pixels at their true
+        // parameters one step lands on the truth.
+        let nb = 12;
+        let gain: Vec<f64> = (0..nb)
+            .map(|k| 1.0 + 0.06 * ((k * 7) % 5) as f64 / 4.0 - 0.03)
+            .collect();
+        let offset: Vec<f64> = (0..nb).map(|k| 0.004 + 0.0002 * k as f64).collect();
+        let phases: Vec<f64> = (0..200).map(|i| i as f64 * 0.071).collect();
+        let (px, wn) = toy(&gain, &offset, &phases);
+        let var = vec![1e-6; nb];
+        let st = level_step(&px, &Level::identity(nb), LevelBasis::PerBand, &wn, &var).unwrap();
+        for k in 0..nb {
+            assert!((st.level.gain[k] - gain[k]).abs() < 2e-3, "gain {k}");
+            assert!((st.level.offset[k] - offset[k]).abs() < 1e-4, "offset {k}");
+            assert!(st.level.var_gain[k] > 0.0 && st.level.var_gain[k] < 1e-3);
+        }
+    }
+
+    #[test]
+    fn smooth_basis_fits_a_quadratic_gain_and_one_offset() {
+        let nb = 31;
+        let wn: Vec<f64> = (0..nb).map(|k| 1.0 / (400.0 + 10.0 * k as f64)).collect();
+        let (lo, hi) = (wn[nb - 1], wn[0]);
+        let gain: Vec<f64> = wn
+            .iter()
+            .map(|s| {
+                let u = (s - lo) / (0.5 * (hi - lo)) - 1.0;
+                1.05 - 0.02 * u + 0.01 * u * u
+            })
+            .collect();
+        let offset = vec![0.004; nb];
+        let phases: Vec<f64> = (0..50).map(|i| i as f64 * 0.13).collect();
+        let (px, _) = toy(&gain, &offset, &phases);
+        let var = vec![1e-6; nb];
+        let st = level_step(&px, &Level::identity(nb), LevelBasis::Smooth, &wn, &var).unwrap();
+        for k in 0..nb {
+            assert!((st.level.gain[k] - gain[k]).abs() < 2e-3, "gain {k}");
+            assert!((st.level.offset[k] - 0.004).abs() < 2e-4, "offset {k}");
+        }
+        // At the truth a second step barely moves.
+        let st2 = level_step(&px, &st.level, LevelBasis::Smooth, &wn, &var).unwrap();
+        assert!(st2.change < 1e-3, "{}", st2.change);
+    }
+
+    #[test]
+    fn correction_inverts_the_level() {
+        let mut l = Level::identity(2);
+        l.gain = vec![1.05, 0.9];
+        l.offset = vec![0.004, -0.001];
+        for k in 0..2 {
+            let r = 0.07;
+            let y = l.gain[k] * r + l.offset[k];
+            assert!((l.correct(k, y) - r).abs() < 1e-15);
+        }
+        assert!(Level::identity(3).is_identity() && !l.is_identity());
+    }
+}

@@ -1,0 +1,320 @@
+//! The reflectance noise model: how much a measured reflectance may scatter
+//! about the truth, per band, known before any fit is judged.
+//!
+//! A fit's own residual cannot tell a good fit from a bad one: a misfit
+//! shared by most pixels raises it as much as noise does. So the noise σ
+//! comes from somewhere else:
+//!
+//! - **given**: `--noise-sigma`, the scene's `[noise] sigma`, or a σ per band;
+//! - **camera**: read and shot noise measured on the repeated dark and white
+//!   frames of a calibration, propagated through the calibration
+//!   (`σ_R² = α + β·R` per band, see `pipeline::calibration`);
+//! - **data**: estimated from the cube without any model, by robust
+//!   (median-based) differences that cancel smooth signal: second
+//!   differences between neighbouring pixels along each image axis, and
+//!   fourth differences along wavelength where the bands are dense. Signal
+//!   only ever adds to such a difference, so the smallest estimate is the
+//!   least contaminated one.
+
+use super::Cube;
+
+/// Where a noise level came from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum NoiseSource {
+    /// Given by the user or the scene.
+    Given,
+    /// Measured on the camera's calibration frames.
+    Camera,
+    /// Estimated from the data without a model.
+    Data,
+}
+
+impl NoiseSource {
+    /// Name for summaries and file attributes.
+    pub fn name(self) -> &'static str {
+        match self {
+            NoiseSource::Given => "given",
+            NoiseSource::Camera => "camera",
+            NoiseSource::Data => "data",
+        }
+    }
+}
+
+/// Smallest noise σ irid believes: the f32 storage of reflectance and the
+/// model's own numerical error (≈1e-6) stay far below it, so noise-free data
+/// are judged against a level that a correct model always meets.
+pub const SIGMA_FLOOR: f64 = 2e-5;
+
+/// Per-band reflectance noise: `σ_k(R)² = var0[k] + shot[k]·max(R, 0)`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct NoiseModel {
+    /// Signal-independent variance per band (cube plane order).
+    pub var0: Vec<f64>,
+    /// Signal-dependent (shot) variance per unit reflectance, per band.
+    pub shot: Vec<f64>,
+    /// Where it came from.
+    pub source: NoiseSource,
+}
+
+impl NoiseModel {
+    /// The same σ on every band.
+    pub fn uniform(sigma: f64, n_bands: usize, source: NoiseSource) -> NoiseModel {
+        let s = sigma.max(SIGMA_FLOOR);
+        NoiseModel {
+            var0: vec![s * s; n_bands],
+            shot: vec![0.0; n_bands],
+            source,
+        }
+    }
+
+    /// A σ per band.
+    pub fn per_band(sigma: &[f64], source: NoiseSource) -> NoiseModel {
+        NoiseModel {
+            var0: sigma.iter().map(|s| s.max(SIGMA_FLOOR).powi(2)).collect(),
+            shot: vec![0.0; sigma.len()],
+            source,
+        }
+    }
+
+    /// Number of bands.
+    pub fn n_bands(&self) -> usize {
+        self.var0.len()
+    }
+
+    /// Variance of band `k` at reflectance `r`.
+    #[inline]
+    pub fn var(&self, k: usize, r: f64) -> f64 {
+        (self.var0[k] + self.shot[k] * r.max(0.0)).max(SIGMA_FLOOR * SIGMA_FLOOR)
+    }
+
+    /// A typical σ (root mean variance over bands at reflectance `r`).
+    pub fn typical_sigma(&self, r: f64) -> f64 {
+        let n = self.var0.len().max(1) as f64;
+        ((0..self.var0.len()).map(|k| self.var(k, r)).sum::<f64>() / n).sqrt()
+    }
+
+    /// Whether every band's variance is the same constant (a scalar σ).
+    pub fn is_uniform(&self) -> bool {
+        self.shot.iter().all(|&s| s == 0.0) && self.var0.windows(2).all(|w| w[0] == w[1])
+    }
+
+    /// Estimate the noise from the cube itself, without a model: per band,
+    /// the smallest of the robust σ of second differences along x, along y
+    /// and (for dense band sets) of fourth differences along wavelength.
+    /// `None` when the cube is too small to tell.
+    pub fn from_data(cube: &Cube) -> Option<NoiseModel> {
+        let nb = cube.bands.len();
+        let spectral = spectral_sigma(cube);
+        let mut sig = Vec::with_capacity(nb);
+        for k in 0..nb {
+            let plane = cube.plane(k);
+            let s = [
+                axis_sigma(plane, cube.width, cube.height, 1),
+                axis_sigma(plane, cube.width, cube.height, cube.width),
+                spectral,
+            ]
+            .into_iter()
+            .flatten()
+            .fold(f64::INFINITY, f64::min);
+            sig.push(s);
+        }
+        // A band with too few usable samples takes the median of the others.
+        let mut known: Vec<f64> = sig.iter().copied().filter(|s| s.is_finite()).collect();
+        if known.is_empty() {
+            return None;
+        }
+        let med = median(&mut known);
+        for s in &mut sig {
+            if !s.is_finite() {
+                *s = med;
+            }
+        }
+        Some(NoiseModel::per_band(&sig, NoiseSource::Data))
+    }
+}
+
+/// Robust σ of white noise from second differences `v[i−s] − 2v[i] + v[i+s]`
+/// (variance 6σ²) along one image axis (`stride` 1: x, `width`: y); at most
+/// ~20 000 triples, spread over the plane. `None` with fewer than 30.
+fn axis_sigma(plane: &[f32], width: usize, height: usize, stride: usize) -> Option<f64> {
+    let (len_axis, n_lines) = if stride == 1 {
+        (width, height)
+    } else {
+        (height, width)
+    };
+    if len_axis < 3 {
+        return None;
+    }
+    let total = (len_axis - 2) * n_lines;
+    let step = total.div_ceil(20_000).max(1);
+    let mut d = Vec::with_capacity(total / step + 1);
+    let mut t = 0;
+    while t < total {
+        let (line, pos) = (t / (len_axis - 2), t % (len_axis - 2) + 1);
+        let i = if stride == 1 {
+            line * width + pos
+        } else {
+            pos * width + line
+        };
+        let (a, b, c) = (plane[i - stride], plane[i], plane[i + stride]);
+        let v = f64::from(a) - 2.0 * f64::from(b) + f64::from(c);
+        if v.is_finite() {
+            d.push(v.abs());
+        }
+        t += step;
+    }
+    if d.len() < 30 {
+        return None;
+    }
+    Some(1.4826 * median(&mut d) / 6f64.sqrt())
+}
+
+/// Robust σ from fourth differences along wavelength (variance 70σ²),
+/// pooled over up to 2 000 pixels; only for band sets of at least 16 bands
+/// whose steps in wavelength are even (within 10 %), where a fringe changes
+/// little from one band to the next. `None` otherwise.
+fn spectral_sigma(cube: &Cube) -> Option<f64> {
+    let nb = cube.bands.len();
+    if nb < 16 {
+        return None;
+    }
+    let mut order: Vec<usize> = (0..nb).collect();
+    order.sort_by(|&a, &b| cube.bands[a].center_nm.total_cmp(&cube.bands[b].center_nm));
+    let steps: Vec<f64> = order
+        .windows(2)
+        .map(|w| cube.bands[w[1]].center_nm - cube.bands[w[0]].center_nm)
+        .collect();
+    let (lo, hi) = steps
+        .iter()
+        .fold((f64::INFINITY, 0.0f64), |(a, b), &s| (a.min(s), b.max(s)));
+    if !(lo > 0.0 && hi <= 1.1 * lo) {
+        return None;
+    }
+    let n = cube.plane_len();
+    let step = n.div_ceil(2_000).max(1);
+    let mut spec = vec![0.0; nb];
+    let mut d = Vec::new();
+    for i in (0..n).step_by(step) {
+        for (k, &b) in order.iter().enumerate() {
+            spec[k] = f64::from(cube.data[b * n + i]);
+        }
+        for w in spec.windows(5) {
+            let v = w[0] - 4.0 * w[1] + 6.0 * w[2] - 4.0 * w[3] + w[4];
+            if v.is_finite() {
+                d.push(v.abs());
+            }
+        }
+    }
+    if d.len() < 30 {
+        return None;
+    }
+    Some(1.4826 * median(&mut d) / 70f64.sqrt())
+}
+
+/// Median (reorders `v`; `v` not empty).
+fn median(v: &mut [f64]) -> f64 {
+    let m = v.len() / 2;
+    let (_, x, _) = v.select_nth_unstable_by(m, |a, b| a.total_cmp(b));
+    *x
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::optics::band::Band;
+    use rand::{Rng, SeedableRng};
+    use rand_distr::{Distribution, Normal};
+
+    fn cube_with(
+        w: usize,
+        h: usize,
+        nb: usize,
+        f: impl Fn(usize, usize, usize) -> f64,
+        sigma: f64,
+    ) -> Cube {
+        let bands: Vec<Band> = (0..nb)
+            .map(|k| Band::new(400.0 + 10.0 * k as f64, 0.0).unwrap())
+            .collect();
+        let mut c = Cube::zeros(w, h, bands);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let noise = Normal::new(0.0, sigma).unwrap();
+        for k in 0..nb {
+            for y in 0..h {
+                for x in 0..w {
+                    let v = f(x, y, k) + noise.sample(&mut rng);
+                    c.data[k * w * h + y * w + x] = v as f32;
+                }
+            }
+        }
+        c
+    }
+
+    #[test]
+    fn white_noise_on_a_smooth_scene_is_recovered() {
+        // A thickness ramp along x and an angle ramp along y: the signal's
+        // first differences are as large as the noise, its second ones not.
+        for sigma in [3e-4, 1e-3, 4e-3] {
+            let c = cube_with(
+                120,
+                40,
+                31,
+                |x, y, k| {
+                    let lam = 400.0 + 10.0 * k as f64;
+                    let d = 400.0 + x as f64;
+                    0.05 + 0.03 * (4.0 * std::f64::consts::PI * 1.37 * d / lam).cos()
+                        + 0.001 * y as f64
+                },
+                sigma,
+            );
+            let m = NoiseModel::from_data(&c).unwrap();
+            assert_eq!(m.source, NoiseSource::Data);
+            for k in 0..31 {
+                let s = m.var(k, 0.05).sqrt();
+                // ~2 400 differences per band: the median's relative
+                // error is about 1.25/sqrt(n) ≈ 2.5 %; allow 4 standard errors.
+                assert!((s / sigma - 1.0).abs() < 0.1, "band {k}: {s} vs {sigma}");
+            }
+        }
+    }
+
+    #[test]
+    fn a_single_dense_spectrum_uses_the_wavelength_axis() {
+        // One pixel, 300 bands 1 nm apart: only the spectral estimate applies,
+        // and a slow fringe barely enters its fourth differences.
+        let nb = 300;
+        let bands: Vec<Band> = (0..nb)
+            .map(|k| Band::new(400.0 + k as f64, 0.0).unwrap())
+            .collect();
+        let mut c = Cube::zeros(1, 1, bands);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        for k in 0..nb {
+            let lam = 400.0 + k as f64;
+            let r = 0.05 + 0.03 * (4.0 * std::f64::consts::PI * 1.4 * 800.0 / lam).cos();
+            c.data[k] = (r + 2e-3 * (rng.random::<f64>() - 0.5) * 12f64.sqrt()) as f32;
+        }
+        let m = NoiseModel::from_data(&c).unwrap();
+        let s = m.var(0, 0.05).sqrt();
+        assert!((s / 2e-3 - 1.0).abs() < 0.25, "{s}");
+    }
+
+    #[test]
+    fn noise_free_data_sit_on_the_floor_and_tiny_cubes_give_none() {
+        let c = cube_with(50, 50, 8, |x, _, _| 0.04 + 1e-4 * x as f64, 0.0);
+        let m = NoiseModel::from_data(&c).unwrap();
+        assert!((m.var(0, 0.04).sqrt() - SIGMA_FLOOR).abs() < 1e-9);
+        let tiny = cube_with(2, 2, 8, |_, _, _| 0.04, 1e-3);
+        assert!(NoiseModel::from_data(&tiny).is_none());
+    }
+
+    #[test]
+    fn shot_noise_grows_with_reflectance() {
+        let m = NoiseModel {
+            var0: vec![1e-6],
+            shot: vec![1e-5],
+            source: NoiseSource::Camera,
+        };
+        assert!((m.var(0, 0.0) - 1e-6).abs() < 1e-18);
+        assert!((m.var(0, 0.5) - 6e-6).abs() < 1e-18);
+        assert!((m.var(0, -0.1) - 1e-6).abs() < 1e-18);
+    }
+}
