@@ -8,19 +8,22 @@
 //! - `[film]`: a known index (`n`, `k` or `material`) — then it is never
 //!   re-estimated — or, with none of them, unknown: `search = [lo, hi]` bounds
 //!   the global index estimate and an optional `prior` breaks the
-//!   n2 ↔ n1·n3/n2 twin tie; `max_thickness_nm` bounds the thickness search
-//!   (default 2000 nm).
+//!   n2 ↔ n1·n3/n2 twin tie; `min_thickness_nm` / `max_thickness_nm` bound
+//!   the thickness search (default: 0 to what the bands resolve).
 //! - `[angle]`: known (`deg`, or a per-pixel `map` file in degrees) or unknown
 //!   (`search_deg = [lo, hi]`).
 //! - `[light]`: `polarization` = `"s"`, `"p"`, `"u"` or an s weight.
 //! - `[bands]`: the band set for synthetic cubes and live runs (`irid fit`
 //!   takes its bands from the cube header).
+//! - `[measurement]`: the instrument — `noise_sigma` (reflectance noise σ)
+//!   and `level` (`auto`, `absolute`, `scaled`, `free`).
 //! - `[truth]`: the synthetic ground truth (size, film index, thickness and
 //!   angle fields, noise, seed) for `irid synth` and the synthetic camera.
 //!
 //! Parsing is strict: unknown keys and inconsistent values are errors that
 //! name the field.
 
+use crate::estimate::level::LevelMode;
 use crate::optics::band::Band;
 use crate::optics::dispersion::Dispersion;
 use crate::optics::material::MaterialLibrary;
@@ -154,8 +157,22 @@ pub struct FilmSpec {
     /// Prior guess of an unknown index, used only to break a tie between
     /// indistinguishable twins.
     pub prior: Option<f64>,
-    /// Thickest film the estimator considers, nm (default 2000).
+    /// Thinnest film the estimator considers, nm (default 0: a bare substrate).
+    pub min_thickness_nm: Option<f64>,
+    /// Thickest film the estimator considers, nm (default: what the bands
+    /// resolve, see `estimate::range`).
     pub max_thickness_nm: Option<f64>,
+}
+
+/// The `[measurement]` section: what is known about the instrument.
+#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct MeasurementSpec {
+    /// Reflectance noise σ (default: measured by the camera's calibration,
+    /// or estimated from the data without a model).
+    pub noise_sigma: Option<f64>,
+    /// `auto`, `absolute`, `scaled` or `free` (default `auto`).
+    pub level: Option<String>,
 }
 
 /// The `[angle]` section.
@@ -291,13 +308,15 @@ pub struct SceneFile {
     /// Bands for synthetic cubes and live runs.
     #[serde(default)]
     pub bands: BandsSpec,
+    /// The instrument: noise level and level model.
+    #[serde(default)]
+    pub measurement: MeasurementSpec,
     /// Synthetic ground truth.
     pub truth: Option<TruthSpec>,
 }
 
-/// Thickest film the estimator considers unless `[film] max_thickness_nm`
-/// says otherwise, nm.
-pub const DEFAULT_MAX_THICKNESS_NM: f64 = 2000.0;
+/// Largest thickness bound a scene may set, nm.
+pub const MAX_THICKNESS_LIMIT_NM: f64 = 100_000.0;
 
 /// The paper's simulated cylinder (the default scene of the demo and the
 /// reference scene of the benchmarks).
@@ -372,8 +391,15 @@ pub struct Scene {
     pub bands: Option<Vec<Band>>,
     /// Ground truth, if given.
     pub truth: Option<Truth>,
-    /// Thickest film the estimator considers, nm.
-    pub max_thickness_nm: f64,
+    /// Thinnest film the estimator considers, nm.
+    pub min_thickness_nm: f64,
+    /// Thickest film the estimator considers, nm; `None`: what the bands
+    /// resolve (`estimate::range`).
+    pub max_thickness_nm: Option<f64>,
+    /// Reflectance noise σ, when known.
+    pub noise_sigma: Option<f64>,
+    /// How the instrument's level is modelled.
+    pub level: LevelMode,
 }
 
 /// Resolved synthetic truth.
@@ -471,17 +497,43 @@ impl Scene {
                 prior: f.prior,
             }
         };
-        let max_thickness_nm = file
-            .film
-            .max_thickness_nm
-            .unwrap_or(DEFAULT_MAX_THICKNESS_NM);
-        if !(max_thickness_nm.is_finite() && max_thickness_nm > 0.0 && max_thickness_nm <= 20_000.0)
+        let max_thickness_nm = file.film.max_thickness_nm;
+        if let Some(m) = max_thickness_nm {
+            if !(m.is_finite() && m > 0.0 && m <= MAX_THICKNESS_LIMIT_NM) {
+                return Err(invalid(
+                    "film.max_thickness_nm",
+                    format!("must lie in (0, {MAX_THICKNESS_LIMIT_NM}] nm, not {m}"),
+                ));
+            }
+        }
+        let min_thickness_nm = file.film.min_thickness_nm.unwrap_or(0.0);
+        if !(min_thickness_nm.is_finite()
+            && min_thickness_nm >= 0.0
+            && max_thickness_nm.is_none_or(|m| min_thickness_nm < m))
         {
             return Err(invalid(
-                "film.max_thickness_nm",
-                format!("must lie in (0, 20000] nm, not {max_thickness_nm}"),
+                "film.min_thickness_nm",
+                format!("must be ≥ 0 and below max_thickness_nm, not {min_thickness_nm}"),
             ));
         }
+        let noise_sigma = file.measurement.noise_sigma;
+        if let Some(s) = noise_sigma {
+            if !(s.is_finite() && s > 0.0 && s < 1.0) {
+                return Err(invalid(
+                    "measurement.noise_sigma",
+                    format!("must lie in (0, 1), not {s}"),
+                ));
+            }
+        }
+        let level = match &file.measurement.level {
+            None => LevelMode::Auto,
+            Some(l) => LevelMode::from_name(l).ok_or_else(|| {
+                invalid(
+                    "measurement.level",
+                    format!("one of auto, absolute, scaled, free; not {l:?}"),
+                )
+            })?,
+        };
         let a = &file.angle;
         let angle = match (a.deg, &a.map) {
             (Some(_), Some(_)) => return Err(invalid("angle", "give `deg` or `map`, not both")),
@@ -534,7 +586,10 @@ impl Scene {
             polarization,
             bands,
             truth,
+            min_thickness_nm,
             max_thickness_nm,
+            noise_sigma,
+            level,
         })
     }
 }

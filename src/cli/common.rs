@@ -1,6 +1,7 @@
 //! Helpers shared by the subcommands: band lists, scene loading with
 //! command-line overrides, a polarisation argument.
 
+use crate::estimate::level::LevelMode;
 use crate::scene::{MediumSpec, Scene, SceneFile, PAPER_CYLINDER};
 use anyhow::{bail, Context};
 use std::path::{Path, PathBuf};
@@ -129,6 +130,22 @@ pub struct SceneOverrides {
     /// Polarisation: s, p, u, or an s weight in [0, 1].
     #[arg(long, value_name = "s|p|u|W")]
     pub pol: Option<String>,
+    /// Reflectance noise σ (default: from the calibration, else estimated
+    /// from the data without a model).
+    #[arg(long, value_name = "SIGMA")]
+    pub noise_sigma: Option<f64>,
+    /// How the instrument's level is modelled: `auto` (absolute unless the
+    /// data show a correctable calibration error), `absolute`, `scaled`
+    /// (image-wide gain and offset per band), `free` (per-pixel scale,
+    /// offset and envelope: normalised intensities).
+    #[arg(long, value_enum, value_name = "MODE")]
+    pub level: Option<LevelMode>,
+    /// Thinnest film considered, nm (default 0).
+    #[arg(long, value_name = "NM")]
+    pub min_thickness_nm: Option<f64>,
+    /// Thickest film considered, nm (default: what the bands resolve).
+    #[arg(long, value_name = "NM")]
+    pub max_thickness_nm: Option<f64>,
 }
 
 impl SceneOverrides {
@@ -172,6 +189,18 @@ impl SceneOverrides {
                 bail!("--pol: {m}");
             }
             file.light.polarization = toml::Value::String(p.clone());
+        }
+        if let Some(s) = self.noise_sigma {
+            file.measurement.noise_sigma = Some(s);
+        }
+        if let Some(l) = self.level {
+            file.measurement.level = Some(l.name().into());
+        }
+        if let Some(d) = self.min_thickness_nm {
+            file.film.min_thickness_nm = Some(d);
+        }
+        if let Some(d) = self.max_thickness_nm {
+            file.film.max_thickness_nm = Some(d);
         }
         Ok(())
     }
