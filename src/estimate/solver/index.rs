@@ -1,0 +1,327 @@
+//! The global film-index search: the summed residual of a sample of pixels
+//! profiled over the index (coarse grid, then a local quadratic fit), both
+//! branches of the n2 ↔ n1·n3/n2 near-symmetry compared.
+
+use super::linalg::solve3;
+use super::search::{Candidate, MAX_CANDIDATES};
+use super::{Effort, IndexEstimate, Job, Prepared, Scratch, Solver, INDEX_SAMPLE_PIXELS};
+use crate::estimate::{Cube, EstimateError, Mode};
+use crate::optics::dispersion::Dispersion;
+use crate::scene::FilmKnowledge;
+use rayon::prelude::*;
+
+/// Step of the coarse film-index profile.
+const INDEX_GRID_STEP: f64 = 0.02;
+
+/// A pixel of the global index search, with its fringe candidates for
+/// both fringe signs precomputed (they do not depend on the film index).
+#[derive(Clone, Debug)]
+pub(super) struct SamplePixel {
+    pub(super) spectrum: Vec<f64>,
+    pub(super) theta: Option<f64>,
+    /// Candidates for sign +1 (index 0) and −1 (index 1).
+    pub(super) cands: [[Candidate; MAX_CANDIDATES]; 2],
+    pub(super) n_cands: [usize; 2],
+}
+
+impl Solver {
+    /// Estimate the film index from the cube when the scene leaves it
+    /// unknown, and the reflectance noise from the fit residuals (also when
+    /// the index is known). The result is kept for later pixels and sweeps.
+    pub fn estimate_film_index(&mut self, cube: &Cube) -> Result<IndexEstimate, EstimateError> {
+        self.check_cube(cube)?;
+        // `fast` trades some of the index's precision (σ_n grows by √2, still
+        // far below 0.001) for a first map that is not late.
+        let n_sample = if self.mode == Mode::Fast {
+            INDEX_SAMPLE_PIXELS / 2
+        } else {
+            INDEX_SAMPLE_PIXELS
+        };
+        let sample = self.sample_pixels(cube, n_sample);
+        if sample.is_empty() {
+            return Err(EstimateError::FilmIndex(
+                "no pixel has a complete, finite spectrum".into(),
+            ));
+        }
+        let est = match self.scene.film.clone() {
+            FilmKnowledge::Known(_) => {
+                let mut est = self.index.clone().expect("known index set at construction");
+                let prep = self.prepared.clone().expect("known index prepared");
+                let (sse, n_obs, n_par, _) = self.sample_sse(&prep, &sample);
+                est.noise_sigma = (sse / (n_obs - n_par).max(1.0)).sqrt();
+                est
+            }
+            FilmKnowledge::Unknown { search, prior } => {
+                self.search_index(&sample, search, prior)?
+            }
+        };
+        self.set_film_index(est.clone())?;
+        Ok(est)
+    }
+
+    /// Up to `max` pixels on a regular lattice with complete spectra, with
+    /// their known angles.
+    fn sample_pixels(&self, cube: &Cube, max: usize) -> Vec<SamplePixel> {
+        let (w, h) = (cube.width, cube.height);
+        // A 2-D stratified grid (cells of the image's aspect), one pixel per
+        // cell at a golden-ratio offset, so periodic structure in the scene
+        // cannot alias the sample onto a few columns.
+        let max = max.max(1);
+        let nx =
+            ((max as f64 * w as f64 / h.max(1) as f64).sqrt().ceil() as usize).clamp(1, w.max(1));
+        let ny = max.div_ceil(nx).clamp(1, h.max(1));
+        const PHI: f64 = 0.618_033_988_749_895;
+        let mut out = Vec::new();
+        let nb = cube.bands.len();
+        let mut spec = vec![0.0; nb];
+        let mut scratch = Scratch::default();
+        scratch.ensure(nb);
+        for k in 0..nx * ny {
+            let (i, j) = (k % nx, k / nx);
+            let fx = (i as f64 + (j as f64 * PHI).fract()) / nx as f64;
+            let fy = (j as f64 + (i as f64 * PHI).fract()) / ny as f64;
+            let x = ((fx * w as f64) as usize).min(w - 1);
+            let y = ((fy * h as f64) as usize).min(h - 1);
+            cube.spectrum_into(x, y, &mut spec);
+            // Missing bands (NaN: a dropped frame) are allowed as in any
+            // pixel's solve, up to a quarter of them.
+            let n_ok = spec.iter().filter(|v| v.is_finite()).count();
+            let in_range = spec
+                .iter()
+                .all(|v| !v.is_finite() || (-0.2..=1.2).contains(v));
+            if in_range && 4 * n_ok >= 3 * nb && !spec.iter().any(|v| v.is_infinite()) {
+                for (k, &v) in spec.iter().enumerate() {
+                    let ok = v.is_finite();
+                    scratch.spectrum[k] = if ok { v } else { 0.0 };
+                    scratch.weight[k] = if ok { 1.0 } else { 0.0 };
+                }
+                let complete = n_ok == nb;
+                let mut cands = [[Candidate::default(); MAX_CANDIDATES]; 2];
+                let mut n_cands = [0; 2];
+                for (k, sign) in [1.0, -1.0].into_iter().enumerate() {
+                    n_cands[k] = self.fringe_search(&scratch, sign, complete, &mut cands[k]);
+                }
+                out.push(SamplePixel {
+                    spectrum: spec.clone(),
+                    theta: self.scene.angle.known_at(x, y),
+                    cands,
+                    n_cands,
+                });
+            }
+        }
+        out
+    }
+
+    /// Summed residual of the sample under a prepared index: `(sse,
+    /// observations, fitted parameters, pixels fitted)`.
+    fn sample_sse(&self, prep: &Prepared, sample: &[SamplePixel]) -> (f64, f64, f64, f64) {
+        sample
+            .par_iter()
+            .map_init(Scratch::default, |scratch, px| {
+                let (spec, th) = (&px.spectrum, &px.theta);
+                let job = Job {
+                    spectrum: spec,
+                    theta_known: *th,
+                    noise: None,
+                    effort: Effort::INDEX_SEARCH,
+                    pre: Some(px),
+                };
+                let (est, sse) = self.solve_with(prep, job, scratch);
+                if est.is_valid() && sse.is_finite() {
+                    let p = if th.is_some() { 1.0 } else { 2.0 };
+                    let n = spec.iter().filter(|v| v.is_finite()).count();
+                    (sse, n as f64, p, 1.0)
+                } else {
+                    (0.0, 0.0, 0.0, 0.0)
+                }
+            })
+            .reduce(
+                || (0.0, 0.0, 0.0, 0.0),
+                |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2, a.3 + b.3),
+            )
+    }
+
+    fn profile_at(
+        &self,
+        n: f64,
+        sample: &[SamplePixel],
+    ) -> Result<(f64, f64, f64, f64), EstimateError> {
+        let prep = self.prepare(&Dispersion::constant(n))?;
+        Ok(self.sample_sse(&prep, sample))
+    }
+
+    fn search_index(
+        &self,
+        sample: &[SamplePixel],
+        search: (f64, f64),
+        prior: Option<f64>,
+    ) -> Result<IndexEstimate, EstimateError> {
+        // Coarse profile on a 0.02 grid (twice the paper's step: the
+        // profile's basin is wider, and the local fit below refines it far
+        // past 0.01); pixels a trial index
+        // cannot fit at all are charged their total sum of squares so that
+        // dropping them never looks like a better fit.
+        let (lo, hi) = search;
+        let lo = lo.max(1.0 + 1e-3);
+        let steps = ((hi - lo) / INDEX_GRID_STEP).round().max(2.0) as usize;
+        let grid: Vec<f64> = (0..=steps)
+            .map(|i| lo + (hi - lo) * i as f64 / steps as f64)
+            .collect();
+        let total_ss: f64 = sample
+            .iter()
+            .map(|px| {
+                let s = &px.spectrum;
+                let ok = s.iter().filter(|v| v.is_finite());
+                let n = ok.clone().count().max(1) as f64;
+                let m = ok.clone().sum::<f64>() / n;
+                ok.map(|v| (v - m) * (v - m)).sum::<f64>()
+            })
+            .sum();
+        let cost = |n: f64| -> Result<f64, EstimateError> {
+            let (sse, _, _, fitted) = self.profile_at(n, sample)?;
+            let missing = sample.len() as f64 - fitted;
+            Ok(sse + missing * total_ss / sample.len() as f64)
+        };
+        let mut prof = Vec::with_capacity(grid.len());
+        for &n in &grid {
+            prof.push(cost(n)?);
+        }
+        // Local minima of the coarse profile, best first.
+        let mut minima: Vec<usize> = (0..prof.len())
+            .filter(|&i| {
+                (i == 0 || prof[i] <= prof[i - 1])
+                    && (i + 1 == prof.len() || prof[i] <= prof[i + 1])
+            })
+            .collect();
+        minima.sort_by(|&a, &b| prof[a].total_cmp(&prof[b]));
+        if minima.is_empty() || !prof[minima[0]].is_finite() {
+            return Err(EstimateError::FilmIndex(
+                "the index profile has no minimum".into(),
+            ));
+        }
+        // Refine the best two well-separated minima with a local quadratic.
+        let mut refined: Vec<(f64, f64, f64)> = Vec::new(); // (n, sse, curvature)
+        for &i in minima.iter().take(4) {
+            if refined.iter().any(|r| (r.0 - grid[i]).abs() < 0.04) {
+                continue;
+            }
+            let r = self.refine_index(grid[i], (lo, hi), &cost)?;
+            refined.push(r);
+            if refined.len() == 2 {
+                break;
+            }
+        }
+        refined.sort_by(|a, b| a.1.total_cmp(&b.1));
+        let (_, n_obs, n_par, _) = self.profile_at(refined[0].0, sample)?;
+        let dof = (n_obs - n_par - 1.0).max(1.0);
+        let var = refined[0].1 / dof;
+        let noise_sigma = var.sqrt();
+        let mut best = refined[0];
+        let mut note = String::new();
+        let (twin, dchi2) = match refined.get(1) {
+            Some(t) => (Some(t.0), (t.1 - best.1) / var),
+            None => (None, f64::INFINITY),
+        };
+        if let Some(tn) = twin {
+            if dchi2 < 9.0 {
+                if let Some(p) = prior {
+                    if (tn - p).abs() < (best.0 - p).abs() {
+                        let other = best;
+                        best = refined[1];
+                        note = format!(
+                            "twin branches {:.4} and {:.4} not resolved by the data (Δχ² = {:.1}); the prior chose",
+                            best.0, other.0, dchi2
+                        );
+                    } else {
+                        note = format!(
+                            "twin at {:.4} not resolved by the data (Δχ² = {:.1}); the prior chose",
+                            tn, dchi2
+                        );
+                    }
+                } else {
+                    note = format!(
+                        "AMBIGUOUS: twin at {:.4} fits almost as well (Δχ² = {:.1}); give a prior or the index",
+                        tn, dchi2
+                    );
+                }
+            } else {
+                note = format!("twin at {:.4} rejected (Δχ² = {:.0})", tn, dchi2);
+            }
+        }
+        let sigma = if best.2 > 0.0 {
+            (var / best.2).sqrt()
+        } else {
+            f64::NAN
+        };
+        Ok(IndexEstimate {
+            n: best.0,
+            sigma,
+            estimated: true,
+            twin,
+            twin_delta_chi2: dchi2,
+            noise_sigma,
+            note,
+        })
+    }
+
+    /// Fit `sse ≈ s0 + κ (n − n0)²` on a fine local grid around `n_start`;
+    /// returns `(n0, s0, κ)`.
+    fn refine_index(
+        &self,
+        n_start: f64,
+        bounds: (f64, f64),
+        cost: &dyn Fn(f64) -> Result<f64, EstimateError>,
+    ) -> Result<(f64, f64, f64), EstimateError> {
+        let mut center = n_start;
+        let mut half = INDEX_GRID_STEP;
+        let mut result = (center, f64::INFINITY, 0.0);
+        for _ in 0..3 {
+            let pts: Vec<f64> = (-3..=3)
+                .map(|i| (center + half * i as f64 / 3.0).clamp(bounds.0, bounds.1))
+                .collect();
+            let mut vals = Vec::with_capacity(pts.len());
+            for &p in &pts {
+                vals.push(cost(p)?);
+            }
+            // Least-squares parabola in u = n − center.
+            let (mut s0, mut s1, mut s2, mut s3, mut s4) = (0.0, 0.0, 0.0, 0.0, 0.0);
+            let (mut t0, mut t1, mut t2) = (0.0, 0.0, 0.0);
+            for (&p, &v) in pts.iter().zip(&vals) {
+                let u = p - center;
+                let u2 = u * u;
+                s0 += 1.0;
+                s1 += u;
+                s2 += u2;
+                s3 += u2 * u;
+                s4 += u2 * u2;
+                t0 += v;
+                t1 += v * u;
+                t2 += v * u2;
+            }
+            let m = [[s4, s3, s2], [s3, s2, s1], [s2, s1, s0]];
+            let Some([a, b, c]) = solve3(m, [t2, t1, t0]) else {
+                break;
+            };
+            let (imin, vmin) = vals
+                .iter()
+                .enumerate()
+                .min_by(|x, y| x.1.total_cmp(y.1))
+                .map(|(i, v)| (i, *v))
+                .unwrap_or((3, f64::INFINITY));
+            if a > 0.0 {
+                let u = (-b / (2.0 * a)).clamp(-half, half);
+                let n0 = (center + u).clamp(bounds.0, bounds.1);
+                let s = c - b * b / (4.0 * a);
+                result = (n0, s.max(0.0).min(vmin), a);
+                center = n0;
+            } else {
+                center = pts[imin];
+                result = (center, vmin, 0.0);
+            }
+            half *= 0.3;
+        }
+        // The value at the vertex itself, not the parabola's.
+        let s = cost(result.0)?;
+        Ok((result.0, s, result.2))
+    }
+}

@@ -1,0 +1,490 @@
+//! The per-pixel solver and the global film-index search.
+//!
+//! Per pixel, in every mode but `fast`:
+//!
+//! 1. **Fringe search** (independent of the film index): the spectrum is
+//!    projected on `A + B·cos(4π g / λ)` for a grid of optical thicknesses
+//!    `g = d·n2·cos θ2` (basis and normal equations precomputed per band
+//!    set, so a grid point costs one dot product). Local minima of the
+//!    residual whose `B` has the sign the scene's indices allow (half-wave
+//!    points are peaks for `n1 < n2 < n3`, valleys for `n2 > n3`) are the
+//!    candidate fringe orders: the interference lattice of Eq. 12–15
+//!    without a film-index grid.
+//! 2. **Angle start** (only when unknown): the fitted `A ± B` are the
+//!    half- and quarter-wave envelopes; the angle whose model envelopes
+//!    match them best (Eq. 8–11 generalised to both envelopes, peaks or
+//!    valleys) starts the refinement.
+//! 3. **Refinement**: Levenberg–Marquardt on the unknowns (thickness, and the
+//!    angle when unknown) with the exact model ([`super::model`]); standard
+//!    errors from the Jacobian scaled by the residual variance.
+//! 4. **Checks**: a second candidate order refined too; if it fits as well
+//!    the pixel is flagged "ambiguous order". A weak angle is flagged "angle
+//!    not identifiable" with its (large) σ.
+//!
+//! The film index, uniform over an object, is estimated once from a sample
+//! of pixels by profiling the summed per-pixel residual over the index
+//! (coarse grid, then a local quadratic fit), which also gives its standard
+//! error. Both branches of the n2 ↔ n1·n3/n2 near-symmetry are located and
+//! the χ² difference between them is reported; a prior breaks a tie the data
+//! cannot.
+//!
+//! The stages, one file each:
+//!
+//! - `bands.rs`: the bands by wavelength, and the least-squares parabola
+//!   window around each band.
+//! - `search.rs`: the fringe search (1).
+//! - `closed_form.rs`: the closed forms on the fringe extrema (`fast`, and
+//!   the start of the other modes), and the angle start (2).
+//! - `refine.rs`: the refinement (3) and the profile bounds on σ.
+//! - `pixel.rs`: one pixel through the stages, and the checks (4).
+//! - `row.rs`: rows and whole cubes.
+//! - `index.rs`: the global film-index search.
+//! - `linalg.rs`: 3×3 linear algebra.
+
+mod bands;
+mod closed_form;
+mod index;
+mod linalg;
+mod pixel;
+mod refine;
+mod row;
+mod search;
+
+use super::model::{FilmModel, ModelOut};
+use super::{EstimateError, Mode, PixelEstimate, Reason};
+use crate::optics::band::Band;
+use crate::optics::dispersion::Dispersion;
+use crate::optics::Polarization;
+use crate::scene::{AngleKnowledge, FilmKnowledge, Scene};
+use bands::{BandTable, Window};
+use closed_form::Slopes;
+use index::SamplePixel;
+use search::FringeBasis;
+
+/// The film index used for a fit: estimated once from the image, or known.
+#[derive(Clone, Debug, PartialEq)]
+pub struct IndexEstimate {
+    /// Index (at the middle band for a dispersive known film).
+    pub n: f64,
+    /// Standard error (0 when known).
+    pub sigma: f64,
+    /// Whether it was estimated.
+    pub estimated: bool,
+    /// The other branch of the n2 ↔ n1·n3/n2 near-symmetry, if one was found.
+    pub twin: Option<f64>,
+    /// χ² by which the twin fits worse (large: resolved; small: ambiguous).
+    pub twin_delta_chi2: f64,
+    /// Reflectance noise σ estimated from the fit residuals.
+    pub noise_sigma: f64,
+    /// A human-readable note (e.g. "twin not resolved; prior used").
+    pub note: String,
+}
+
+/// Pixels sampled (on a jittered grid) for the global film-index search
+/// (half as many in `fast` mode).
+pub const INDEX_SAMPLE_PIXELS: usize = 400;
+
+/// Reflectance error of point sampling above which the accurate mode
+/// integrates the passband (a fifth of the paper's noise level).
+pub const INTEGRATION_TOLERANCE: f64 = 2e-4;
+
+/// Largest number of bands a pixel may have.
+pub const MAX_BANDS: usize = 512;
+
+/// Angle σ above which the angle is reported as not identifiable, degrees.
+pub const ANGLE_SIGMA_LIMIT_DEG: f64 = 0.25;
+
+/// Reusable per-thread working memory of the solver.
+#[derive(Clone, Debug, Default)]
+pub struct Scratch {
+    /// The caller's gathered spectrum (solve_row).
+    pixel: Vec<f64>,
+    sorted_y: Vec<f64>,
+    spectrum: Vec<f64>,
+    weight: Vec<f64>,
+    cur: ModelOut,
+    trial: ModelOut,
+}
+
+impl Scratch {
+    fn ensure(&mut self, n: usize) {
+        if self.spectrum.len() != n {
+            self.spectrum = vec![0.0; n];
+            self.weight = vec![0.0; n];
+            self.cur = ModelOut::new(n);
+            self.trial = ModelOut::new(n);
+        }
+    }
+}
+
+/// How hard the per-pixel solve works: what a [`Mode`] means in practice.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Effort {
+    /// Try the closed-form extrema path first.
+    closed_form: bool,
+    /// Stop at the closed form.
+    closed_form_only: bool,
+    /// How many candidate starts are refined.
+    n_refine: usize,
+    /// Iteration cap of each refinement.
+    iters: usize,
+    /// After a closed-form start, also refine the best other fringe order
+    /// and flag the pixel if it fits as well.
+    verify_order: bool,
+}
+
+impl Effort {
+    fn of(mode: Mode) -> Effort {
+        match mode {
+            Mode::Fast => Effort {
+                closed_form: true,
+                closed_form_only: true,
+                n_refine: 1,
+                iters: 6,
+                verify_order: false,
+            },
+            Mode::Balanced => Effort {
+                closed_form: true,
+                closed_form_only: false,
+                n_refine: 2,
+                iters: 8,
+                verify_order: false,
+            },
+            Mode::Accurate => Effort {
+                closed_form: true,
+                closed_form_only: false,
+                n_refine: 3,
+                iters: 25,
+                verify_order: true,
+            },
+        }
+    }
+
+    /// The global index search: the full candidate search (no noise level
+    /// is known yet to judge a closed-form start), two orders refined.
+    const INDEX_SEARCH: Effort = Effort {
+        closed_form: false,
+        closed_form_only: false,
+        n_refine: 2,
+        iters: 10,
+        verify_order: false,
+    };
+}
+
+/// One pixel's solve request.
+#[derive(Clone, Copy)]
+struct Job<'a> {
+    /// Reflectance per band (NaN: missing).
+    spectrum: &'a [f64],
+    /// Known angle, radians.
+    theta_known: Option<f64>,
+    /// Reflectance noise σ of the image, once known.
+    noise: Option<f64>,
+    effort: Effort,
+    /// Precomputed fringe candidates (index search).
+    pre: Option<&'a SamplePixel>,
+}
+
+/// Result of refining one start.
+#[derive(Clone, Copy, Debug, Default)]
+struct Fit {
+    d: f64,
+    theta: f64,
+    sse: f64,
+    /// `JᵀJ` entries (dd, dθ, θθ).
+    jtj: [f64; 3],
+    /// Fitted with the passband-integrated model.
+    integrated: bool,
+}
+
+/// Everything that depends on the film index.
+#[derive(Clone, Debug)]
+struct Prepared {
+    model: FilmModel,
+    /// Expected sign of the fringe term (+1: half-wave points are peaks).
+    sign: f64,
+    /// Angle table for the start: (θ, R(cos Δ = 1), R(cos Δ = −1)).
+    table: Vec<(f64, f64, f64)>,
+    /// The half-wave envelope's slope dR/dθ between table entries.
+    slopes: Slopes,
+    /// Real ambient and substrate indices at the middle band, when the
+    /// half-wave level can be inverted in closed form (lossless, s or p).
+    closed_form: Option<(f64, f64, Polarization)>,
+    /// The model with the passband integrated on every band that has a
+    /// width (accurate mode, bands with a width only).
+    integrated: Option<FilmModel>,
+    /// Largest fringe amplitude over the angle range, for the criterion.
+    fringe_amplitude: f64,
+}
+
+/// Solves pixels for the scene's unknowns.
+#[derive(Clone, Debug)]
+pub struct Solver {
+    scene: Scene,
+    bands: Vec<Band>,
+    mode: Mode,
+    index: Option<IndexEstimate>,
+    prepared: Option<Prepared>,
+    basis: FringeBasis,
+    theta_range: (f64, f64),
+    /// sin² of the angle range's ends.
+    sin2_range: (f64, f64),
+    d_max: f64,
+    /// Bands by increasing wavelength: (plane index, λ, wavenumber 1/λ).
+    sorted: Vec<(usize, f64, f64)>,
+    /// Centre of the band range in wavenumber, nm⁻¹.
+    sigma_center: f64,
+    /// The band range in wavenumber, nm⁻¹.
+    sigma_range: (f64, f64),
+    /// That range less 1.5 band spacings at each end, where an extremum
+    /// is always found if it exists.
+    interior: (f64, f64),
+    /// The planes are already in increasing wavelength.
+    sorted_identity: bool,
+    /// The least-squares parabola around each sorted band (`None` at the
+    /// two end bands or if singular).
+    parabola: Vec<Option<Window>>,
+}
+
+impl Solver {
+    /// A solver for `scene` observed in `bands` (cube plane order).
+    pub fn new(scene: &Scene, bands: &[Band], mode: Mode) -> Result<Solver, EstimateError> {
+        if bands.len() < 4 {
+            return Err(EstimateError::Bands(format!(
+                "need at least 4 bands, got {}",
+                bands.len()
+            )));
+        }
+        if bands.len() > MAX_BANDS {
+            return Err(EstimateError::Bands(format!(
+                "at most {MAX_BANDS} bands, got {}",
+                bands.len()
+            )));
+        }
+        if let Some(b) = bands
+            .iter()
+            .find(|b| !(b.center_nm.is_finite() && b.center_nm > 0.0 && b.fwhm_nm >= 0.0))
+        {
+            return Err(EstimateError::Bands(format!(
+                "band centre {} nm / FWHM {} nm is not usable",
+                b.center_nm, b.fwhm_nm
+            )));
+        }
+        let n2_hi = match &scene.film {
+            FilmKnowledge::Known(d) => bands
+                .iter()
+                .filter_map(|b| d.index_at(b.center_nm).ok())
+                .map(|n| n.re)
+                .fold(1.0, f64::max),
+            FilmKnowledge::Unknown { search, .. } => search.1,
+        };
+        let d_max = scene.max_thickness_nm;
+        let basis = FringeBasis::new(bands, d_max * n2_hi);
+        let theta_range = match scene.angle {
+            AngleKnowledge::Unknown { search } => search,
+            _ => (0.0, 89f64.to_radians()),
+        };
+        let BandTable {
+            sorted,
+            sigma_center,
+            sigma_range,
+            interior,
+            sorted_identity,
+            parabola,
+        } = BandTable::new(bands);
+        let mut solver = Solver {
+            scene: scene.clone(),
+            bands: bands.to_vec(),
+            mode,
+            index: None,
+            prepared: None,
+            basis,
+            theta_range,
+            sin2_range: (theta_range.0.sin().powi(2), theta_range.1.sin().powi(2)),
+            d_max,
+            sorted,
+            sigma_center,
+            sigma_range,
+            interior,
+            sorted_identity,
+            parabola,
+        };
+        if let FilmKnowledge::Known(film) = &scene.film {
+            let film = film.clone();
+            let prepared = solver.prepare(&film)?;
+            let n = prepared.model.n2_mid();
+            solver.prepared = Some(prepared);
+            solver.index = Some(IndexEstimate {
+                n,
+                sigma: 0.0,
+                estimated: false,
+                twin: None,
+                twin_delta_chi2: f64::NAN,
+                noise_sigma: f64::NAN,
+                note: "known".into(),
+            });
+        }
+        Ok(solver)
+    }
+
+    /// The model a fit should use: the passband-integrated one when some
+    /// band would err by more than [`INTEGRATION_TOLERANCE`] if
+    /// point-sampled at this fit's optical thickness (the criterion of
+    /// `optics::band`), else the point-sampled one.
+    fn model_for<'p>(&self, prep: &'p Prepared, fit: &Fit) -> &'p FilmModel {
+        let Some(int) = &prep.integrated else {
+            return &prep.model;
+        };
+        let g = fit.d * prep.model.q2_mid(fit.theta);
+        if self.bands.iter().any(|b| {
+            b.fwhm_nm > 0.0
+                && b.needs_integration_for(g, prep.fringe_amplitude, INTEGRATION_TOLERANCE)
+        }) {
+            int
+        } else {
+            &prep.model
+        }
+    }
+
+    fn prepare(&self, film: &Dispersion) -> Result<Prepared, EstimateError> {
+        let model = FilmModel::new(
+            &self.bands,
+            &self.scene.ambient,
+            film,
+            &self.scene.substrate,
+            self.scene.polarization,
+            &vec![false; self.bands.len()],
+        )
+        .map_err(|(medium, source)| EstimateError::Optics { medium, source })?;
+        let (lo, hi) = self.theta_range;
+        let steps = (((hi - lo).to_degrees() / 0.5).ceil() as usize).max(1);
+        let table: Vec<(f64, f64, f64)> = (0..=steps)
+            .map(|i| {
+                let th = lo + (hi - lo) * i as f64 / steps as f64;
+                let (h, l) = model.envelopes(th);
+                (th, h, l)
+            })
+            .collect();
+        let mid_th = match self.scene.angle {
+            AngleKnowledge::Uniform(t) => t,
+            _ => 0.5 * (lo + hi),
+        };
+        let (h, l) = model.envelopes(mid_th);
+        let sign = if h >= l { 1.0 } else { -1.0 };
+        let (n1, n3) = model.ambient_substrate_mid();
+        let pol = self.scene.polarization;
+        let closed_form =
+            (n1.im == 0.0 && n3.im == 0.0 && matches!(pol, Polarization::S | Polarization::P))
+                .then_some((n1.re, n3.re, pol));
+        let fringe_amplitude = table
+            .iter()
+            .map(|e| 0.5 * (e.1 - e.2).abs())
+            .filter(|a| a.is_finite())
+            .fold(0.0, f64::max);
+        let integrated =
+            if self.mode == Mode::Accurate && self.bands.iter().any(|b| b.fwhm_nm > 0.0) {
+                let all = vec![true; self.bands.len()];
+                Some(
+                    FilmModel::new(
+                        &self.bands,
+                        &self.scene.ambient,
+                        film,
+                        &self.scene.substrate,
+                        self.scene.polarization,
+                        &all,
+                    )
+                    .map_err(|(medium, source)| EstimateError::Optics { medium, source })?,
+                )
+            } else {
+                None
+            };
+        let slopes = Slopes::new(&table);
+        Ok(Prepared {
+            model,
+            sign,
+            slopes,
+            table,
+            closed_form,
+            integrated,
+            fringe_amplitude,
+        })
+    }
+
+    /// The mode.
+    pub fn mode(&self) -> Mode {
+        self.mode
+    }
+
+    /// The bands, in cube plane order.
+    pub fn bands(&self) -> &[Band] {
+        &self.bands
+    }
+
+    /// The film index in use, once known or estimated.
+    pub fn film_index(&self) -> Option<&IndexEstimate> {
+        self.index.as_ref()
+    }
+
+    /// Use this film index from now on (e.g. one estimated on an earlier sweep).
+    pub fn set_film_index(&mut self, est: IndexEstimate) -> Result<(), EstimateError> {
+        if let FilmKnowledge::Unknown { .. } = self.scene.film {
+            self.prepared = Some(self.prepare(&Dispersion::constant(est.n))?);
+        }
+        self.index = Some(est);
+        Ok(())
+    }
+
+    /// Solve one pixel. `spectrum` is in band order (NaN marks a missing
+    /// band); `theta_known` is the pixel's known angle in radians.
+    ///
+    /// Before the film index is known (or estimated) every pixel is
+    /// invalid ([`Reason::Masked`]).
+    pub fn solve_pixel(
+        &self,
+        spectrum: &[f64],
+        theta_known: Option<f64>,
+        scratch: &mut Scratch,
+    ) -> PixelEstimate {
+        self.solve_pixel_with(spectrum, theta_known, scratch, Effort::of(self.mode))
+    }
+
+    /// [`Solver::solve_pixel`] at a given effort.
+    fn solve_pixel_with(
+        &self,
+        spectrum: &[f64],
+        theta_known: Option<f64>,
+        scratch: &mut Scratch,
+        effort: Effort,
+    ) -> PixelEstimate {
+        let (Some(prep), Some(index)) = (&self.prepared, &self.index) else {
+            return PixelEstimate::invalid(Reason::Masked);
+        };
+        let noise = index.noise_sigma.is_finite().then_some(index.noise_sigma);
+        let (mut est, _) = self.solve_with(
+            prep,
+            Job {
+                spectrum,
+                theta_known,
+                noise,
+                effort,
+                pre: None,
+            },
+            scratch,
+        );
+        Self::with_index(prep, index, &mut est);
+        est
+    }
+
+    /// The global index and its share of the thickness error.
+    fn with_index(prep: &Prepared, index: &IndexEstimate, est: &mut PixelEstimate) {
+        if est.is_valid() {
+            est.n_film = index.n;
+            // The global index's own error moves the thickness at fixed
+            // optical thickness: ∂d/∂n2 = −d·n2/q2².
+            let q2 = prep.model.q2_mid(est.theta_deg.to_radians());
+            let dd_dn = est.thickness_nm * index.n / (q2 * q2);
+            let (a, b) = (est.sigma_thickness_nm, dd_dn * index.sigma);
+            est.sigma_thickness_nm = (a * a + b * b).sqrt();
+        }
+    }
+}

@@ -1,0 +1,353 @@
+//! One pixel's path through the stages: the closed-form start (refined,
+//! its order checked), else the fringe search, the angle start and the
+//! refinement of the best starts; then the checks (stage 4): best fit,
+//! covariance, validity flags.
+
+use super::closed_form::angle_start;
+use super::refine::sse;
+use super::search::{Candidate, MAX_CANDIDATES};
+use super::{Fit, Job, Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
+use crate::estimate::{PixelEstimate, Reason};
+use std::f64::consts::PI;
+
+impl Solver {
+    /// Solve one pixel against a prepared index; returns the estimate (with
+    /// σ from the fit alone) and its residual sum of squares.
+    pub(super) fn solve_with(
+        &self,
+        prep: &Prepared,
+        job: Job<'_>,
+        scratch: &mut Scratch,
+    ) -> (PixelEstimate, f64) {
+        let Job {
+            spectrum,
+            theta_known,
+            noise,
+            effort,
+            pre,
+        } = job;
+        let nb = self.bands.len();
+        if spectrum.len() != nb {
+            return (PixelEstimate::invalid(Reason::MissingBands), f64::NAN);
+        }
+        scratch.ensure(nb);
+        let mut n_ok = 0usize;
+        for (k, &v) in spectrum.iter().enumerate() {
+            if v.is_finite() {
+                if !(-0.2..=1.2).contains(&v) {
+                    return (PixelEstimate::invalid(Reason::OutOfModel), f64::NAN);
+                }
+                scratch.spectrum[k] = v;
+                scratch.weight[k] = 1.0;
+                n_ok += 1;
+            } else {
+                scratch.spectrum[k] = 0.0;
+                scratch.weight[k] = 0.0;
+            }
+        }
+        if n_ok == 0 {
+            return (PixelEstimate::invalid(Reason::NonFinite), f64::NAN);
+        }
+        let n_par = if theta_known.is_some() { 1 } else { 2 };
+        if n_ok < nb.div_ceil(2).max(n_par + 3) {
+            let reason = if spectrum.iter().any(|v| v.is_infinite()) {
+                Reason::NonFinite
+            } else {
+                Reason::MissingBands
+            };
+            return (PixelEstimate::invalid(reason), f64::NAN);
+        }
+        if let Some(t) = theta_known {
+            if !(t.is_finite() && (0.0..PI / 2.0).contains(&t)) {
+                return (PixelEstimate::invalid(Reason::OutOfModel), f64::NAN);
+            }
+        }
+        let lam_min = self.sorted.first().map_or(400.0, |b| b.1);
+        if effort.closed_form && n_ok == nb {
+            if let Some(fe) = self.extrema_estimate(prep, theta_known, noise, scratch) {
+                if effort.closed_form_only {
+                    return (fe, f64::NAN);
+                }
+                let fit = self.refine(
+                    &prep.model,
+                    fe.thickness_nm,
+                    fe.theta_deg.to_radians(),
+                    theta_known.is_none(),
+                    effort.iters,
+                    scratch,
+                );
+                let rms = (fit.sse / n_ok as f64).sqrt();
+                // A wrong order leaves fringe-sized residuals; only then is
+                // the full search worth its cost.
+                let good = noise.is_some_and(|n| rms <= 2.0 * n);
+                if good && !effort.verify_order {
+                    return self.finish(&[fit], n_ok, theta_known, noise, prep, lam_min, scratch);
+                }
+                if good {
+                    // Where this pixel's fringes are fast enough for the
+                    // passband to matter, refit with the integrated model
+                    // (and judge the competing order with it too).
+                    let model = self.model_for(prep, &fit);
+                    let fit = if std::ptr::eq(model, &prep.model) {
+                        fit
+                    } else {
+                        let free = theta_known.is_none();
+                        let mut f =
+                            self.refine(model, fit.d, fit.theta, free, effort.iters, scratch);
+                        f.integrated = true;
+                        f
+                    };
+                    // The neighbouring orders on the lattice: the same fringe
+                    // phase at the band-range centre, one fringe more or
+                    // fewer. The better one is refined; if it fits as well,
+                    // the order is ambiguous.
+                    let q2 = prep.model.q2_mid(fit.theta);
+                    let g = fit.d * q2;
+                    let dg = 0.5 / self.sigma_center;
+                    let mut alt = None;
+                    let mut alt_sse = f64::INFINITY;
+                    for ga in [g - dg, g + dg] {
+                        if ga < 0.0 || ga / q2 > self.d_max {
+                            continue;
+                        }
+                        model.eval(ga / q2, fit.theta, &mut scratch.trial, false);
+                        let e = sse(&scratch.spectrum, &scratch.weight, &scratch.trial.r);
+                        if e < alt_sse {
+                            alt_sse = e;
+                            alt = Some(ga / q2);
+                        }
+                    }
+                    let mut fits = [fit, fit];
+                    let mut n_fits = 1;
+                    if let Some(d_alt) = alt {
+                        // Two steps tell a clearly worse order; only a close
+                        // one is refined to convergence.
+                        let free = theta_known.is_none();
+                        let mut f = self.refine(model, d_alt, fit.theta, free, 2, scratch);
+                        let var = fit.sse / (n_ok.saturating_sub(2).max(1)) as f64;
+                        if f.sse < fit.sse + 25.0 * var {
+                            f = self.refine(model, f.d, f.theta, free, effort.iters, scratch);
+                        }
+                        f.integrated = fit.integrated;
+                        fits[1] = f;
+                        n_fits = 2;
+                    }
+                    return self.finish(
+                        &fits[..n_fits],
+                        n_ok,
+                        theta_known,
+                        noise,
+                        prep,
+                        lam_min,
+                        scratch,
+                    );
+                }
+            }
+        }
+        let mut cands = [Candidate::default(); MAX_CANDIDATES];
+        let n_cands = match pre {
+            Some(px) => {
+                let k = usize::from(prep.sign < 0.0);
+                cands = px.cands[k];
+                px.n_cands[k]
+            }
+            None => self.fringe_search(scratch, prep.sign, n_ok == nb, &mut cands),
+        };
+
+        // Angle start.
+        let theta0 = match theta_known {
+            Some(t) => t,
+            None => {
+                let c = if n_cands > 0 {
+                    cands[0]
+                } else {
+                    let mean = scratch.spectrum.iter().sum::<f64>() / n_ok as f64;
+                    Candidate {
+                        a: mean,
+                        ..Default::default()
+                    }
+                };
+                angle_start(&prep.table, Some(c.a + c.b), Some(c.a - c.b))
+            }
+        };
+        let q2 = prep.model.q2_mid(theta0);
+        // Starts: the fringe candidates, plus a bare substrate and a thin
+        // film below the first fringe.
+        let mut starts: [(f64, f64); MAX_CANDIDATES + 2] =
+            [(0.0, f64::INFINITY); MAX_CANDIDATES + 2];
+        let mut n_starts = 0;
+        for c in &cands[..n_cands] {
+            starts[n_starts] = (c.g / q2, 0.0);
+            n_starts += 1;
+        }
+        starts[n_starts] = (0.0, 0.0);
+        starts[n_starts + 1] = (lam_min / (8.0 * q2), 0.0);
+        n_starts += 2;
+        for s in &mut starts[..n_starts] {
+            prep.model.eval(s.0, theta0, &mut scratch.cur, false);
+            s.1 = sse(&scratch.spectrum, &scratch.weight, &scratch.cur.r);
+        }
+        starts[..n_starts].sort_by(|a, b| a.1.total_cmp(&b.1));
+        let (n_refine, iters) = (effort.n_refine, effort.iters);
+        let mut fits = [Fit::default(); 3];
+        let mut n_fits = 0;
+        for st in starts[..n_starts.min(n_refine)].iter() {
+            if !st.1.is_finite() {
+                continue;
+            }
+            fits[n_fits] = self.refine(
+                &prep.model,
+                st.0,
+                theta0,
+                theta_known.is_none(),
+                iters,
+                scratch,
+            );
+            n_fits += 1;
+        }
+        if effort.verify_order {
+            // As on the closed-form path: fits whose fringes the passband
+            // affects are redone with the integrated model.
+            for f in &mut fits[..n_fits] {
+                let model = self.model_for(prep, f);
+                if !std::ptr::eq(model, &prep.model) {
+                    *f = self.refine(model, f.d, f.theta, theta_known.is_none(), iters, scratch);
+                    f.integrated = true;
+                }
+            }
+        }
+        self.finish(
+            &fits[..n_fits],
+            n_ok,
+            theta_known,
+            noise,
+            prep,
+            lam_min,
+            scratch,
+        )
+    }
+
+    /// From refined fits to an estimate: best fit, covariance, flags.
+    #[allow(clippy::too_many_arguments)]
+    fn finish(
+        &self,
+        fits: &[Fit],
+        n_ok: usize,
+        theta_known: Option<f64>,
+        noise: Option<f64>,
+        prep: &Prepared,
+        lam_min: f64,
+        scratch: &mut Scratch,
+    ) -> (PixelEstimate, f64) {
+        let n_par = if theta_known.is_some() { 1 } else { 2 };
+        let mut order = [0usize, 1, 2];
+        let order = &mut order[..fits.len().min(3)];
+        order.sort_by(|&a, &b| fits[a].sse.total_cmp(&fits[b].sse));
+        let Some(best) = order.first().map(|&i| fits[i]) else {
+            return (PixelEstimate::invalid(Reason::PoorFit), f64::NAN);
+        };
+        if !(best.sse.is_finite() && best.d.is_finite() && best.theta.is_finite()) {
+            return (PixelEstimate::invalid(Reason::PoorFit), f64::NAN);
+        }
+        let q2 = prep.model.q2_mid(best.theta);
+        let dof = (n_ok - n_par).max(1) as f64;
+        let var = (best.sse / dof).max(1e-14);
+        // Covariance with a weak prior on the angle (its search range as a
+        // uniform distribution) so a flat direction gives a large, finite σ.
+        let (sig_d, sig_th) = if theta_known.is_some() {
+            ((var / best.jtj[0].max(1e-300)).sqrt(), 0.0)
+        } else {
+            let (lo, hi) = self.theta_range;
+            let prior = 12.0 / ((hi - lo) * (hi - lo)).max(1e-6);
+            let a = best.jtj[0];
+            let b = best.jtj[1];
+            let c = best.jtj[2] + prior * var;
+            let det = a * c - b * b;
+            if det > 0.0 {
+                ((var * c / det).sqrt(), (var * a / det).sqrt())
+            } else {
+                (f64::INFINITY, (hi - lo) / 12f64.sqrt())
+            }
+        };
+        // Near d = 0 the reflectance is even in d (dR/dd = 0 at d = 0), so
+        // the linearised σ is meaningless: take the one-sided profile bound
+        // instead, the d at which the residual grows by one variance.
+        let model = match (&prep.integrated, best.integrated) {
+            (Some(m), true) => m,
+            _ => &prep.model,
+        };
+        let sig_d = if best.d < 0.1 * lam_min && (sig_d.is_nan() || sig_d >= 0.05 * lam_min) {
+            self.profile_sigma_d(model, best, var, scratch)
+        } else {
+            sig_d
+        };
+        // A weak angle: the linearised σ_θ says little (at θ = 0, R is even
+        // in θ and dR/dθ vanishes). Take the profile bound instead — the
+        // angle at which the residual, with the optical thickness held,
+        // grows by one variance — and carry its share into d, which at
+        // fixed optical thickness moves as 1/(n2 cos θ2).
+        let (sig_d, sig_th) =
+            if theta_known.is_none() && sig_th.to_degrees() > ANGLE_SIGMA_LIMIT_DEG {
+                let (lo, hi) = self.theta_range;
+                // Inside the range the linearised σ stands; at a bound (where the
+                // slope vanishes or the clamp hides the other side) profile.
+                let at_bound = best.theta - lo < sig_th || hi - best.theta < sig_th;
+                let sig_th = if !sig_th.is_finite() || at_bound {
+                    let th_bound = self.profile_sigma_theta(model, best, var, scratch);
+                    if sig_th.is_finite() {
+                        sig_th.min(th_bound.max(1e-6))
+                    } else {
+                        th_bound
+                    }
+                } else {
+                    sig_th
+                };
+                let q = |t: f64| model.q2_mid(t.clamp(lo, hi));
+                let q0 = q(best.theta);
+                let shift = [best.theta - sig_th, best.theta + sig_th]
+                    .iter()
+                    .map(|&t| (best.d * (q0 / q(t) - 1.0)).abs())
+                    .fold(0.0, f64::max);
+                ((sig_d * sig_d + shift * shift).sqrt(), sig_th)
+            } else {
+                (sig_d, sig_th)
+            };
+        let rms = (best.sse / n_ok as f64).sqrt();
+        let mut reason = Reason::Ok;
+        // A second order that fits as well as the best is an ambiguity.
+        if let Some(second) = order.get(1).map(|&i| fits[i]) {
+            let apart = (second.d - best.d).abs() > 0.25 * lam_min / (2.0 * q2);
+            if apart && second.sse - best.sse < 4.0 * var {
+                reason = Reason::AmbiguousOrder;
+            }
+        }
+        if let Some(noise) = noise {
+            if rms > 4.0 * noise && rms > 1e-4 {
+                reason = Reason::PoorFit;
+            }
+        }
+        if reason == Reason::Ok && !sig_d.is_finite() {
+            reason = Reason::NoFringe;
+        }
+        if reason == Reason::Ok
+            && theta_known.is_none()
+            && sig_th.to_degrees() > ANGLE_SIGMA_LIMIT_DEG
+        {
+            reason = Reason::AngleNotIdentifiable;
+        }
+        let est = PixelEstimate {
+            thickness_nm: best.d,
+            n_film: prep.model.n2_mid(),
+            theta_deg: best.theta.to_degrees(),
+            sigma_thickness_nm: sig_d,
+            sigma_theta_deg: sig_th.to_degrees(),
+            residual_rms: rms,
+            reason,
+        };
+        if est.is_valid() {
+            (est, best.sse)
+        } else {
+            (PixelEstimate::invalid(reason), best.sse)
+        }
+    }
+}

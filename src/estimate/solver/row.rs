@@ -1,0 +1,230 @@
+//! Rows and whole cubes: each pixel of a row through the per-pixel path
+//! (`fast` band-major, 64 pixels at a time), rows in parallel.
+
+use super::closed_form::ExtremaAcc;
+use super::{Effort, Scratch, Solver};
+use crate::estimate::detect::{self, CandidatePlanes};
+use crate::estimate::{maps, Cube, EstimateError, Mode, ParamMaps, PixelEstimate, Reason};
+use crate::scene::AngleKnowledge;
+use rayon::prelude::*;
+use std::f64::consts::PI;
+
+impl Solver {
+    /// Solve row `y` of the cube into `out` (length `cube.width`).
+    pub fn solve_row(
+        &self,
+        cube: &Cube,
+        y: usize,
+        out: &mut [PixelEstimate],
+        scratch: &mut Scratch,
+    ) {
+        self.solve_row_with(cube, y, out, scratch, None);
+    }
+
+    /// As [`Solver::solve_row`], with the extremum candidates already found
+    /// (by the live tracker, as the bands arrived): `fast` then skips its
+    /// detection pass. Planes of another size are ignored.
+    pub fn solve_row_with(
+        &self,
+        cube: &Cube,
+        y: usize,
+        out: &mut [PixelEstimate],
+        scratch: &mut Scratch,
+        candidates: Option<&CandidatePlanes>,
+    ) {
+        let mut pixel = std::mem::take(&mut scratch.pixel);
+        pixel.resize(cube.bands.len(), 0.0);
+        let mut done = 0;
+        if self.mode == Mode::Fast {
+            let pre = candidates.filter(|c| {
+                c.size() == (cube.width, cube.height) && c.bands() == self.sorted.len()
+            });
+            done = self.solve_row_fast(cube, y, out, &mut pixel, scratch, pre);
+        }
+        for (x, o) in out.iter_mut().enumerate().take(cube.width).skip(done) {
+            cube.spectrum_into(x, y, &mut pixel);
+            *o = self.solve_pixel(&pixel, self.scene.angle.known_at(x, y), scratch);
+        }
+        scratch.pixel = pixel;
+    }
+
+    /// `fast` on a whole row, band-major: the extremum candidates of 64
+    /// pixels at a time come from one branch-free pass over the band planes
+    /// (bit masks per pixel), so only the few candidates are visited per
+    /// pixel; the fits and closed forms are those of the per-pixel path, and
+    /// a pixel they cannot serve takes it. Returns the pixels written (the
+    /// whole row, or 0 when this path does not apply).
+    fn solve_row_fast(
+        &self,
+        cube: &Cube,
+        y: usize,
+        out: &mut [PixelEstimate],
+        pixel: &mut [f64],
+        scratch: &mut Scratch,
+        pre: Option<&CandidatePlanes>,
+    ) -> usize {
+        let (Some(prep), Some(index)) = (&self.prepared, &self.index) else {
+            return 0;
+        };
+        let nb = self.sorted.len();
+        let (w, n) = (cube.width, cube.plane_len());
+        if !(7..=detect::MAX_DETECT_BANDS).contains(&nb)
+            || cube.bands.len() != nb
+            || out.len() < w
+            || y >= cube.height
+        {
+            return 0;
+        }
+        let noise = index.noise_sigma.is_finite().then_some(index.noise_sigma);
+        let data = &cube.data;
+        let base = y * w;
+        // Start of sorted band r's row in the cube.
+        let row_of = |r: usize| self.sorted[r].0 * n + base;
+        const CH: usize = detect::CHUNK;
+        const NB: usize = detect::MAX_DETECT_BANDS;
+        let mut rows: [&[f32]; NB] = [&[]; NB];
+        // The chunk band-major in one block (band r's pixel j at r·CH + j),
+        // so a window's samples are read without bounds checks.
+        let mut flat = [0f32; CH * NB];
+        let mut cand = detect::Candidates::default();
+        let mut acc = ExtremaAcc::new(noise);
+        let mut x0 = 0;
+        while x0 < w {
+            let m = (w - x0).min(CH);
+            for (r, row) in rows[..nb].iter_mut().enumerate() {
+                *row = &data[row_of(r) + x0..row_of(r) + x0 + m];
+                flat[r * CH..r * CH + m].copy_from_slice(row);
+            }
+            match pre {
+                Some(p) => p.unpack(y, x0 / CH, &mut cand),
+                None => detect::detect(&rows[..nb], &mut cand),
+            }
+            let detect::Candidates {
+                maxima,
+                minima,
+                bad,
+            } = &cand;
+            for j in 0..m {
+                let x = x0 + j;
+                let theta_known = self.scene.angle.known_at(x, y);
+                let theta_ok =
+                    theta_known.is_none_or(|t| t.is_finite() && (0.0..PI / 2.0).contains(&t));
+                let mut est = None;
+                if !bad[j] && theta_ok {
+                    acc.reset();
+                    let mut pending = maxima[j] | minima[j];
+                    let mut next_free = 1;
+                    while pending != 0 && !acc.full() {
+                        let i = pending.trailing_zeros() as usize;
+                        pending &= pending - 1;
+                        if i < next_free {
+                            // Next to the previous candidate.
+                            continue;
+                        }
+                        let kind = if maxima[j] >> i & 1 == 1 { 1 } else { -1 };
+                        let (lo, len) = self.parabola[i].as_ref().map_or((0, 0), |w| (w.lo, w.len));
+                        let y5 = std::array::from_fn(|k| {
+                            let v = f64::from(flat[((lo + k) % NB) * CH + j % CH]);
+                            if k < len {
+                                v
+                            } else {
+                                0.0
+                            }
+                        });
+                        self.fit_extremum(i, kind, y5, &mut acc);
+                        next_free = i + 2;
+                    }
+                    est = self.closed_form(prep, &acc, theta_known, noise, Some(index));
+                }
+                out[x] = match est {
+                    Some(e) => e,
+                    None => {
+                        // The closed form was just tried on these very
+                        // samples: straight to the fitted path.
+                        cube.spectrum_into(x, y, pixel);
+                        let effort = Effort {
+                            closed_form: false,
+                            ..Effort::of(Mode::Fast)
+                        };
+                        self.solve_pixel_with(pixel, theta_known, scratch, effort)
+                    }
+                };
+            }
+            x0 += m;
+        }
+        w
+    }
+
+    /// Fit a whole cube: the film index first where unknown, then every
+    /// pixel, rows in parallel on the current rayon pool.
+    pub fn fit_cube(&mut self, cube: &Cube) -> Result<ParamMaps, EstimateError> {
+        self.check_cube(cube)?;
+        if self
+            .index
+            .as_ref()
+            .is_none_or(|i| !i.noise_sigma.is_finite())
+        {
+            self.estimate_film_index(cube)?;
+        }
+        let (w, h) = (cube.width, cube.height);
+        let mut maps = ParamMaps::for_overwrite(w, h);
+        // Rows in parallel, each written straight into its row of the maps
+        // by the thread that solved it.
+        maps.rows_mut(0..h)
+            .into_par_iter()
+            .enumerate()
+            .for_each_init(
+                || {
+                    (
+                        Scratch::default(),
+                        vec![PixelEstimate::invalid(Reason::Masked); w],
+                    )
+                },
+                |(scratch, est), (y, mut row)| {
+                    self.solve_row(cube, y, est, scratch);
+                    row.set_all(est);
+                },
+            );
+        maps.meta = self.map_meta();
+        Ok(maps)
+    }
+
+    /// Metadata for maps produced by this solver.
+    pub fn map_meta(&self) -> maps::MapMeta {
+        let idx = self.index.clone();
+        maps::MapMeta {
+            mode: self.mode.name().into(),
+            wavelengths_nm: self.bands.iter().map(|b| b.center_nm).collect(),
+            fwhm_nm: self.bands.iter().map(|b| b.fwhm_nm).collect(),
+            n_film: idx.as_ref().map_or(f64::NAN, |i| i.n),
+            n_film_sigma: idx.as_ref().map_or(f64::NAN, |i| i.sigma),
+            n_film_estimated: idx.as_ref().is_some_and(|i| i.estimated),
+            n_film_note: idx.map(|i| i.note).unwrap_or_default(),
+            polarization: self.scene.polarization.name(),
+        }
+    }
+
+    pub(super) fn check_cube(&self, cube: &Cube) -> Result<(), EstimateError> {
+        if cube.bands.len() != self.bands.len() {
+            return Err(EstimateError::Shape(format!(
+                "the cube has {} bands, the solver {}",
+                cube.bands.len(),
+                self.bands.len()
+            )));
+        }
+        if cube.data.len() != cube.plane_len() * cube.bands.len() {
+            return Err(EstimateError::Shape(
+                "cube data length does not match its size".into(),
+            ));
+        }
+        if let AngleKnowledge::Map { width, height, .. } = self.scene.angle {
+            if (width, height) != (cube.width, cube.height) {
+                return Err(EstimateError::Shape(format!(
+                    "the angle map is {width}×{height}, the cube {}×{}",
+                    cube.width, cube.height
+                )));
+            }
+        }
+        Ok(())
+    }
+}
