@@ -50,6 +50,10 @@ fn sample_maps() -> ParamMaps {
         n_film_estimated: true,
         n_film_note: "twin n ≈ 1.17 rejected (Δχ² = 40), σ from 1960 px".into(),
         polarization: "s".into(),
+        quality: vec![
+            ("noise_sigma".into(), "0.001".into()),
+            ("level".into(), "absolute".into()),
+        ],
     };
     m
 }

@@ -75,6 +75,25 @@ pub struct Summary {
     pub solve_pixels_per_s: f64,
     /// Solver mode.
     pub mode: &'static str,
+    /// Typical reflectance noise σ every fit was judged against (NaN: none
+    /// could be had independently of the fits, which were then not tested).
+    pub noise_sigma: f64,
+    /// Where that σ came from: `given`, `camera`, `data` or `none`.
+    pub noise_source: &'static str,
+    /// The level model in force (`auto` resolved to its choice).
+    pub level: &'static str,
+    /// Mean gain of the image-wide level over bands (1 when absolute).
+    pub level_gain: f64,
+    /// Mean offset of the image-wide level over bands (0 when absolute).
+    pub level_offset: f64,
+    /// What the level estimate found.
+    pub level_note: String,
+    /// The film-index note (twin resolved or not, search bound).
+    pub n_film_note: String,
+    /// The index twin could not be told apart: σ spans both branches.
+    pub n_film_ambiguous: bool,
+    /// The thickness range searched, nm.
+    pub thickness_range_nm: [f64; 2],
 }
 
 /// Build the scene of a fit from `--scene` and the overrides.
@@ -147,6 +166,18 @@ pub fn run(a: &FitArgs) -> anyhow::Result<()> {
         solve_s,
         solve_pixels_per_s: pixels as f64 / solve_s.max(1e-9),
         mode: a.mode.name(),
+        noise_sigma: solver.noise().map_or(f64::NAN, |n| n.typical_sigma(0.05)),
+        noise_source: solver.noise().map_or("none", |n| n.source.name()),
+        level: solver.level().1.name(),
+        level_gain: solver.level().0.mean().0,
+        level_offset: solver.level().0.mean().1,
+        level_note: solver.level().2.to_string(),
+        n_film_note: maps.meta.n_film_note.clone(),
+        n_film_ambiguous: solver.film_index().is_some_and(|i| i.ambiguous),
+        thickness_range_nm: {
+            let (lo, hi, _) = solver.thickness_range();
+            [lo, hi]
+        },
     };
     if a.json {
         println!("{}", serde_json::to_string(&summary)?);
@@ -187,5 +218,18 @@ fn human_summary(s: &Summary, maps: &ParamMaps, out: &std::path::Path) -> String
     if !maps.meta.n_film_note.is_empty() {
         text.push_str(&format!("\n  film index: {}", maps.meta.n_film_note));
     }
+    text.push_str(&format!(
+        "\n  judged against noise σ = {:.2e} ({}); level {}{}; thickness {:.0}–{:.0} nm",
+        s.noise_sigma,
+        s.noise_source,
+        s.level,
+        if s.level_note.is_empty() {
+            String::new()
+        } else {
+            format!(": {}", s.level_note)
+        },
+        s.thickness_range_nm[0],
+        s.thickness_range_nm[1]
+    ));
     text
 }

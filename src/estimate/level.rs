@@ -59,10 +59,27 @@ impl LevelMode {
 pub const AUTO_PROBABILITY: f64 = 1e-3;
 
 /// Prior σ of a band's gain about 1 and of its offset about 0 (weak: they
-/// only keep an unidentifiable direction finite).
+/// only keep an unidentifiable direction finite; a stronger prior would
+/// pull a real gain error toward 1 where the data tell it only together
+/// with the angle and the index).
 pub const GAIN_PRIOR_SIGMA: f64 = 0.5;
 /// See [`GAIN_PRIOR_SIGMA`].
 pub const OFFSET_PRIOR_SIGMA: f64 = 0.2;
+
+/// Prior σ of a gain error in the covariance the level reports: what a
+/// calibration plausibly errs by (a white reference a few percent off).
+pub const COV_GAIN_SIGMA: f64 = 0.02;
+/// Prior σ of an offset in the reported covariance (stray light of a few
+/// thousandths).
+pub const COV_OFFSET_SIGMA: f64 = 0.003;
+
+/// Largest gain error `scaled` corrects: beyond it the data are not a
+/// miscalibrated reflectance but something else (normalised intensities,
+/// raw counts), and correcting them would invent a film; they are flagged
+/// instead (or fitted with the free level when asked).
+pub const MAX_GAIN_ERROR: f64 = 0.3;
+/// Largest offset `scaled` corrects (see [`MAX_GAIN_ERROR`]).
+pub const MAX_OFFSET: f64 = 0.05;
 
 /// An image-wide level: `y_k = gain[k]·R_k + offset[k]`, with covariances.
 #[derive(Clone, Debug, PartialEq)]
@@ -77,6 +94,12 @@ pub struct Level {
     pub var_offset: Vec<f64>,
     /// Covariance of each band's gain and offset.
     pub cov: Vec<f64>,
+    /// Factor by which the level's own uncertainty widens a pixel's σ_d:
+    /// `sqrt(1 + ⟨var_level(d)/var_noise(d)⟩)` over the sample, each
+    /// pixel's share propagated exactly through its fit (a gain error
+    /// common to all bands moves d far less than independent band errors
+    /// of the same size would).
+    pub sigma_inflation: f64,
 }
 
 impl Level {
@@ -88,6 +111,7 @@ impl Level {
             var_gain: vec![0.0; n_bands],
             var_offset: vec![0.0; n_bands],
             cov: vec![0.0; n_bands],
+            sigma_inflation: 1.0,
         }
     }
 
@@ -111,6 +135,13 @@ impl Level {
     pub fn var_at(&self, k: usize, r: f64) -> f64 {
         let g = self.gain[k];
         (self.var_offset[k] + r * r * self.var_gain[k] + 2.0 * r * self.cov[k]) / (g * g)
+    }
+
+    /// Whether the level is a plausible calibration error (within
+    /// [`MAX_GAIN_ERROR`] and [`MAX_OFFSET`] on every band).
+    pub fn is_plausible(&self) -> bool {
+        self.gain.iter().all(|g| (g - 1.0).abs() <= MAX_GAIN_ERROR)
+            && self.offset.iter().all(|o| o.abs() <= MAX_OFFSET)
     }
 
     /// The mean gain and offset over bands (for summaries).
@@ -170,6 +201,10 @@ pub struct LevelPixel {
     /// Derivatives of the model per band, one vector per local parameter
     /// (thickness, and the angle when it is estimated).
     pub jac: Vec<Vec<f64>>,
+    /// Derivatives of the measured value per band with respect to global
+    /// parameters other than the level (the film index where unknown),
+    /// estimated jointly with it.
+    pub extra: Vec<Vec<f64>>,
 }
 
 /// Result of one Gauss–Newton step of the level.
@@ -183,6 +218,10 @@ pub struct LevelStep {
     pub chi2: f64,
     /// Observations used.
     pub n_obs: usize,
+    /// Steps of the extra global parameters.
+    pub extra_step: Vec<f64>,
+    /// Their variances.
+    pub extra_var: Vec<f64>,
 }
 
 /// One Gauss–Newton step for the level from the sample's current fits,
@@ -196,7 +235,9 @@ pub fn level_step(
     var: &[f64],
 ) -> Option<LevelStep> {
     let nb = level.gain.len();
-    let m = basis.n_params(nb);
+    let m_level = basis.n_params(nb);
+    let n_extra = pixels.first().map_or(0, |p| p.extra.len());
+    let m = m_level + n_extra;
     let (s_lo, s_hi) = wavenumber
         .iter()
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &s| {
@@ -206,7 +247,17 @@ pub fn level_step(
     let u: Vec<f64> = wavenumber.iter().map(|s| (s - s_lo) / half - 1.0).collect();
     // Per band: the dense rows of ∂(g_k, o_k)/∂γ.
     let drow: Vec<Vec<(f64, f64)>> = (0..nb)
-        .map(|k| (0..m).map(|j| basis.rows(k, u[k], j)).collect())
+        .map(|k| {
+            (0..m)
+                .map(|j| {
+                    if j < m_level {
+                        basis.rows(k, u[k], j)
+                    } else {
+                        (0.0, 0.0)
+                    }
+                })
+                .collect()
+        })
         .collect();
     let mut s = vec![0.0; m * m];
     let mut rhs = vec![0.0; m];
@@ -214,9 +265,11 @@ pub fn level_step(
     let mut n_obs = 0;
     // K_p (nb × m): ∂y_k/∂γ_j = R_k·∂g_k/∂γ_j + ∂o_k/∂γ_j.
     let mut kmat = vec![0.0; nb * m];
+    // Per pixel: ∂d/∂γ (the first row of A⁻¹B) and d's noise variance.
+    let mut responses: Vec<(Vec<f64>, f64)> = Vec::with_capacity(pixels.len());
     for px in pixels {
         let nl = px.jac.len();
-        if nl == 0 || px.y.len() != nb || px.r.len() != nb {
+        if nl == 0 || px.y.len() != nb || px.r.len() != nb || px.extra.len() != n_extra {
             continue;
         }
         // Local normal equations A (nl×nl), coupling B (nl×m), gradients.
@@ -248,7 +301,11 @@ pub fn level_step(
             }
             for j in 0..m {
                 let (dg, doff) = drow[k][j];
-                let kv = r * dg + doff;
+                let kv = if j < m_level {
+                    r * dg + doff
+                } else {
+                    px.extra[j - m_level][k]
+                };
                 kmat[k * m + j] = kv;
                 if kv != 0.0 {
                     rhs[j] += w * kv * e;
@@ -292,6 +349,7 @@ pub fn level_step(
                 ]
             })
             .collect();
+        responses.push((t.iter().map(|tj| tj[0]).collect(), ainv[0][0]));
         for j in 0..m {
             if b[j] == [0.0, 0.0] {
                 continue;
@@ -306,7 +364,9 @@ pub fn level_step(
         return None;
     }
     // Weak priors toward the identity keep unidentifiable directions finite.
-    let gamma = params_of(level, basis, &u);
+    let mut gamma = params_of(level, basis, &u);
+    // The extra parameters are stepped from where they are (a ridge, no pull).
+    gamma.resize(m, 0.0);
     for j in 0..m {
         let (dg, doff) = drow.iter().map(|r| r[j]).fold((0.0f64, 0.0f64), |a, v| {
             (a.0.max(v.0.abs()), a.1.max(v.1.abs()))
@@ -324,7 +384,25 @@ pub fn level_step(
     }
     let l = cholesky(&s, m)?;
     let delta = chol_solve(&l, m, &rhs);
-    let inv = chol_inverse(&l, m);
+    // The covariance reported (and carried into σ) is the posterior under
+    // the plausible-calibration prior: a direction the data cannot tell
+    // keeps the prior's width (a few percent), not the weak one that only
+    // keeps the step finite.
+    let mut s_cov = s.clone();
+    for j in 0..m_level {
+        let (dg, doff) = drow.iter().map(|r| r[j]).fold((0.0f64, 0.0f64), |a, v| {
+            (a.0.max(v.0.abs()), a.1.max(v.1.abs()))
+        });
+        let (weak, plausible) = if dg > 0.0 {
+            (GAIN_PRIOR_SIGMA, COV_GAIN_SIGMA)
+        } else if doff > 0.0 {
+            (OFFSET_PRIOR_SIGMA, COV_OFFSET_SIGMA)
+        } else {
+            continue;
+        };
+        s_cov[j * m + j] += 1.0 / (plausible * plausible) - 1.0 / (weak * weak);
+    }
+    let inv = chol_inverse(&cholesky(&s_cov, m)?, m);
     let new_gamma: Vec<f64> = gamma.iter().zip(&delta).map(|(g, d)| g + d).collect();
     let mut out = Level::identity(nb);
     let mut change: f64 = 0.0;
@@ -352,11 +430,31 @@ pub fn level_step(
         out.var_offset[k] = vo;
         out.cov[k] = c;
     }
+    let ratios: Vec<f64> = responses
+        .iter()
+        .filter(|(_, vn)| *vn > 0.0)
+        .map(|(t0, vn)| {
+            let mut v = 0.0;
+            for j in 0..m {
+                if t0[j] == 0.0 {
+                    continue;
+                }
+                for l2 in 0..m {
+                    v += t0[j] * inv[j * m + l2] * t0[l2];
+                }
+            }
+            v / vn
+        })
+        .collect();
+    let mean_ratio = ratios.iter().sum::<f64>() / ratios.len().max(1) as f64;
+    out.sigma_inflation = (1.0 + mean_ratio).sqrt();
     Some(LevelStep {
         level: out,
         change,
         chi2,
         n_obs,
+        extra_step: delta[m_level..].to_vec(),
+        extra_var: (m_level..m).map(|j| inv[j * m + j]).collect(),
     })
 }
 
@@ -391,6 +489,12 @@ fn params_of(level: &Level, basis: LevelBasis, u: &[f64]) -> Vec<f64> {
             vec![c[0], c[1], c[2], o]
         }
     }
+}
+
+/// Solve the symmetric positive definite system `a x = b` (`n × n`,
+/// row-major); `None` if `a` is not positive definite.
+pub(crate) fn solve_spd(a: &[f64], n: usize, b: &[f64]) -> Option<Vec<f64>> {
+    cholesky(a, n).map(|l| chol_solve(&l, n, b))
 }
 
 /// Cholesky factor (lower, row-major) of a symmetric positive definite
@@ -465,6 +569,7 @@ mod tests {
                     .collect(),
                 r: (0..nb).map(|k| model(phi, k)).collect(),
                 jac: vec![(0..nb).map(|k| dmodel(phi, k)).collect()],
+                extra: Vec::new(),
             })
             .collect();
         let wn = (0..nb).map(|k| 1.0 / (400.0 + 10.0 * k as f64)).collect();

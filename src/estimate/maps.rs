@@ -33,6 +33,12 @@ pub enum Reason {
     OutOfModel = 9,
     /// The pixel lies outside the region the caller asked to solve.
     Masked = 10,
+    /// The film's fringes are beyond what the bands resolve (too thick for
+    /// the band spacing or the passband width): no trustworthy thickness.
+    Unresolved = 11,
+    /// The estimate is pinned at a bound of its search (thickness, angle or
+    /// the film index): the truth may lie beyond it.
+    AtBound = 12,
 }
 
 impl Reason {
@@ -55,11 +61,13 @@ impl Reason {
             Reason::AngleNotIdentifiable => "angle not identifiable",
             Reason::OutOfModel => "out of model",
             Reason::Masked => "masked",
+            Reason::Unresolved => "fringes unresolved",
+            Reason::AtBound => "at search bound",
         }
     }
 
     /// Every reason, in code order.
-    pub const ALL: [Reason; 11] = [
+    pub const ALL: [Reason; 13] = [
         Reason::Ok,
         Reason::NonFinite,
         Reason::Dark,
@@ -71,6 +79,8 @@ impl Reason {
         Reason::AngleNotIdentifiable,
         Reason::OutOfModel,
         Reason::Masked,
+        Reason::Unresolved,
+        Reason::AtBound,
     ];
 
     /// The reason with this code.
@@ -119,6 +129,18 @@ impl PixelEstimate {
     }
 }
 
+/// The keys of [`MapMeta::quality`], in the order they are written.
+pub const QUALITY_KEYS: [&str; 8] = [
+    "noise_sigma",
+    "noise_source",
+    "level",
+    "level_gain",
+    "level_offset",
+    "thickness_range_nm",
+    "optical_thickness_max_nm",
+    "fit_test",
+];
+
 /// Metadata written beside the maps.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct MapMeta {
@@ -138,6 +160,9 @@ pub struct MapMeta {
     pub n_film_note: String,
     /// Polarisation name.
     pub polarization: String,
+    /// What the fit was judged against: noise model, level, thickness range
+    /// (key, value), written as `irid.<key>` attributes.
+    pub quality: Vec<(String, String)>,
 }
 
 /// Per-pixel parameter maps, row-major `width × height`.

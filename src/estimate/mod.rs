@@ -86,4 +86,7 @@ pub enum EstimateError {
     /// The global film-index search found no usable pixels.
     #[error("film index: {0}")]
     FilmIndex(String),
+    /// The level model cannot be used as asked.
+    #[error("level: {0}")]
+    Level(String),
 }

@@ -228,6 +228,9 @@ pub fn map_attributes(meta: &MapMeta) -> Vec<(String, String)> {
         a("polarization", meta.polarization.clone()),
         a("reason_codes", reason_legend()),
     ];
+    for (k, v) in &meta.quality {
+        out.push(a(k, v.clone()));
+    }
     for (ch, unit) in MAP_UNITS {
         out.push(a(&format!("units.{ch}"), unit.to_string()));
     }
@@ -301,6 +304,10 @@ pub fn read_maps(path: &Path) -> Result<ParamMaps, IoError> {
         n_film_estimated: attr("n_film_estimated") == Some("true"),
         n_film_note: attr("n_film_note").unwrap_or_default().to_string(),
         polarization: attr("polarization").unwrap_or_default().to_string(),
+        quality: crate::estimate::maps::QUALITY_KEYS
+            .iter()
+            .filter_map(|k| attr(k).map(|v| (k.to_string(), v.to_string())))
+            .collect(),
     };
     Ok(maps)
 }

@@ -518,7 +518,7 @@ pub(super) fn angle_start(
 impl Prepared {
     /// The half- and quarter-wave levels at `theta`, interpolated in the
     /// angle table (its ends beyond it).
-    fn envelopes_at(&self, theta: f64) -> (f64, f64) {
+    pub(super) fn envelopes_at(&self, theta: f64) -> (f64, f64) {
         let t = &self.table;
         let sl = &self.slopes;
         if t.len() < 2 {

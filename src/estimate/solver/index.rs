@@ -5,6 +5,8 @@
 use super::linalg::solve3;
 use super::search::{Candidate, MAX_CANDIDATES};
 use super::{Effort, IndexEstimate, Job, Prepared, Scratch, Solver, INDEX_SAMPLE_PIXELS};
+use crate::estimate::level::LevelMode;
+use crate::estimate::noise::NoiseModel;
 use crate::estimate::{Cube, EstimateError, Mode};
 use crate::optics::dispersion::Dispersion;
 use crate::scene::FilmKnowledge;
@@ -30,6 +32,14 @@ impl Solver {
     /// the index is known). The result is kept for later pixels and sweeps.
     pub fn estimate_film_index(&mut self, cube: &Cube) -> Result<IndexEstimate, EstimateError> {
         self.check_cube(cube)?;
+        // The noise level every fit is judged against comes first, and never
+        // from the fits it judges: given, measured by the camera, or
+        // estimated from the data without a model.
+        if self.noise.is_none() {
+            if let Some(n) = NoiseModel::from_data(cube) {
+                self.set_noise(n);
+            }
+        }
         // `fast` trades some of the index's precision (σ_n grows by √2, still
         // far below 0.001) for a first map that is not late.
         let n_sample = if self.mode == Mode::Fast {
@@ -43,17 +53,36 @@ impl Solver {
                 "no pixel has a complete, finite spectrum".into(),
             ));
         }
+        let mut est = self.index_for(&sample)?;
+        // The level: absolute unless asked, or (auto) unless the sample
+        // shows a systematic misfit a gain and offset per band correct.
+        if self.scene.level != LevelMode::Free {
+            if let Some(fitted) = self.fit_level(&sample, &est)? {
+                est = fitted;
+            }
+        }
+        if self.noise.is_none() {
+            // No independent noise level (a tiny cube): the pooled residual
+            // stands in, and the summary says that fits were not tested.
+            let prep = self.prepared.clone().expect("index prepared");
+            let (sse, n_obs, n_par, _) = self.sample_sse(&prep, &sample);
+            est.noise_sigma = (sse / (n_obs - n_par).max(1.0)).sqrt();
+        } else if let Some(n) = &self.noise {
+            est.noise_sigma = n.typical_sigma(0.05);
+        }
+        self.set_film_index(est.clone())?;
+        Ok(est)
+    }
+
+    /// The film index for a sample (searched where unknown), prepared for
+    /// the pixels that follow.
+    pub(super) fn index_for(
+        &mut self,
+        sample: &[SamplePixel],
+    ) -> Result<IndexEstimate, EstimateError> {
         let est = match self.scene.film.clone() {
-            FilmKnowledge::Known(_) => {
-                let mut est = self.index.clone().expect("known index set at construction");
-                let prep = self.prepared.clone().expect("known index prepared");
-                let (sse, n_obs, n_par, _) = self.sample_sse(&prep, &sample);
-                est.noise_sigma = (sse / (n_obs - n_par).max(1.0)).sqrt();
-                est
-            }
-            FilmKnowledge::Unknown { search, prior } => {
-                self.search_index(&sample, search, prior)?
-            }
+            FilmKnowledge::Known(_) => self.index.clone().expect("known index set at construction"),
+            FilmKnowledge::Unknown { search, prior } => self.search_index(sample, search, prior)?,
         };
         self.set_film_index(est.clone())?;
         Ok(est)
@@ -214,10 +243,18 @@ impl Solver {
         refined.sort_by(|a, b| a.1.total_cmp(&b.1));
         let (_, n_obs, n_par, _) = self.profile_at(refined[0].0, sample)?;
         let dof = (n_obs - n_par - 1.0).max(1.0);
-        let var = refined[0].1 / dof;
+        // The larger of the residual's variance and the noise model's: a
+        // misfit shared by the sample widens σ_n and the twin test, never
+        // narrows them.
+        let noise_var = self
+            .noise
+            .as_ref()
+            .map_or(0.0, |n| n.typical_sigma(0.05).powi(2));
+        let var = (refined[0].1 / dof).max(noise_var);
         let noise_sigma = var.sqrt();
         let mut best = refined[0];
         let mut note = String::new();
+        let mut ambiguous = false;
         let (twin, dchi2) = match refined.get(1) {
             Some(t) => (Some(t.0), (t.1 - best.1) / var),
             None => (None, f64::INFINITY),
@@ -239,8 +276,9 @@ impl Solver {
                         );
                     }
                 } else {
+                    ambiguous = true;
                     note = format!(
-                        "AMBIGUOUS: twin at {:.4} fits almost as well (Δχ² = {:.1}); give a prior or the index",
+                        "AMBIGUOUS: twin at {:.4} fits almost as well (Δχ² = {:.1}); give a prior or the index; σ spans both branches",
                         tn, dchi2
                     );
                 }
@@ -253,6 +291,16 @@ impl Solver {
         } else {
             f64::NAN
         };
+        // Pinned at an end of the search range: the index may lie beyond.
+        let at_bound = best.0 <= lo + 2e-3 || best.0 >= hi - 2e-3;
+        if at_bound {
+            note = format!(
+                "AT SEARCH BOUND: the index {:.4} sits at an end of the search range [{lo}, {hi}]; widen `search` or give the index{}{}",
+                best.0,
+                if note.is_empty() { "" } else { "; " },
+                note
+            );
+        }
         Ok(IndexEstimate {
             n: best.0,
             sigma,
@@ -261,6 +309,9 @@ impl Solver {
             twin_delta_chi2: dchi2,
             noise_sigma,
             note,
+            ambiguous,
+            at_bound,
+            sigma_in_level: false,
         })
     }
 

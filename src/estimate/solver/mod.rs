@@ -39,18 +39,29 @@
 //! - `pixel.rs`: one pixel through the stages, and the checks (4).
 //! - `row.rs`: rows and whole cubes.
 //! - `index.rs`: the global film-index search.
+//! - `level_fit.rs`: the image-wide level (`scaled`, and `auto`'s test).
+//! - `free.rs`: the per-pixel free level (normalised intensities).
+//! - `judge.rs`: the fit-quality test and flags against the noise model,
+//!   the physical thickness range and the search bounds.
 //! - `linalg.rs`: 3×3 linear algebra.
 
 mod bands;
 mod closed_form;
+mod free;
 mod index;
+mod judge;
+mod level_fit;
 mod linalg;
 mod pixel;
 mod refine;
 mod row;
 mod search;
 
+use super::level::{Level, LevelMode};
 use super::model::{FilmModel, ModelOut};
+use super::noise::NoiseModel;
+use super::quality::Chi2Test;
+use super::range::RangeLimit;
 use super::{EstimateError, Mode, PixelEstimate, Reason};
 use crate::optics::band::Band;
 use crate::optics::dispersion::Dispersion;
@@ -74,10 +85,20 @@ pub struct IndexEstimate {
     pub twin: Option<f64>,
     /// χ² by which the twin fits worse (large: resolved; small: ambiguous).
     pub twin_delta_chi2: f64,
-    /// Reflectance noise σ estimated from the fit residuals.
+    /// Typical reflectance noise σ of the noise model in force (NaN until
+    /// one is known).
     pub noise_sigma: f64,
     /// A human-readable note (e.g. "twin not resolved; prior used").
     pub note: String,
+    /// The twin branch fits about as well and nothing chose between them:
+    /// every pixel's σ then spans both branches.
+    pub ambiguous: bool,
+    /// The estimate is pinned at a bound of its search range: every pixel
+    /// is flagged "at search bound".
+    pub at_bound: bool,
+    /// Estimated jointly with the image-wide level: its share of σ_d is
+    /// carried by the level's inflation factor, not added again.
+    pub sigma_in_level: bool,
 }
 
 /// Pixels sampled (on a jittered grid) for the global film-index search
@@ -207,6 +228,9 @@ struct Prepared {
     table: Vec<(f64, f64, f64)>,
     /// The half-wave envelope's slope dR/dθ between table entries.
     slopes: Slopes,
+    /// The range of reflectance the model can produce over every thickness
+    /// and angle (half- and quarter-wave envelopes, middle band).
+    envelope_range: (f64, f64),
     /// Real ambient and substrate indices at the middle band, when the
     /// half-wave level can be inverted in closed form (lossless, s or p).
     closed_form: Option<(f64, f64, Polarization)>,
@@ -229,7 +253,28 @@ pub struct Solver {
     theta_range: (f64, f64),
     /// sin² of the angle range's ends.
     sin2_range: (f64, f64),
+    /// Thinnest film considered, nm.
+    d_min: f64,
+    /// Thickest film considered, nm.
     d_max: f64,
+    /// `d_max` was set by the user (then a fit pinned there is flagged
+    /// "at search bound"; otherwise the physical range flags it).
+    d_max_given: bool,
+    /// Largest optical thickness the bands resolve, nm, and what limits it.
+    g_max: (f64, RangeLimit),
+    /// The noise model the fits are judged against, once known.
+    noise: Option<NoiseModel>,
+    /// The χ² test.
+    chi2: Chi2Test,
+    /// The image-wide level in force (identity unless `scaled`).
+    level: Level,
+    /// The level model in force (`auto` resolved to what it chose).
+    level_mode: LevelMode,
+    /// What the level estimate found (for summaries).
+    level_note: String,
+    /// `absolute` was asked for, but the image shows a correctable
+    /// calibration error: every pixel is flagged.
+    calibration_suspect: bool,
     /// Bands by increasing wavelength: (plane index, λ, wavenumber 1/λ).
     sorted: Vec<(usize, f64, f64)>,
     /// Centre of the band range in wavenumber, nm⁻¹.
@@ -278,12 +323,37 @@ impl Solver {
                 .fold(1.0, f64::max),
             FilmKnowledge::Unknown { search, .. } => search.1,
         };
-        let d_max = scene.max_thickness_nm;
-        let basis = FringeBasis::new(bands, d_max * n2_hi);
         let theta_range = match scene.angle {
             AngleKnowledge::Unknown { search } => search,
             _ => (0.0, 89f64.to_radians()),
         };
+        let g_max = super::range::max_optical_thickness(bands);
+        // The thickest film whose optical thickness the bands resolve at the
+        // most oblique angle considered (the physical range), unless given.
+        let n2_lo = match &scene.film {
+            FilmKnowledge::Known(d) => bands
+                .iter()
+                .filter_map(|b| d.index_at(b.center_nm).ok())
+                .map(|n| n.re)
+                .fold(f64::INFINITY, f64::min),
+            FilmKnowledge::Unknown { search, .. } => search.0.max(1.0),
+        };
+        let theta_hi = match scene.angle {
+            AngleKnowledge::Uniform(t) => t,
+            _ => theta_range.1,
+        };
+        let kx = scene
+            .ambient
+            .index_at(bands[0].center_nm)
+            .map_or(1.0, |n| n.re)
+            * theta_hi.sin();
+        let q_lo = (n2_lo * n2_lo - kx * kx).max(0.09 * n2_lo * n2_lo).sqrt();
+        let d_max = match scene.max_thickness_nm {
+            Some(d) => d,
+            None => (g_max.0 / q_lo).min(crate::scene::MAX_THICKNESS_LIMIT_NM),
+        };
+        let d_min = scene.min_thickness_nm.min(0.5 * d_max);
+        let basis = FringeBasis::new(bands, (d_max * n2_hi).min(1.05 * g_max.0.max(d_max)));
         let BandTable {
             sorted,
             sigma_center,
@@ -301,7 +371,19 @@ impl Solver {
             basis,
             theta_range,
             sin2_range: (theta_range.0.sin().powi(2), theta_range.1.sin().powi(2)),
+            d_min,
             d_max,
+            d_max_given: scene.max_thickness_nm.is_some(),
+            g_max,
+            noise: None,
+            chi2: Chi2Test::flagging(MAX_BANDS),
+            level: Level::identity(bands.len()),
+            level_mode: match scene.level {
+                LevelMode::Auto => LevelMode::Absolute,
+                l => l,
+            },
+            level_note: String::new(),
+            calibration_suspect: false,
             sorted,
             sigma_center,
             sigma_range,
@@ -322,7 +404,29 @@ impl Solver {
                 twin_delta_chi2: f64::NAN,
                 noise_sigma: f64::NAN,
                 note: "known".into(),
+                ambiguous: false,
+                at_bound: false,
+                sigma_in_level: false,
             });
+        }
+        if scene.level == LevelMode::Free {
+            if !matches!(scene.film, FilmKnowledge::Known(_)) {
+                return Err(EstimateError::Level(
+                    "the free level needs the film index (--n2 or --material2): with a free scale per pixel only the optical thickness is seen".into(),
+                ));
+            }
+            if matches!(scene.angle, AngleKnowledge::Unknown { .. }) {
+                return Err(EstimateError::Level(
+                    "the free level needs the incidence angle (--theta-deg or --theta-map)".into(),
+                ));
+            }
+        }
+        if let Some(s) = scene.noise_sigma {
+            solver.set_noise(NoiseModel::uniform(
+                s,
+                bands.len(),
+                super::noise::NoiseSource::Given,
+            ));
         }
         Ok(solver)
     }
@@ -399,8 +503,16 @@ impl Solver {
                 None
             };
         let slopes = Slopes::new(&table);
+        let envelope_range = table
+            .iter()
+            .flat_map(|e| [e.1, e.2])
+            .filter(|v| v.is_finite())
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
+                (a.min(v), b.max(v))
+            });
         Ok(Prepared {
             model,
+            envelope_range,
             sign,
             slopes,
             table,
@@ -460,6 +572,11 @@ impl Solver {
             return PixelEstimate::invalid(Reason::Masked);
         };
         let noise = index.noise_sigma.is_finite().then_some(index.noise_sigma);
+        if self.level_mode == LevelMode::Free {
+            let mut est = self.solve_free(prep, spectrum, theta_known, scratch);
+            Self::with_index(prep, index, &mut est);
+            return est;
+        }
         let (mut est, _) = self.solve_with(
             prep,
             Job {
@@ -471,20 +588,83 @@ impl Solver {
             },
             scratch,
         );
+        self.with_level(&mut est);
         Self::with_index(prep, index, &mut est);
         est
     }
 
     /// The global index and its share of the thickness error.
     fn with_index(prep: &Prepared, index: &IndexEstimate, est: &mut PixelEstimate) {
+        if est.is_valid() && index.at_bound {
+            *est = PixelEstimate::invalid(Reason::AtBound);
+        }
         if est.is_valid() {
             est.n_film = index.n;
             // The global index's own error moves the thickness at fixed
             // optical thickness: ∂d/∂n2 = −d·n2/q2².
             let q2 = prep.model.q2_mid(est.theta_deg.to_radians());
             let dd_dn = est.thickness_nm * index.n / (q2 * q2);
-            let (a, b) = (est.sigma_thickness_nm, dd_dn * index.sigma);
-            est.sigma_thickness_nm = (a * a + b * b).sqrt();
+            let sigma_n = if index.sigma_in_level {
+                0.0
+            } else {
+                index.sigma
+            };
+            let (a, b) = (est.sigma_thickness_nm, dd_dn * sigma_n);
+            // An unresolved twin: the thickness on the other branch (same
+            // optical thickness) is as likely, so σ spans it.
+            let c = match (index.ambiguous, index.twin) {
+                (true, Some(t)) => {
+                    let kx2 = index.n * index.n - q2 * q2;
+                    let q_twin = (t * t - kx2).max(1e-12).sqrt();
+                    (est.thickness_nm * (q2 / q_twin - 1.0)).abs()
+                }
+                _ => 0.0,
+            };
+            est.sigma_thickness_nm = (a * a + b * b + c * c).sqrt();
         }
+    }
+
+    /// The image-wide level's share of a valid pixel's σ.
+    fn with_level(&self, est: &mut PixelEstimate) {
+        if est.is_valid() && self.calibration_suspect {
+            *est = PixelEstimate::invalid(Reason::PoorFit);
+        }
+        if est.is_valid() {
+            est.sigma_thickness_nm *= self.level.sigma_inflation;
+        }
+    }
+
+    /// Use this noise model from now on (given, measured by the camera's
+    /// calibration, or estimated from the data).
+    pub fn set_noise(&mut self, noise: NoiseModel) {
+        let typical = noise.typical_sigma(0.05);
+        self.noise = Some(noise);
+        if let Some(i) = &mut self.index {
+            i.noise_sigma = typical;
+        }
+    }
+
+    /// The noise model in force, once known.
+    pub fn noise(&self) -> Option<&NoiseModel> {
+        self.noise.as_ref()
+    }
+
+    /// The image-wide level in force and the level model it came from.
+    pub fn level(&self) -> (&Level, LevelMode, &str) {
+        (&self.level, self.level_mode, &self.level_note)
+    }
+
+    /// Use this level from now on (e.g. one estimated on an earlier sweep).
+    pub fn set_level(&mut self, level: Level, mode: LevelMode, note: String) {
+        self.calibration_suspect = false;
+        self.level = level;
+        self.level_mode = mode;
+        self.level_note = note;
+    }
+
+    /// The thickness range searched, nm, and the largest optical thickness
+    /// the bands resolve.
+    pub fn thickness_range(&self) -> (f64, f64, f64) {
+        (self.d_min, self.d_max, self.g_max.0)
     }
 }

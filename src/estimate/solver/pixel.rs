@@ -48,6 +48,15 @@ impl Solver {
         if n_ok == 0 {
             return (PixelEstimate::invalid(Reason::NonFinite), f64::NAN);
         }
+        // Judged against the noise model once one is known (not while the
+        // global index is searched: the caller passes no noise then).
+        let judging = noise.is_some() && self.judging();
+        if judging {
+            let mean = scratch.spectrum.iter().sum::<f64>() / n_ok as f64;
+            if self.out_of_model(prep, mean, theta_known) {
+                return (PixelEstimate::invalid(Reason::OutOfModel), f64::NAN);
+            }
+        }
         let n_par = if theta_known.is_some() { 1 } else { 2 };
         if n_ok < nb.div_ceil(2).max(n_par + 3) {
             let reason = if spectrum.iter().any(|v| v.is_infinite()) {
@@ -66,7 +75,19 @@ impl Solver {
         if effort.closed_form && n_ok == nb {
             if let Some(fe) = self.extrema_estimate(prep, theta_known, noise, scratch) {
                 if effort.closed_form_only {
-                    return (fe, f64::NAN);
+                    // The closed form is checked against the full model
+                    // spectrum; one that does not explain it takes the
+                    // fitted path from its estimate.
+                    if !judging {
+                        return (fe, f64::NAN);
+                    }
+                    let (d, th) = (fe.thickness_nm, fe.theta_deg.to_radians());
+                    let chi2 = self.chi2_at(&prep.model, d, th, scratch);
+                    if self.fit_passes(chi2, n_ok, n_par)
+                        && self.bound_reason(prep, d, th, theta_known).is_none()
+                    {
+                        return (fe, f64::NAN);
+                    }
                 }
                 let fit = self.refine(
                     &prep.model,
@@ -251,7 +272,26 @@ impl Solver {
         }
         let q2 = prep.model.q2_mid(best.theta);
         let dof = (n_ok - n_par).max(1) as f64;
-        let var = (best.sse / dof).max(1e-14);
+        let model = match (&prep.integrated, best.integrated) {
+            (Some(m), true) => m,
+            _ => &prep.model,
+        };
+        // The fit is judged against the noise model, and its σ never claims
+        // more precision than the instrument's noise allows.
+        let judging = noise.is_some() && self.judging();
+        let (chi2, noise_var) = if judging {
+            let mut trial = std::mem::take(&mut scratch.trial);
+            model.eval(best.d, best.theta, &mut trial, false);
+            let out = (
+                self.chi2_of(scratch, &trial.r),
+                self.noise_var(scratch, &trial.r),
+            );
+            scratch.trial = trial;
+            out
+        } else {
+            (f64::NAN, 0.0)
+        };
+        let var = (best.sse / dof).max(noise_var).max(1e-14);
         // Covariance with a weak prior on the angle (its search range as a
         // uniform distribution) so a flat direction gives a large, finite σ.
         let (sig_d, sig_th) = if theta_known.is_some() {
@@ -272,10 +312,6 @@ impl Solver {
         // Near d = 0 the reflectance is even in d (dR/dd = 0 at d = 0), so
         // the linearised σ is meaningless: take the one-sided profile bound
         // instead, the d at which the residual grows by one variance.
-        let model = match (&prep.integrated, best.integrated) {
-            (Some(m), true) => m,
-            _ => &prep.model,
-        };
         let sig_d = if best.d < 0.1 * lam_min && (sig_d.is_nan() || sig_d >= 0.05 * lam_min) {
             self.profile_sigma_d(model, best, var, scratch)
         } else {
@@ -321,9 +357,12 @@ impl Solver {
                 reason = Reason::AmbiguousOrder;
             }
         }
-        if let Some(noise) = noise {
-            if rms > 4.0 * noise && rms > 1e-4 {
-                reason = Reason::PoorFit;
+        if judging && !self.fit_passes(chi2, n_ok, n_par) {
+            reason = Reason::PoorFit;
+        }
+        if judging && reason == Reason::Ok {
+            if let Some(r) = self.bound_reason(prep, best.d, best.theta, theta_known) {
+                reason = r;
             }
         }
         if reason == Reason::Ok && !sig_d.is_finite() {

@@ -20,7 +20,7 @@ impl Solver {
         let eval = |d: f64, th: f64, out: &mut ModelOut| {
             model.eval(d, th, out, true);
         };
-        let (mut d, mut th) = (d0.clamp(0.0, self.d_max), theta0);
+        let (mut d, mut th) = (d0.clamp(self.d_min, self.d_max), theta0);
         eval(d, th, &mut s.cur);
         let mut cur_sse = sse(&s.spectrum, &s.weight, &s.cur.r);
         let mut mu = 1e-4;
@@ -53,7 +53,7 @@ impl Solver {
                 };
                 // Never jump more than a quarter fringe in one step.
                 let max_dd = 0.25 * 400.0 / (2.0 * model.n2_mid());
-                let nd = (d + sd.clamp(-max_dd, max_dd)).clamp(0.0, self.d_max);
+                let nd = (d + sd.clamp(-max_dd, max_dd)).clamp(self.d_min, self.d_max);
                 let nt = (th + st.clamp(-0.1, 0.1)).clamp(lo, hi);
                 eval(nd, nt, &mut s.trial);
                 let new_sse = sse(&s.spectrum, &s.weight, &s.trial.r);

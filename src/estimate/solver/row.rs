@@ -35,7 +35,7 @@ impl Solver {
         let mut pixel = std::mem::take(&mut scratch.pixel);
         pixel.resize(cube.bands.len(), 0.0);
         let mut done = 0;
-        if self.mode == Mode::Fast {
+        if self.mode == Mode::Fast && self.level_mode != crate::estimate::level::LevelMode::Free {
             let pre = candidates.filter(|c| {
                 c.size() == (cube.width, cube.height) && c.bands() == self.sorted.len()
             });
@@ -136,8 +136,33 @@ impl Solver {
                     }
                     est = self.closed_form(prep, &acc, theta_known, noise, Some(index));
                 }
+                let mut retry_closed_form = false;
+                if let (Some(e), true) = (&est, self.judging()) {
+                    // The closed form must explain the whole spectrum.
+                    cube.spectrum_into(x, y, pixel);
+                    scratch.ensure(nb);
+                    scratch.spectrum.copy_from_slice(pixel);
+                    scratch.weight.fill(1.0);
+                    let (d, th) = (e.thickness_nm, e.theta_deg.to_radians());
+                    let n_par = if theta_known.is_some() { 1 } else { 2 };
+                    let chi2 = self.chi2_at(&prep.model, d, th, scratch);
+                    if !(self.fit_passes(chi2, nb, n_par)
+                        && self.bound_reason(prep, d, th, theta_known).is_none())
+                    {
+                        est = None;
+                        retry_closed_form = true;
+                    }
+                }
                 out[x] = match est {
-                    Some(e) => e,
+                    Some(mut e) => {
+                        self.with_level(&mut e);
+                        e
+                    }
+                    None if retry_closed_form => {
+                        // Refined from the closed form (and searched if
+                        // that does not fit either), then judged.
+                        self.solve_pixel_with(pixel, theta_known, scratch, Effort::of(Mode::Fast))
+                    }
                     None => {
                         // The closed form was just tried on these very
                         // samples: straight to the fitted path.
@@ -166,6 +191,16 @@ impl Solver {
         {
             self.estimate_film_index(cube)?;
         }
+        // Every pixel is solved on the data corrected by the level in force.
+        let corrected;
+        let cube = if self.level.is_identity() {
+            cube
+        } else {
+            let mut c = cube.clone();
+            self.apply_level(&mut c);
+            corrected = c;
+            &corrected
+        };
         let (w, h) = (cube.width, cube.height);
         let mut maps = ParamMaps::for_overwrite(w, h);
         // Rows in parallel, each written straight into its row of the maps
@@ -201,7 +236,56 @@ impl Solver {
             n_film_estimated: idx.as_ref().is_some_and(|i| i.estimated),
             n_film_note: idx.map(|i| i.note).unwrap_or_default(),
             polarization: self.scene.polarization.name(),
+            quality: self.quality_meta(),
         }
+    }
+
+    /// What the fits were judged against, as (key, value) attributes.
+    pub fn quality_meta(&self) -> Vec<(String, String)> {
+        let (gain, offset) = self.level.mean();
+        let mut q = vec![
+            (
+                "noise_sigma".to_string(),
+                self.noise.as_ref().map_or("unknown".into(), |n| {
+                    format!("{:.3e}", n.typical_sigma(0.05))
+                }),
+            ),
+            (
+                "noise_source".into(),
+                self.noise
+                    .as_ref()
+                    .map_or("none (fits not tested)".into(), |n| n.source.name().into()),
+            ),
+            ("level".into(), self.level_mode.name().into()),
+            ("level_gain".into(), format!("{gain:.5}")),
+            ("level_offset".into(), format!("{offset:.6}")),
+            (
+                "thickness_range_nm".into(),
+                format!("{:.1}..{:.1}", self.d_min, self.d_max),
+            ),
+            (
+                "optical_thickness_max_nm".into(),
+                format!(
+                    "{:.0} ({})",
+                    self.g_max.0,
+                    match self.g_max.1 {
+                        crate::estimate::range::RangeLimit::Sampling => "band spacing",
+                        crate::estimate::range::RangeLimit::Passband => "passband width",
+                    }
+                ),
+            ),
+            (
+                "fit_test".into(),
+                format!(
+                    "chi2 at p = {} against the noise model",
+                    crate::estimate::quality::FLAG_PROBABILITY
+                ),
+            ),
+        ];
+        if !self.level_note.is_empty() {
+            q.push(("level_note".into(), self.level_note.clone()));
+        }
+        q
     }
 
     pub(super) fn check_cube(&self, cube: &Cube) -> Result<(), EstimateError> {

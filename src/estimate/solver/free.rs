@@ -1,0 +1,236 @@
+//! The free level: every pixel has its own scale, offset and slow envelope,
+//! `y_k = R_k(d)·(c0 + c1·u_k + … + c_m·u_k^m) + b` with `u` the band's
+//! wavenumber normalised to [−1, 1] — for normalised or uncalibrated
+//! intensities, where only the fringes' positions and shapes carry the
+//! thickness.
+//!
+//! Variable projection: for each trial thickness the linear coefficients
+//! are solved by least squares, so the thickness is searched on a grid of
+//! its profile (fine enough that no fringe order is skipped), then refined
+//! by golden section; σ from the profile's curvature. The envelope degree
+//! (0, 2 or 4) is the lowest the data accept: a higher one is taken only
+//! when it lowers χ² by more than its extra parameters explain at
+//! p = 0.001 — modelling only what the spectrum requires.
+
+use super::{Prepared, Scratch, Solver};
+use crate::estimate::level::solve_spd;
+use crate::estimate::quality::chi2_upper_quantile;
+use crate::estimate::{PixelEstimate, Reason};
+use std::f64::consts::PI;
+
+/// Envelope degrees tried, lowest first.
+const DEGREES: [usize; 3] = [0, 2, 4];
+/// Probability at which a higher envelope degree is accepted.
+const DEGREE_PROBABILITY: f64 = 1e-3;
+/// Grid points per quarter fringe (at the shortest wavelength).
+const GRID_PER_QUARTER_FRINGE: f64 = 4.0;
+/// Largest relative σ of a valid thickness: beyond it the fringes no longer
+/// pin the thickness once the level is free ("no fringe in range").
+const MAX_RELATIVE_SIGMA: f64 = 0.033;
+
+impl Solver {
+    /// One pixel under the free level (angle and film index known).
+    pub(super) fn solve_free(
+        &self,
+        prep: &Prepared,
+        spectrum: &[f64],
+        theta_known: Option<f64>,
+        scratch: &mut Scratch,
+    ) -> PixelEstimate {
+        let nb = self.bands.len();
+        let Some(theta) = theta_known.filter(|t| t.is_finite() && (0.0..PI / 2.0).contains(t))
+        else {
+            return PixelEstimate::invalid(Reason::OutOfModel);
+        };
+        if spectrum.len() != nb {
+            return PixelEstimate::invalid(Reason::MissingBands);
+        }
+        scratch.ensure(nb);
+        let mut n_ok = 0;
+        for (k, &v) in spectrum.iter().enumerate() {
+            let ok = v.is_finite();
+            scratch.spectrum[k] = if ok { v } else { 0.0 };
+            scratch.weight[k] = if ok { 1.0 } else { 0.0 };
+            n_ok += usize::from(ok);
+        }
+        if n_ok == 0 {
+            return PixelEstimate::invalid(Reason::NonFinite);
+        }
+        if n_ok < nb.div_ceil(2).max(10) {
+            return PixelEstimate::invalid(Reason::MissingBands);
+        }
+        let (s_lo, s_hi) = self.sigma_range;
+        let half = 0.5 * (s_hi - s_lo).max(1e-12);
+        let u: Vec<f64> = self
+            .bands
+            .iter()
+            .map(|b| (1.0 / b.center_nm - s_lo) / half - 1.0)
+            .collect();
+        let q2 = prep.model.q2_mid(theta);
+        let lam_min = self.sorted.first().map_or(400.0, |b| b.1);
+        let step = lam_min / (4.0 * GRID_PER_QUARTER_FRINGE * 2.0 * q2);
+        let n_grid = (((self.d_max - self.d_min) / step).ceil() as usize + 1).min(200_000);
+        let mut trial = std::mem::take(&mut scratch.trial);
+        // The profile of every degree on the grid.
+        let mut prof: Vec<[f64; 3]> = Vec::with_capacity(n_grid);
+        for i in 0..n_grid {
+            let d = (self.d_min + step * i as f64).min(self.d_max);
+            prep.model.eval(d, theta, &mut trial, false);
+            prof.push(profile_sse(scratch, &trial.r, &u));
+        }
+        // Degree: the lowest whose best fit a higher one does not beat
+        // significantly.
+        let best_of = |j: usize| -> (usize, f64) {
+            prof.iter()
+                .enumerate()
+                .map(|(i, p)| (i, p[j]))
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+                .unwrap_or((0, f64::INFINITY))
+        };
+        let var_noise = self.noise_var(scratch, &vec![0.0; nb]);
+        let mut deg_j = 0;
+        for j in 1..DEGREES.len() {
+            let (_, lo_sse) = best_of(deg_j);
+            let (_, hi_sse) = best_of(j);
+            let extra = (DEGREES[j] - DEGREES[deg_j]) as f64;
+            let var = if var_noise > 0.0 {
+                var_noise
+            } else {
+                hi_sse / (n_ok as f64 - DEGREES[j] as f64 - 3.0).max(1.0)
+            };
+            if (lo_sse - hi_sse) / var > chi2_upper_quantile(extra, DEGREE_PROBABILITY) {
+                deg_j = j;
+            }
+        }
+        let n_lin = DEGREES[deg_j] + 2;
+        let (i_best, _) = best_of(deg_j);
+        // Golden section on the bracketing grid cells.
+        let sse_at = |d: f64, trial: &mut crate::estimate::model::ModelOut| {
+            prep.model.eval(d, theta, trial, false);
+            profile_sse(scratch, &trial.r, &u)[deg_j]
+        };
+        let lo = (self.d_min + step * i_best as f64 - step).max(self.d_min);
+        let hi = (self.d_min + step * i_best as f64 + step).min(self.d_max);
+        let g = 0.5 * (5f64.sqrt() - 1.0);
+        let (mut a, mut b) = (lo, hi);
+        let (mut c, mut e) = (b - g * (b - a), a + g * (b - a));
+        let (mut fc, mut fe) = (sse_at(c, &mut trial), sse_at(e, &mut trial));
+        for _ in 0..48 {
+            if fc < fe {
+                b = e;
+                e = c;
+                fe = fc;
+                c = b - g * (b - a);
+                fc = sse_at(c, &mut trial);
+            } else {
+                a = c;
+                c = e;
+                fc = fe;
+                e = a + g * (b - a);
+                fe = sse_at(e, &mut trial);
+            }
+        }
+        let d = 0.5 * (a + b);
+        let sse = sse_at(d, &mut trial);
+        let dof = n_ok.saturating_sub(n_lin + 1).max(1);
+        let var = (sse / dof as f64).max(var_noise).max(1e-14);
+        // σ from the profile's curvature: SSE(d ± h) ≈ SSE + (SSE''/2)·h².
+        let h = (0.02 * step).max(1e-3);
+        let curv = (sse_at(d + h, &mut trial) + sse_at((d - h).max(0.0), &mut trial) - 2.0 * sse)
+            / (h * h);
+        let sigma = if curv > 0.0 {
+            (2.0 * var / curv).sqrt()
+        } else {
+            f64::INFINITY
+        };
+        let chi2 = sse / var_noise.max(1e-300);
+        scratch.trial = trial;
+        let mut reason = Reason::Ok;
+        // Another fringe order about as good: ambiguous.
+        let second = prof
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| i.abs_diff(i_best) > 2)
+            .filter(|(i, p)| {
+                let here = p[deg_j];
+                (*i == 0 || prof[i - 1][deg_j] >= here)
+                    && (i + 1 == prof.len() || prof[i + 1][deg_j] >= here)
+            })
+            .map(|(_, p)| p[deg_j])
+            .fold(f64::INFINITY, f64::min);
+        if (second - sse) / var < 9.0 {
+            reason = Reason::AmbiguousOrder;
+        }
+        if self.judging() && !self.fit_passes(chi2, n_ok, n_lin + 1) {
+            reason = Reason::PoorFit;
+        }
+        if reason == Reason::Ok && !(sigma.is_finite() && sigma <= MAX_RELATIVE_SIGMA * d.max(1.0))
+        {
+            reason = Reason::NoFringe;
+        }
+        if reason == Reason::Ok {
+            if let Some(r) = self.bound_reason(prep, d, theta, Some(theta)) {
+                reason = r;
+            }
+        }
+        if !reason.is_valid() {
+            return PixelEstimate::invalid(reason);
+        }
+        PixelEstimate {
+            thickness_nm: d,
+            n_film: prep.model.n2_mid(),
+            theta_deg: theta.to_degrees(),
+            sigma_thickness_nm: sigma,
+            sigma_theta_deg: 0.0,
+            residual_rms: (sse / n_ok as f64).sqrt(),
+            reason,
+        }
+    }
+}
+
+/// Residual sum of squares of `y ≈ R·(c0 + c1 u + … + c_m u^m) + b` for
+/// each degree in [`DEGREES`], the coefficients solved by least squares.
+fn profile_sse(s: &Scratch, r: &[f64], u: &[f64]) -> [f64; 3] {
+    const N: usize = 6;
+    // Normal equations of the largest basis; smaller ones are its leading
+    // blocks (basis order: 1, R, R u, R u², R u³, R u⁴).
+    let mut ata = [0.0f64; N * N];
+    let mut aty = [0.0f64; N];
+    let mut yy = 0.0;
+    for k in 0..s.spectrum.len() {
+        let w = s.weight[k];
+        if w == 0.0 {
+            continue;
+        }
+        let y = s.spectrum[k];
+        let mut f = [1.0, r[k], 0.0, 0.0, 0.0, 0.0];
+        for j in 2..N {
+            f[j] = f[j - 1] * u[k];
+        }
+        yy += w * y * y;
+        for i in 0..N {
+            aty[i] += w * f[i] * y;
+            for j in 0..=i {
+                ata[i * N + j] += w * f[i] * f[j];
+            }
+        }
+    }
+    let mut out = [f64::INFINITY; 3];
+    for (slot, &deg) in DEGREES.iter().enumerate() {
+        let n = deg + 2;
+        let mut a = vec![0.0; n * n];
+        for i in 0..n {
+            for j in 0..=i {
+                let v = ata[i * N + j];
+                a[i * n + j] = v;
+                a[j * n + i] = v;
+            }
+            a[i * n + i] *= 1.0 + 1e-12;
+        }
+        if let Some(c) = solve_spd(&a, n, &aty[..n]) {
+            let fit: f64 = c.iter().zip(&aty[..n]).map(|(c, b)| c * b).sum();
+            out[slot] = (yy - fit).max(0.0);
+        }
+    }
+    out
+}

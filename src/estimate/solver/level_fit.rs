@@ -1,0 +1,281 @@
+//! The image-wide level (`scaled`, and the test `auto` applies): a gain and
+//! an offset per band shared by every pixel, estimated with the film index
+//! on the index sample by Gauss–Newton with the pixels' own parameters
+//! eliminated ([`crate::estimate::level::level_step`]), alternating with
+//! the index search on the corrected sample.
+
+use super::index::SamplePixel;
+use super::{Effort, IndexEstimate, Job, Scratch, Solver};
+use crate::estimate::level::{
+    level_step, Level, LevelBasis, LevelMode, LevelPixel, AUTO_PROBABILITY,
+};
+use crate::estimate::model::{FilmModel, ModelOut};
+use crate::estimate::quality::chi2_upper_quantile;
+use crate::estimate::{Cube, EstimateError};
+use crate::optics::dispersion::Dispersion;
+use crate::scene::FilmKnowledge;
+use rayon::prelude::*;
+
+/// Gauss–Newton steps per round at most.
+const MAX_STEPS: usize = 30;
+/// A step that moves no gain or offset by more than this has converged.
+const CONVERGED: f64 = 2e-5;
+/// A band's model reflectance must spread over the sample by at least this
+/// (and three noise σ) for a gain and offset of its own to be told apart
+/// from the pixels' parameters; otherwise the level is smooth.
+const MIN_SPREAD: f64 = 0.003;
+/// Fewest sample pixels for a gain and offset per band.
+const MIN_PIXELS_PER_BAND_BASIS: usize = 50;
+
+impl Solver {
+    /// Fit the image-wide level on the sample where the scene asks for it
+    /// (`scaled`) or the data show it is needed (`auto`); on success the
+    /// level is in force and the index (re-estimated on the corrected
+    /// sample where unknown) is returned. `None`: the absolute level stays.
+    pub(super) fn fit_level(
+        &mut self,
+        sample: &[SamplePixel],
+        est_abs: &IndexEstimate,
+    ) -> Result<Option<IndexEstimate>, EstimateError> {
+        let Some(noise) = self.noise.clone() else {
+            self.level_note = "absolute (no independent noise level to test against)".into();
+            return Ok(None);
+        };
+        let nb = self.bands.len();
+        let var: Vec<f64> = (0..nb).map(|k| noise.var(k, 0.05)).collect();
+        let wn: Vec<f64> = self.bands.iter().map(|b| 1.0 / b.center_nm).collect();
+        let identity = Level::identity(nb);
+        let abs = self.level_pixels(sample, &identity);
+        if abs.is_empty() {
+            return Ok(None);
+        }
+        let basis = self.level_basis(&abs, &noise.typical_sigma(0.05));
+        let m = basis.n_params(nb);
+        let mut level = identity.clone();
+        let mut est = est_abs.clone();
+        let mut chi2_abs = f64::NAN;
+        let unknown_index = matches!(self.scene.film, FilmKnowledge::Unknown { .. });
+        // Gauss–Newton on the level and (where unknown) the film index
+        // together, the pixels refitted on the corrected data every step.
+        for step_no in 0..MAX_STEPS {
+            let px = if step_no == 0 {
+                abs.clone()
+            } else {
+                self.level_pixels(sample, &level)
+            };
+            let Some(step) = level_step(&px, &level, basis, &wn, &var) else {
+                break;
+            };
+            if step_no == 0 {
+                chi2_abs = step.chi2;
+            }
+            level = step.level;
+            let mut dn = 0.0;
+            if unknown_index {
+                if let (Some(&d), Some(&v)) = (step.extra_step.first(), step.extra_var.first()) {
+                    dn = d.clamp(-0.02, 0.02);
+                    est.n += dn;
+                    est.sigma = v.sqrt();
+                    self.set_film_index(est.clone())?;
+                }
+            }
+            if step.change < CONVERGED && dn.abs() < 1e-5 {
+                break;
+            }
+        }
+        if unknown_index {
+            est.note = format!("{} (estimated jointly with the level)", est.note)
+                .trim_start()
+                .to_string();
+        }
+        // χ² of the sample under the fitted level, with the same pixels'
+        // fits redone on the corrected data.
+        let px = self.level_pixels(sample, &level);
+        let chi2_scaled = level_step(&px, &level, basis, &wn, &var).map_or(f64::NAN, |s| s.chi2);
+        let delta = chi2_abs - chi2_scaled;
+        let threshold = chi2_upper_quantile(m as f64, AUTO_PROBABILITY);
+        let (g, o) = level.mean();
+        let significant = delta > threshold;
+        if self.scene.level == LevelMode::Absolute {
+            // Told to trust the calibration: the level is only tested. A
+            // significant, correctable misfit shared by the image means the
+            // calibration is off, and no pixel's thickness can be trusted.
+            self.level = identity;
+            self.level_mode = LevelMode::Absolute;
+            if unknown_index {
+                self.set_film_index(est_abs.clone())?;
+            }
+            self.calibration_suspect = significant && level.is_plausible();
+            self.level_note = if self.calibration_suspect {
+                format!(
+                    "absolute as asked, but the image shows a calibration error (a gain {g:.4} and offset {o:.5} would lower χ² by {delta:.0} > {threshold:.0}): every pixel flagged poor fit; use --level auto or scaled"
+                )
+            } else {
+                format!("absolute (a fitted level would lower χ² by {delta:.0} < {threshold:.0})")
+            };
+            return Ok(None);
+        }
+        let want = self.scene.level == LevelMode::Scaled || significant;
+        if want && !level.is_plausible() {
+            self.level_note = format!(
+                "absolute: the fitted level (gain {g:.3}, offset {o:.4}) is no calibration error but data that are not reflectance; pixels are judged as they are (use --level free for normalised intensities)"
+            );
+            self.level = identity;
+            self.level_mode = LevelMode::Absolute;
+            if unknown_index {
+                self.set_film_index(est_abs.clone())?;
+            }
+            return Ok(None);
+        }
+        if want && chi2_scaled.is_finite() {
+            self.level_note = format!(
+                "scaled ({}, {} parameters): gain {:.4} (per band {:.4}–{:.4}), offset {:.5}; Δχ² = {:.0} against absolute (threshold {:.0})",
+                match basis {
+                    LevelBasis::PerBand => "gain and offset per band",
+                    LevelBasis::Smooth => "gain quadratic in wavenumber, one offset",
+                },
+                m,
+                g,
+                level.gain.iter().copied().fold(f64::INFINITY, f64::min),
+                level.gain.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+                o,
+                delta,
+                threshold
+            );
+            self.level = level;
+            self.level_mode = LevelMode::Scaled;
+            if unknown_index {
+                // The index's σ is in the level's joint covariance, whose
+                // share of σ_d the level's inflation factor already carries.
+                est.sigma_in_level = true;
+                self.set_film_index(est.clone())?;
+            }
+            Ok(Some(est))
+        } else {
+            self.level_note = format!(
+                "absolute (a fitted level would lower χ² by {delta:.0}, below the {threshold:.0} that {m} parameters need)"
+            );
+            self.level = identity;
+            self.level_mode = LevelMode::Absolute;
+            if unknown_index {
+                // The index searched on the raw sample stands.
+                self.set_film_index(est_abs.clone())?;
+            }
+            Ok(None)
+        }
+    }
+
+    /// A gain and offset per band where the sample spreads every band's
+    /// reflectance enough to tell them from the pixels' parameters; else
+    /// the smooth level.
+    fn level_basis(&self, px: &[LevelPixel], sigma: &f64) -> LevelBasis {
+        if px.len() < MIN_PIXELS_PER_BAND_BASIS {
+            return LevelBasis::Smooth;
+        }
+        let nb = self.bands.len();
+        let min_spread = (0..nb)
+            .map(|k| {
+                let n = px.len() as f64;
+                let mean = px.iter().map(|p| p.r[k]).sum::<f64>() / n;
+                (px.iter().map(|p| (p.r[k] - mean).powi(2)).sum::<f64>() / n).sqrt()
+            })
+            .fold(f64::INFINITY, f64::min);
+        if min_spread > MIN_SPREAD.max(3.0 * sigma) {
+            LevelBasis::PerBand
+        } else {
+            LevelBasis::Smooth
+        }
+    }
+
+    /// Each sample pixel fitted on its spectrum corrected by `level`, as
+    /// the level fit needs it: raw values, model and model derivatives.
+    fn level_pixels(&self, sample: &[SamplePixel], level: &Level) -> Vec<LevelPixel> {
+        let Some(prep) = &self.prepared else {
+            return Vec::new();
+        };
+        let nb = self.bands.len();
+        // Where the index is unknown, the model one step up in n2 gives each
+        // pixel's derivative with respect to it (estimated with the level).
+        const DN: f64 = 1e-4;
+        let up = match (&self.scene.film, &self.index) {
+            (FilmKnowledge::Unknown { .. }, Some(i)) => FilmModel::new(
+                &self.bands,
+                &self.scene.ambient,
+                &Dispersion::constant(i.n + DN),
+                &self.scene.substrate,
+                self.scene.polarization,
+                &vec![false; nb],
+            )
+            .ok(),
+            _ => None,
+        };
+        sample
+            .par_iter()
+            .map_init(
+                || {
+                    (
+                        Scratch::default(),
+                        ModelOut::new(nb),
+                        ModelOut::new(nb),
+                        vec![0.0; nb],
+                    )
+                },
+                |(scratch, out, out_up, corr), px| {
+                    for (k, (c, &y)) in corr.iter_mut().zip(&px.spectrum).enumerate() {
+                        *c = level.correct(k, y);
+                    }
+                    let job = Job {
+                        spectrum: corr,
+                        theta_known: px.theta,
+                        noise: None,
+                        effort: Effort::INDEX_SEARCH,
+                        pre: None,
+                    };
+                    let (est, _) = self.solve_with(prep, job, scratch);
+                    if !est.is_valid() {
+                        return None;
+                    }
+                    let th = est.theta_deg.to_radians();
+                    prep.model.eval(est.thickness_nm, th, out, true);
+                    let mut jac = vec![out.dr_dd[..nb].to_vec()];
+                    if px.theta.is_none() {
+                        jac.push(out.dr_dth[..nb].to_vec());
+                    }
+                    let extra = match &up {
+                        Some(m) => {
+                            m.eval(est.thickness_nm, th, out_up, false);
+                            vec![(0..nb)
+                                .map(|k| level.gain[k] * (out_up.r[k] - out.r[k]) / DN)
+                                .collect()]
+                        }
+                        None => Vec::new(),
+                    };
+                    Some(LevelPixel {
+                        y: px.spectrum.clone(),
+                        r: out.r[..nb].to_vec(),
+                        jac,
+                        extra,
+                    })
+                },
+            )
+            .flatten()
+            .collect()
+    }
+
+    /// Correct a cube by the level in force (nothing to do for the
+    /// identity): what every pixel is then solved on.
+    pub fn apply_level(&self, cube: &mut Cube) {
+        if self.level.gain.iter().all(|&g| g == 1.0) && self.level.offset.iter().all(|&o| o == 0.0)
+        {
+            return;
+        }
+        let n = cube.plane_len();
+        for k in 0..cube.bands.len().min(self.level.gain.len()) {
+            let (g, o) = (self.level.gain[k] as f32, self.level.offset[k] as f32);
+            let inv = 1.0 / g;
+            for v in &mut cube.data[k * n..(k + 1) * n] {
+                *v = (*v - o) * inv;
+            }
+        }
+    }
+}
