@@ -1,27 +1,40 @@
-//! `irid fit`: an ENVI cube in, one OpenEXR file of parameter maps out.
+//! `irid fit`: an ENVI cube or a spectrum table in, parameter maps out —
+//! one OpenEXR file, or a CSV with one row per pixel or spectrum.
+//!
+//! The input is ENVI when its name ends in `.hdr`, when it starts with
+//! `ENVI`, or when it is a data file with an ENVI header beside it and not
+//! a `.csv`, `.tsv` or `.txt`; anything else is read as a spectrum table
+//! ([`crate::io::spectrum_table`]), which `--wavelength-range` and `--bands`
+//! can cut and resample before the fit.
 //!
 //! The scene is the `--scene` file (or one that knows only an ambient of
 //! n = 1), edited by the command-line overrides before it is resolved, so a
 //! value given on the command line is known and never estimated. The fit
 //! alone is timed, here: the estimation core never reads the clock.
 
-use super::common::{SceneOverrides, SceneSource};
+use super::common::{parse_wavelengths, SceneOverrides, SceneSource};
+use crate::estimate::solver::MAX_BANDS;
 use crate::estimate::{Cube, Mode, ParamMaps, Reason, Solver};
-use crate::io::{envi, exr_maps};
+use crate::io::spectrum_table::{self, SpectrumTable};
+use crate::io::{envi, exr_maps, results_csv};
 use crate::scene::{AngleKnowledge, Scene};
 use anyhow::{bail, Context};
 use serde::Serialize;
-use std::path::PathBuf;
+use std::io::Read;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// Arguments of `irid fit`.
 #[derive(Debug, clap::Args)]
 pub struct FitArgs {
-    /// The ENVI cube (its `.hdr`, or the data file beside one).
-    #[arg(value_name = "CUBE.hdr")]
+    /// The input: an ENVI cube (its `.hdr`, or the data file beside one) or
+    /// a spectrum table (`.csv`, `.tsv`, `.txt`, `.dat`, … : a wavelength
+    /// column, then one column per spectrum).
+    #[arg(value_name = "INPUT")]
     pub cube: PathBuf,
-    /// Output OpenEXR file of parameter maps.
-    #[arg(long, value_name = "MAPS.exr")]
+    /// Output: a name ending in `.csv` gets one CSV row per spectrum or
+    /// pixel; any other an OpenEXR file of parameter maps.
+    #[arg(long, value_name = "OUT.exr|OUT.csv")]
     pub out: PathBuf,
     /// Scene TOML (media, what is known, search ranges).
     #[arg(long, value_name = "FILE")]
@@ -35,6 +48,13 @@ pub struct FitArgs {
     /// Reflectance of the white reference.
     #[arg(long, value_name = "R", default_value_t = 1.0, requires = "white")]
     pub white_reflectance: f32,
+    /// Spectrum tables: keep only the rows with LO ≤ wavelength ≤ HI (nm).
+    #[arg(long, value_name = "LO:HI")]
+    pub wavelength_range: Option<String>,
+    /// Spectrum tables: resample onto bands LO, LO+STEP, … ≤ HI (nm), each
+    /// the mean of the table values within ±STEP/2 of its centre (FWHM STEP).
+    #[arg(long, value_name = "LO:HI:STEP")]
+    pub bands: Option<String>,
     /// Scene overrides.
     #[command(flatten)]
     pub overrides: SceneOverrides,
@@ -112,7 +132,181 @@ pub fn build_scene(a: &FitArgs) -> anyhow::Result<Scene> {
     src.resolve()
 }
 
-fn read_input(a: &FitArgs) -> anyhow::Result<Cube> {
+/// What kind of file `irid fit` reads.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum InputKind {
+    /// An ENVI cube.
+    Envi,
+    /// A spectrum table (text).
+    Table,
+}
+
+/// The kind of `path`: ENVI for a `.hdr`, a file starting with `ENVI`, or
+/// a data file with a header beside it (unless named `.csv`, `.tsv` or
+/// `.txt`); a spectrum table otherwise.
+pub fn input_kind(path: &Path) -> InputKind {
+    let ext = path
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase())
+        .unwrap_or_default();
+    if ext == "hdr" {
+        return InputKind::Envi;
+    }
+    let mut magic = [0u8; 4];
+    let starts_envi = std::fs::File::open(path)
+        .and_then(|mut f| f.read_exact(&mut magic))
+        .is_ok()
+        && &magic == b"ENVI";
+    if starts_envi {
+        return InputKind::Envi;
+    }
+    if matches!(ext.as_str(), "csv" | "tsv" | "txt") {
+        return InputKind::Table;
+    }
+    if envi::resolve_paths(path).is_ok() {
+        InputKind::Envi
+    } else {
+        InputKind::Table
+    }
+}
+
+/// What the fit reads: the cube, and the spectrum names of a table.
+struct Input {
+    cube: Cube,
+    names: Option<Vec<String>>,
+}
+
+fn read_input(a: &FitArgs) -> anyhow::Result<Input> {
+    match input_kind(&a.cube) {
+        InputKind::Envi => {
+            if a.bands.is_some() || a.wavelength_range.is_some() {
+                bail!(
+                    "--bands and --wavelength-range apply to spectrum tables; {} is an ENVI cube, fitted in its own bands",
+                    a.cube.display()
+                );
+            }
+            Ok(Input {
+                cube: read_envi(a)?,
+                names: None,
+            })
+        }
+        InputKind::Table => {
+            if a.dark.is_some() {
+                bail!(
+                    "--dark/--white apply to ENVI cubes; {} is read as a spectrum table (of reflectance)",
+                    a.cube.display()
+                );
+            }
+            let table = read_table(a)?;
+            Ok(Input {
+                cube: table.cube,
+                names: Some(table.names),
+            })
+        }
+    }
+}
+
+/// Parse `LO:HI` (nm).
+fn parse_range(text: &str) -> Result<(f64, f64), String> {
+    let parts: Vec<Option<f64>> = text
+        .split(':')
+        .map(|p| p.trim().parse::<f64>().ok().filter(|v| v.is_finite()))
+        .collect();
+    match parts[..] {
+        [Some(lo), Some(hi)] if lo <= hi => Ok((lo, hi)),
+        _ => Err(format!("a range is LO:HI in nm with LO ≤ HI, not {text:?}")),
+    }
+}
+
+/// Parse `LO:HI:STEP` (nm): the band centres and the step.
+fn parse_band_grid(text: &str) -> Result<(Vec<f64>, f64), String> {
+    if text.split(':').count() != 3 {
+        return Err(format!("bands are LO:HI:STEP in nm, not {text:?}"));
+    }
+    let centers = parse_wavelengths(text)?;
+    let step = text
+        .rsplit(':')
+        .next()
+        .and_then(|s| s.trim().parse::<f64>().ok())
+        .ok_or_else(|| format!("bands are LO:HI:STEP in nm, not {text:?}"))?;
+    Ok((centers, step))
+}
+
+fn span(t: &SpectrumTable) -> String {
+    let (lo, hi) = t.wavelength_range();
+    format!("{lo}–{hi} nm")
+}
+
+/// Read a spectrum table and apply `--wavelength-range` and `--bands`.
+fn read_table(a: &FitArgs) -> anyhow::Result<SpectrumTable> {
+    let path = &a.cube;
+    let mut table = spectrum_table::read_table(path)?;
+    if let Some(r) = &a.wavelength_range {
+        let (lo, hi) = parse_range(r).map_err(|m| anyhow::anyhow!("--wavelength-range: {m}"))?;
+        let all = span(&table);
+        table = table.select_range(lo, hi);
+        if table.rows() < spectrum_table::MIN_ROWS {
+            bail!(
+                "--wavelength-range {r}: keeps {} rows of {} (which covers {all}); irid needs at least {}",
+                table.rows(),
+                path.display(),
+                spectrum_table::MIN_ROWS
+            );
+        }
+    }
+    if let Some(b) = &a.bands {
+        let (centers, step) = parse_band_grid(b).map_err(|m| anyhow::anyhow!("--bands: {m}"))?;
+        if centers.len() > MAX_BANDS {
+            bail!(
+                "--bands {b}: {} bands, but irid fits at most {MAX_BANDS}: take a larger STEP or a narrower range",
+                centers.len()
+            );
+        }
+        let covers = span(&table);
+        table = table
+            .resample(&centers, step)
+            .map_err(|m| anyhow::anyhow!("--bands {b}: {m}"))?;
+        let dropped = table.drop_empty_bands();
+        if table.rows() < spectrum_table::MIN_ROWS {
+            bail!(
+                "--bands {b}: only {} of {} bands have table values within ±{} nm (the table covers {covers})",
+                table.rows(),
+                centers.len(),
+                step / 2.0
+            );
+        }
+        if dropped > 0 {
+            eprintln!(
+                "irid fit: note: {dropped} of {} bands have no table value within ±{} nm (the table covers {covers}) and are left out",
+                centers.len(),
+                step / 2.0
+            );
+        }
+    } else {
+        let dropped = table.drop_empty_bands();
+        if dropped > 0 {
+            eprintln!(
+                "irid fit: note: {dropped} rows of {} are empty (NaN) in every spectrum and are left out",
+                path.display()
+            );
+        }
+        if table.rows() > MAX_BANDS {
+            let (lo, hi) = table.wavelength_range();
+            let step = ((hi - lo) / (MAX_BANDS - 1) as f64).ceil().max(1.0);
+            bail!(
+                "{} has {} wavelengths ({}), but irid fits at most {MAX_BANDS} bands: resample with --bands LO:HI:STEP (e.g. --bands {}:{}:{step}) or keep fewer rows with --wavelength-range LO:HI",
+                path.display(),
+                table.rows(),
+                span(&table),
+                lo.ceil(),
+                hi.floor()
+            );
+        }
+    }
+    Ok(table)
+}
+
+fn read_envi(a: &FitArgs) -> anyhow::Result<Cube> {
     Ok(match (&a.dark, &a.white) {
         (Some(d), Some(w)) => {
             anyhow::ensure!(
@@ -128,7 +322,7 @@ fn read_input(a: &FitArgs) -> anyhow::Result<Cube> {
 /// Run `irid fit`.
 pub fn run(a: &FitArgs) -> anyhow::Result<()> {
     let scene = build_scene(a)?;
-    let cube = read_input(a)?;
+    let Input { cube, names } = read_input(a)?;
     if let AngleKnowledge::Map { width, height, .. } = &scene.angle {
         if (*width, *height) != (cube.width, cube.height) {
             bail!(
@@ -152,7 +346,11 @@ pub fn run(a: &FitArgs) -> anyhow::Result<()> {
     let elapsed = start.elapsed().as_secs_f64();
     let solve_s = elapsed - index_s;
     let maps = result.context("fitting")?;
-    exr_maps::write_maps(&a.out, &maps)?;
+    if is_csv(&a.out) {
+        results_csv::write_results(&a.out, &maps, names.as_deref())?;
+    } else {
+        exr_maps::write_maps(&a.out, &maps)?;
+    }
     let pixels = cube.width * cube.height;
     let summary = Summary {
         pixels,
@@ -185,6 +383,12 @@ pub fn run(a: &FitArgs) -> anyhow::Result<()> {
         eprintln!("{}", human_summary(&summary, &maps, &a.out));
     }
     Ok(())
+}
+
+/// Whether `--out` asks for CSV.
+fn is_csv(path: &Path) -> bool {
+    path.extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("csv"))
 }
 
 fn human_summary(s: &Summary, maps: &ParamMaps, out: &std::path::Path) -> String {

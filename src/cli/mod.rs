@@ -36,7 +36,8 @@ pub enum Command {
     Run(run::RunArgs),
     /// Capture dark and white references per band.
     Calibrate(calibrate::CalibrateArgs),
-    /// Fit a spectral cube (ENVI) and write parameter maps (OpenEXR).
+    /// Fit a spectral cube (ENVI) or a spectrum table and write parameter
+    /// maps (OpenEXR) or per-spectrum results (CSV).
     Fit(fit::FitArgs),
     /// Render a synthetic ENVI cube from a scene, with its truth as EXR.
     Synth(synth::SynthArgs),

@@ -6,14 +6,21 @@
 //!   OpenEXR channels with text attributes.
 //! - [`angle_map`]: a per-pixel incidence-angle map in degrees from a
 //!   single-band EXR or ENVI file.
+//! - [`spectrum_table`]: spectrometer files and single spectra (CSV or
+//!   whitespace-separated text, one column per spectrum) as a one-row cube.
+//! - [`results_csv`]: per-pixel (per-spectrum) results as CSV, written
+//!   atomically.
 //!
 //! Promise: malformed, inconsistent or truncated files give an [`IoError`]
-//! that names the file and, for headers, the field. Nothing in this layer
+//! that names the file and, for headers, the field (for text tables, the
+//! line). Nothing in this layer
 //! panics on file contents.
 
 pub mod angle_map;
 pub mod envi;
 pub mod exr_maps;
+pub mod results_csv;
+pub mod spectrum_table;
 
 use std::path::{Path, PathBuf};
 
@@ -47,6 +54,16 @@ pub enum IoError {
         /// What is wrong.
         message: String,
     },
+    /// A line of a text file (spectrum table) is malformed.
+    #[error("{}: line {line}: {message}", path.display())]
+    Line {
+        /// The file.
+        path: PathBuf,
+        /// 1-based line number.
+        line: usize,
+        /// What is wrong.
+        message: String,
+    },
     /// Two files that must agree (cube and reference, cube and angle map) do not.
     #[error("{} and {}: {message}", a.display(), b.display())]
     Mismatch {
@@ -71,6 +88,14 @@ impl IoError {
         IoError::Field {
             path: path.to_path_buf(),
             field: field.to_string(),
+            message: message.into(),
+        }
+    }
+
+    pub(crate) fn line(path: &Path, line: usize, message: impl Into<String>) -> Self {
+        IoError::Line {
+            path: path.to_path_buf(),
+            line,
             message: message.into(),
         }
     }
