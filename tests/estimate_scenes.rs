@@ -105,10 +105,15 @@ fn paper_cylinder_with_known_angle_is_sharper() {
     assert!(acc.thickness_p99_nm < 2.0, "{acc:?}");
     assert!(acc.coverage_2sigma >= 0.9, "{acc:?}");
     // The angle was given: reported as given, with no uncertainty.
+    // (Pixels the χ² test flags, ~0.5 % of clean data, carry no angle.)
     for i in 0..maps.width * maps.height {
+        if maps.valid[i] < 0.5 {
+            continue;
+        }
         assert!((maps.theta_deg[i] - truth.theta_deg[i]).abs() < 1e-3);
         assert_eq!(maps.sigma_theta_deg[i], 0.0);
     }
+    assert!(maps.valid_count() * 100 >= 97 * maps.width * maps.height);
 }
 
 #[test]
@@ -456,13 +461,20 @@ fn nan_entries_of_an_angle_map_leave_those_angles_to_be_estimated() {
     let w = maps.width;
     let n = maps.width * maps.height;
     for i in n - w..n {
+        if maps.valid[i] < 0.5 {
+            continue;
+        }
         // Estimated, hence with an uncertainty; and close to the truth.
         assert!(maps.sigma_theta_deg[i] > 0.0);
         assert!((maps.theta_deg[i] - truth.theta_deg[i]).abs() < 1.0);
     }
     for i in 0..n - w {
+        if maps.valid[i] < 0.5 {
+            continue;
+        }
         assert_eq!(maps.sigma_theta_deg[i], 0.0);
     }
+    assert!(maps.valid_count() * 100 >= 97 * n);
 }
 
 #[test]
@@ -544,6 +556,11 @@ fn fast_rows_agree_with_the_per_pixel_fast_path() {
             let p = solver.solve_pixel(&spec, None, &mut scratch);
             total += 1;
             assert_eq!(r.is_valid(), p.is_valid(), "({x}, {y})");
+            if !r.is_valid() {
+                assert_eq!(r.reason, p.reason, "({x}, {y})");
+                same += 1;
+                continue;
+            }
             if (r.thickness_nm - p.thickness_nm).abs() < 1e-9 {
                 same += 1;
             } else {

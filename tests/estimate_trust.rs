@@ -13,11 +13,6 @@ use irid::estimate::level::LevelMode;
 use irid::estimate::{Cube, Mode, ParamMaps, Reason, Solver};
 use irid::scene::Scene;
 use irid::synth::{compare, scene_bands, Accuracy, Renderer, TruthMaps};
-use std::path::Path;
-
-fn scene(text: &str) -> Scene {
-    Scene::from_toml(text, "<test>", Path::new(".")).expect("test scene parses")
-}
 
 fn render(s: &Scene) -> (Cube, TruthMaps) {
     let bands = scene_bands(s).unwrap();
@@ -86,7 +81,8 @@ fn report(label: &str, acc: &Accuracy, wrong: f64, solver: &Solver) {
 fn calibration_errors_are_corrected_by_default_and_flagged_when_absolute() {
     let base = Scene::paper_cylinder();
     let (clean, truth) = render(&base);
-    let cases: Vec<(&str, Box<dyn Fn(usize) -> f64>, f64)> = vec![
+    type Gain = Box<dyn Fn(usize) -> f64>;
+    let cases: Vec<(&str, Gain, f64)> = vec![
         ("white 5 % high", Box::new(|_| 1.0 / 1.05), 0.0),
         ("white 8 % low", Box::new(|_| 1.0 / 0.92), 0.0),
         ("stray light +0.004", Box::new(|_| 1.0), 0.004),

@@ -30,6 +30,7 @@ pub struct Cli {
 
 /// The subcommands.
 #[derive(Debug, Subcommand)]
+#[allow(clippy::large_enum_variant)] // parsed once per process
 pub enum Command {
     /// Live thickness maps from a camera behind a tunable filter (with no
     /// `--config`: the demo on a synthetic camera and an emulated filter).

@@ -18,6 +18,8 @@
 //!   misfit: a likelihood-ratio test of `scaled` against `absolute` at
 //!   [`AUTO_PROBABILITY`].
 
+#![allow(clippy::needless_range_loop)] // band-indexed numeric loops read clearer with indices
+
 /// How the level is modelled.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, clap::ValueEnum)]
 pub enum LevelMode {
@@ -508,7 +510,7 @@ fn cholesky(a: &[f64], n: usize) -> Option<Vec<f64>> {
                 s -= l[i * n + k] * l[j * n + k];
             }
             if i == j {
-                if !(s > 0.0) {
+                if s.is_nan() || s <= 0.0 {
                     return None;
                 }
                 l[i * n + i] = s.sqrt();

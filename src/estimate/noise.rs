@@ -16,6 +16,8 @@
 //!   only ever adds to such a difference, so the smallest estimate is the
 //!   least contaminated one.
 
+#![allow(clippy::needless_range_loop)] // band-indexed numeric loops read clearer with indices
+
 use super::Cube;
 
 /// Where a noise level came from.

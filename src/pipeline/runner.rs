@@ -454,6 +454,7 @@ impl Solve {
         rows: &mut dyn RowSink,
     ) -> SweepSummary {
         let _span = tracing::info_span!("solve.sweep", sweep = buf.sweep).entered();
+        let mut corrected = None;
         let cube = &buf.cube;
         if self.solver.film_index().is_none() {
             let _s = tracing::info_span!("solve.index").entered();
@@ -471,6 +472,14 @@ impl Solve {
             }
             self.index_tried = true;
         }
+        // Pixels are solved on data corrected by the image-wide level, when
+        // one is in force (`scaled`, or `auto` that chose it).
+        if !self.solver.level().0.is_identity() {
+            let mut c = buf.cube.clone();
+            self.solver.apply_level(&mut c);
+            corrected = Some(c);
+        }
+        let cube = corrected.as_ref().unwrap_or(&buf.cube);
         let (w, h) = (cube.width, cube.height);
         let solver = &self.solver;
         let candidates = buf.candidates.as_ref();
@@ -558,7 +567,8 @@ pub fn run_with_rows(
     }
     let bands_nm: Vec<f64> = setup.bands.iter().map(|b| b.center_nm).collect();
     let seq = Sequencer::new(setup.seq_mode, bands_nm, setup.order.clone(), cfg.sweeps)?;
-    let solver = Solver::new(&setup.scene, &setup.bands, cfg.mode)?;
+    let mut solver = Solver::new(&setup.scene, &setup.bands, cfg.mode)?;
+    solver.set_residual_noise_floor(setup.scene.noise_sigma.is_none());
     let counters = Arc::new(Counters::default());
     let mut capture = Capture {
         source,

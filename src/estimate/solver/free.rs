@@ -12,6 +12,8 @@
 //! when it lowers χ² by more than its extra parameters explain at
 //! p = 0.001 — modelling only what the spectrum requires.
 
+#![allow(clippy::needless_range_loop)] // band-indexed numeric loops read clearer with indices
+
 use super::{Prepared, Scratch, Solver};
 use crate::estimate::level::solve_spd;
 use crate::estimate::quality::chi2_upper_quantile;

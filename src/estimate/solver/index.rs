@@ -54,6 +54,23 @@ impl Solver {
             ));
         }
         let mut est = self.index_for(&sample)?;
+        if self.residual_noise_floor {
+            // The caller has no measured noise yet (the live runner before
+            // the camera's noise is calibrated): the model-free estimate is
+            // raised to the sample's pooled residual where that is larger.
+            if let Some(prep) = self.prepared.clone() {
+                let (sse, n_obs, n_par, _) = self.sample_sse(&prep, &sample);
+                let res = (sse / (n_obs - n_par).max(1.0)).sqrt();
+                let data = self.noise.as_ref().map_or(0.0, |n| n.typical_sigma(0.05));
+                if res.is_finite() && res > data {
+                    self.set_noise(NoiseModel::uniform(
+                        res,
+                        self.bands.len(),
+                        crate::estimate::noise::NoiseSource::Data,
+                    ));
+                }
+            }
+        }
         // The level: absolute unless asked, or (auto) unless the sample
         // shows a systematic misfit a gain and offset per band correct.
         if self.scene.level != LevelMode::Free {

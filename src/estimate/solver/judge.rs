@@ -2,6 +2,8 @@
 //! fit's own residual), the physical thickness range, the search bounds,
 //! and data beyond anything the model can produce.
 
+#![allow(clippy::needless_range_loop)] // band-indexed numeric loops read clearer with indices
+
 use super::{Prepared, Scratch, Solver};
 use crate::estimate::model::FilmModel;
 use crate::estimate::Reason;

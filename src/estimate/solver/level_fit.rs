@@ -4,6 +4,8 @@
 //! eliminated ([`crate::estimate::level::level_step`]), alternating with
 //! the index search on the corrected sample.
 
+#![allow(clippy::needless_range_loop)] // band-indexed numeric loops read clearer with indices
+
 use super::index::SamplePixel;
 use super::{Effort, IndexEstimate, Job, Scratch, Solver};
 use crate::estimate::level::{
@@ -37,6 +39,17 @@ impl Solver {
         sample: &[SamplePixel],
         est_abs: &IndexEstimate,
     ) -> Result<Option<IndexEstimate>, EstimateError> {
+        if self
+            .prepared
+            .as_ref()
+            .is_some_and(|p| p.integrated.is_some())
+            && self.scene.level == LevelMode::Auto
+        {
+            // The test fits point-sampled models; with wide passbands their
+            // misfit would pass for a level. `accurate` integrates instead.
+            self.level_note = "absolute (level not tested: passbands integrated)".into();
+            return Ok(None);
+        }
         let Some(noise) = self.noise.clone() else {
             self.level_note = "absolute (no independent noise level to test against)".into();
             return Ok(None);

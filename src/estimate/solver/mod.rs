@@ -275,6 +275,9 @@ pub struct Solver {
     /// `absolute` was asked for, but the image shows a correctable
     /// calibration error: every pixel is flagged.
     calibration_suspect: bool,
+    /// Raise the model-free noise estimate to the index sample's pooled
+    /// residual (see [`Solver::set_residual_noise_floor`]).
+    residual_noise_floor: bool,
     /// Bands by increasing wavelength: (plane index, λ, wavenumber 1/λ).
     sorted: Vec<(usize, f64, f64)>,
     /// Centre of the band range in wavenumber, nm⁻¹.
@@ -384,6 +387,7 @@ impl Solver {
             },
             level_note: String::new(),
             calibration_suspect: false,
+            residual_noise_floor: false,
             sorted,
             sigma_center,
             sigma_range,
@@ -642,6 +646,13 @@ impl Solver {
         if let Some(i) = &mut self.index {
             i.noise_sigma = typical;
         }
+    }
+
+    /// Let the index sample's pooled residual raise the model-free noise
+    /// estimate (the live runner, until the camera's own noise is measured
+    /// by its calibration).
+    pub fn set_residual_noise_floor(&mut self, on: bool) {
+        self.residual_noise_floor = on;
     }
 
     /// The noise model in force, once known.
