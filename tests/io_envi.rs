@@ -3,7 +3,7 @@
 //! the fixture manifest (valid / invalid / damaged), the writer, dark/white
 //! calibration, and fuzz-style "an error, not a panic" properties.
 
-use irid::estimate::Cube;
+use irid::estimate::{nan_reason, Cube, Reason};
 use irid::io::envi::{
     self, calibrate, parse_header, read_calibrated, read_cube, read_image, write_cube, ByteOrder,
     DataType, Interleave, WriteOptions,
@@ -295,10 +295,11 @@ fn calibration_divides_by_white_minus_dark() {
     calibrate(&mut raw, &dark, &white, 0.9);
     assert!((raw[0] - 0.45).abs() < 1e-6, "{raw:?}");
     assert!((raw[1] - 0.45).abs() < 1e-6);
-    assert!(raw[2].is_nan(), "white < dark");
-    assert!(raw[3].is_nan(), "white = dark");
+    assert_eq!(nan_reason(raw[2]), Some(Reason::Dark), "white < dark");
+    assert_eq!(nan_reason(raw[3]), Some(Reason::Dark), "white = dark");
     assert!(raw[4].is_nan(), "non-finite raw");
-    assert!(raw[5].is_nan(), "non-finite dark");
+    assert_eq!(nan_reason(raw[4]), None, "a missing value is not a tag");
+    assert_eq!(nan_reason(raw[5]), Some(Reason::Dark), "non-finite dark");
 }
 
 #[test]
@@ -325,7 +326,7 @@ fn calibrated_cube_from_files_and_mismatches() {
     let cube = read_calibrated(&raw, &dark, &white, 1.0).unwrap();
     for (i, v) in cube.data.iter().enumerate() {
         if i == 5 {
-            assert!(v.is_nan());
+            assert_eq!(nan_reason(*v), Some(Reason::Dark));
         } else {
             assert!((v - (i % 10) as f32 / 10.0).abs() < 1e-6, "{i}: {v}");
         }

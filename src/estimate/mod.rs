@@ -21,7 +21,7 @@ pub mod maps;
 pub mod model;
 pub mod solver;
 
-pub use cube::Cube;
+pub use cube::{nan_reason, Cube, DARK_NAN, SATURATED_NAN};
 pub use maps::{MapRowMut, ParamMaps, PixelEstimate, Reason};
 pub use solver::{IndexEstimate, Solver};
 

@@ -18,6 +18,7 @@
 //! band-sequential unless [`WriteOptions`] say otherwise.
 
 use super::IoError;
+use crate::estimate::cube::DARK_NAN;
 use crate::estimate::Cube;
 use crate::optics::band::Band;
 use std::fmt::Write as _;
@@ -777,12 +778,15 @@ pub fn image_to_cube(img: EnviImage) -> Result<Cube, IoError> {
 
 /// Reflectance from raw counts: `R · (raw − dark) / (white − dark)` per pixel
 /// and band, with `R` the white reference's reflectance. Where `white ≤ dark`
-/// or any input is non-finite the result is NaN (the solver reports such
-/// pixels as non-finite input). The three slices have the same layout.
+/// or a reference is non-finite the result is [`DARK_NAN`] (the pixel
+/// cannot be calibrated: reason "dark"); a non-finite raw value (a missing
+/// sample) gives a plain NaN. The three slices have the same layout.
 pub fn calibrate(raw: &mut [f32], dark: &[f32], white: &[f32], white_reflectance: f32) {
     for ((r, &d), &w) in raw.iter_mut().zip(dark).zip(white) {
         let span = w - d;
-        *r = if span > 0.0 && span.is_finite() && r.is_finite() && d.is_finite() {
+        *r = if !(span > 0.0 && span.is_finite() && d.is_finite()) {
+            DARK_NAN
+        } else if r.is_finite() {
             white_reflectance * (*r - d) / span
         } else {
             f32::NAN

@@ -6,8 +6,11 @@
 //! white reference. Pixels that cannot be calibrated are flagged, per band,
 //! and come out as NaN (a missing band for that pixel), never as a wrong
 //! number: saturated in the white reference, too dark (white − dark below a
-//! floor, or dark brighter than white), dead (no response at all).
-//! Saturated samples are left out of the averages, not averaged in.
+//! floor, or dark brighter than white), dead (no response at all). The NaN
+//! carries the reason: [`SATURATED_NAN`] for a saturated sample or white,
+//! [`DARK_NAN`] for a dark or dead pixel (see [`crate::estimate::cube`]), so
+//! the maps can say why. Saturated samples are left out of the averages,
+//! not averaged in.
 //!
 //! A calibration file (`.ircal`) is one line of JSON metadata (size, bands,
 //! exposure, gain, camera id, creation time, white reflectance), a newline,
@@ -17,6 +20,8 @@
 //! that says what differs.
 
 use crate::device::camera::{CameraInfo, Frame, PixelFormat};
+use crate::estimate::cube::{nan_reason, DARK_NAN, SATURATED_NAN};
+use crate::estimate::Reason;
 use multiversion::multiversion;
 use rayon::prelude::*;
 use std::io::{Read, Write};
@@ -31,6 +36,24 @@ pub mod flag {
     /// No valid sample at all (every white sample saturated or the pixel
     /// never responded).
     pub const DEAD: u8 = 4;
+
+    /// The value a flagged pixel's bands take: [`SATURATED_NAN`] if
+    /// `flags` has [`SATURATED`] (saturation wins: it is the thing to fix
+    /// first), [`DARK_NAN`] for [`DARK`] or [`DEAD`]; for 0 (not flagged),
+    /// `None`.
+    ///
+    /// [`SATURATED_NAN`]: crate::estimate::cube::SATURATED_NAN
+    /// [`DARK_NAN`]: crate::estimate::cube::DARK_NAN
+    pub fn tag(flags: u8) -> Option<f32> {
+        use crate::estimate::cube::{DARK_NAN, SATURATED_NAN};
+        if flags & SATURATED != 0 {
+            Some(SATURATED_NAN)
+        } else if flags != 0 {
+            Some(DARK_NAN)
+        } else {
+            None
+        }
+    }
 }
 
 /// Calibration errors.
@@ -445,9 +468,21 @@ pub const PACKED_ERROR_BOUND: f32 = 2e-5;
 /// the rest covers f32 rounding (≲ 1e-6 for |R| ≤ 1; see `Packing`).
 const QUANT_BUDGET: f64 = 1.9e-5;
 
-/// Code of a flagged pixel (never a valid code: the dark field of a valid
-/// code is at most its maximum − 1).
-const FLAGGED: u32 = u32::MAX;
+/// Code of a pixel flagged dark or dead (never a valid code: the dark field
+/// of a valid code is at most its maximum − 1, so any code whose dark field
+/// is all ones, [`FLAGGED_SATURATED`] too, is free).
+const FLAGGED_DARK: u32 = u32::MAX;
+
+/// Code of a pixel flagged saturated (the white reference saturated).
+const FLAGGED_SATURATED: u32 = u32::MAX - 1;
+
+/// The code of a flagged pixel whose scale holds the tag `s`.
+fn flagged_code(s: f32) -> u32 {
+    match nan_reason(s) {
+        Some(Reason::Saturated) => FLAGGED_SATURATED,
+        _ => FLAGGED_DARK,
+    }
+}
 
 /// Bits of 1.0f32.
 const ONE_BITS: u32 = 0x3F80_0000;
@@ -501,7 +536,7 @@ impl Packing {
     }
 
     fn dark_max(&self) -> u32 {
-        // Leave the all-ones dark field free so no valid code is FLAGGED.
+        // Leave the all-ones dark field free so no valid code is flagged.
         (1u32 << (32 - self.gain_bits)) - 2
     }
 
@@ -516,7 +551,7 @@ impl Packing {
         ((above + half) >> self.gain_shift).min(self.gain_mask())
     }
 
-    /// Pack one band: `dark` and `scale` (NaN where flagged) in, the codes
+    /// Pack one band: `dark` and `scale` (a tagged NaN where flagged) in, the codes
     /// out in `code`, as f32 bit patterns (the codes go over the white plane
     /// they were computed from). `None` if some pixel cannot be packed
     /// within the budget (the band then stays f32); `gain` is scratch.
@@ -536,7 +571,9 @@ impl Packing {
             dmin = dmin.min(d);
         }
         if !any {
-            code.fill(f32::from_bits(FLAGGED));
+            for (c, &s) in code.iter_mut().zip(scale) {
+                *c = f32::from_bits(flagged_code(s));
+            }
             return Some(Packing::PLAIN);
         }
         let dark_base = f64::from(dmin).floor();
@@ -603,7 +640,7 @@ impl Packing {
         let mut worst = 0.0f64;
         for (((c, &d), &s), &q) in code.iter_mut().zip(dark).zip(scale).zip(gain.iter()) {
             if s.is_nan() {
-                *c = f32::from_bits(FLAGGED);
+                *c = f32::from_bits(flagged_code(s));
                 continue;
             }
             let g = f64::from(p.gamma(q));
@@ -662,15 +699,29 @@ impl Calibrator {
     /// white plane: no second copy of a large calibration in memory).
     pub fn from_calibration(cal: Calibration) -> Calibrator {
         let n = cal.meta.width as usize * cal.meta.height as usize;
-        let len = cal.dark.len().min(cal.white.len()).min(cal.flags.len());
-        let bands = len.checked_div(n).unwrap_or(0);
         let rw = cal.meta.white_reflectance as f32;
         let Calibration {
             meta,
             dark,
-            mut white,
+            white,
             flags,
         } = cal;
+        Calibrator::from_planes(n, dark, white, &flags, rw, meta.exposure_us)
+    }
+
+    /// Prepare band-sequential `dark`, `white` and [`flag`] planes of `n`
+    /// pixels, for a white of reflectance `rw` taken at `exposure_us`
+    /// (the codes are written over `white`).
+    pub fn from_planes(
+        n: usize,
+        dark: Vec<f32>,
+        mut white: Vec<f32>,
+        flags: &[u8],
+        rw: f32,
+        exposure_us: u32,
+    ) -> Calibrator {
+        let len = dark.len().min(white.len()).min(flags.len());
+        let bands = len.checked_div(n).unwrap_or(0);
         // Bands in parallel; each keeps its codes in its white plane, or
         // hands back its scale plane if it stays f32. The codes are stored
         // as f32 bit patterns (to_bits/from_bits are transmutes: bits
@@ -687,12 +738,12 @@ impl Calibrator {
                     || (vec![0.0f32; n], Vec::new()),
                     |(s, gain), ((w, d), f)| {
                         for (((s, &w), &d), &f) in s.iter_mut().zip(w.iter()).zip(d).zip(f) {
-                            *s = if f == 0 { rw / (w - d) } else { f32::NAN };
+                            *s = flag::tag(f).unwrap_or_else(|| rw / (w - d));
                         }
                         match Packing::pack(d, s, w, gain) {
                             Some(p) => (Some(p), Vec::new()),
                             None => {
-                                w.fill(f32::from_bits(FLAGGED));
+                                w.fill(f32::from_bits(FLAGGED_DARK));
                                 (None, s.clone())
                             }
                         }
@@ -720,7 +771,7 @@ impl Calibrator {
             code,
             offset,
             scale,
-            exposure_us: meta.exposure_us,
+            exposure_us,
         }
     }
 
@@ -783,7 +834,8 @@ impl Calibrator {
     }
 
     /// Convert `counts` (band `band`, exposure `exposure_us`) to reflectance
-    /// in `out`. Saturated samples (`>= sat`) become NaN.
+    /// in `out`. Saturated samples (`>= sat`) become [`SATURATED_NAN`],
+    /// flagged pixels their flag's tag ([`flag::tag`]).
     pub fn apply(&self, band: usize, counts: &[u16], sat: u16, exposure_us: u32, out: &mut [f32]) {
         self.apply_row(band, 0, counts, sat, exposure_us, out);
     }
@@ -826,9 +878,64 @@ impl Calibrator {
     }
 }
 
+/// The constants of the packed loop for one band and exposure ratio `k`.
+#[derive(Clone, Copy)]
+struct PackedLoop {
+    mask: u32,
+    shift: u32,
+    bits: u32,
+    base: f32,
+    unit: f32,
+    ks: f32,
+}
+
+impl PackedLoop {
+    #[inline(always)]
+    fn new(p: Packing, k: f32) -> PackedLoop {
+        PackedLoop {
+            mask: p.gain_mask(),
+            shift: p.gain_shift,
+            bits: p.gain_bits,
+            base: p.dark_base,
+            unit: p.dark_unit,
+            ks: p.scale * k,
+        }
+    }
+
+    /// One sample of `c` counts with code `q`: the reflectance, or the tag
+    /// of a saturated sample or a flagged pixel — by selects, not branches
+    /// (a saturated sample wins over a dark flag).
+    #[inline(always)]
+    fn sample(&self, c: f32, saturated: bool, q: u32) -> f32 {
+        let g = f32::from_bits(((q & self.mask) << self.shift).wrapping_add(ONE_BITS));
+        let qd = q.wrapping_shr(self.bits) as i32 as f32;
+        let r = ((c - self.base) * g - self.unit * qd) * self.ks;
+        let v = if q == FLAGGED_DARK { DARK_NAN } else { r };
+        if saturated || q == FLAGGED_SATURATED {
+            SATURATED_NAN
+        } else {
+            v
+        }
+    }
+}
+
+/// One sample of an unpacked band: dark `d`, scale `s` (a flagged pixel's
+/// scale is its tag, passed through by a select: arithmetic need not keep a
+/// NaN's payload).
+#[inline(always)]
+fn full_sample(c: f32, saturated: bool, d: f32, s: f32, k: f32) -> f32 {
+    let r = (c - d) * (s * k);
+    let v = if s.is_nan() { s } else { r };
+    if saturated {
+        SATURATED_NAN
+    } else {
+        v
+    }
+}
+
 /// The packed hot loop (see `Packing`), compiled for the best vector unit
-/// the CPU offers. Flagged pixels and saturated samples give NaN by a
-/// select, not a branch.
+/// the CPU offers. Flagged pixels and saturated samples give their tagged
+/// NaN by a select, not a branch.
 #[multiversion(targets(
     "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
     "x86_64+avx2+fma",
@@ -837,17 +944,9 @@ impl Calibrator {
 ))]
 fn apply_packed(counts: &[u16], code: &[u32], out: &mut [f32], p: Packing, k: f32, sat: u16) {
     let n = counts.len().min(code.len()).min(out.len());
-    let (mask, shift, bits) = (p.gain_mask(), p.gain_shift, p.gain_bits);
-    let (base, unit, ks) = (p.dark_base, p.dark_unit, p.scale * k);
+    let l = PackedLoop::new(p, k);
     for ((o, &c), &q) in out[..n].iter_mut().zip(&counts[..n]).zip(&code[..n]) {
-        let g = f32::from_bits(((q & mask) << shift).wrapping_add(ONE_BITS));
-        let qd = q.wrapping_shr(bits) as i32 as f32;
-        let r = ((f32::from(c) - base) * g - unit * qd) * ks;
-        *o = if c >= sat || q == FLAGGED {
-            f32::NAN
-        } else {
-            r
-        };
+        *o = l.sample(f32::from(c), c >= sat, q);
     }
 }
 
@@ -855,8 +954,7 @@ fn apply_packed(counts: &[u16], code: &[u32], out: &mut [f32], p: Packing, k: f3
 #[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
 fn apply_full(counts: &[u16], off: &[f32], sc: &[f32], out: &mut [f32], k: f32, sat: u16) {
     for (((o, &c), &d), &s) in out.iter_mut().zip(counts).zip(off).zip(sc) {
-        let r = (f32::from(c) - d) * (s * k);
-        *o = if c >= sat { f32::NAN } else { r };
+        *o = full_sample(f32::from(c), c >= sat, d, s, k);
     }
 }
 
@@ -1163,6 +1261,7 @@ mod tests {
             flags[b * n + 3] = flag::SATURATED;
             flags[b * n + 4] = flag::DARK;
             flags[b * n + 5] = flag::DEAD | flag::SATURATED;
+            flags[b * n + 6] = flag::DEAD;
         }
         let cal = calibration(n as u32, PixelFormat::Y10, dark, white, flags.clone());
         let c = Calibrator::new(&cal);
@@ -1173,19 +1272,40 @@ mod tests {
                 let counts = vec![v; n];
                 c.apply(b, &counts, 1023, 1000, &mut out);
                 for i in 0..n {
-                    let nan = flags[b * n + i] != 0 || v >= 1023;
-                    assert_eq!(out[i].is_nan(), nan, "band {b} pixel {i} counts {v}");
+                    let f = flags[b * n + i];
+                    let want = if v >= 1023 || f & flag::SATURATED != 0 {
+                        Some(Reason::Saturated)
+                    } else if f != 0 {
+                        Some(Reason::Dark)
+                    } else {
+                        None
+                    };
+                    let at = format!("band {b} pixel {i} counts {v}");
+                    assert_eq!(nan_reason(out[i]), want, "{at}: {}", out[i]);
+                    assert_eq!(out[i].is_nan(), want.is_some(), "{at}");
                 }
             }
         }
         // Rows: the same through apply_row at an offset.
         let mut row = vec![0.0f32; 3];
         c.apply_row(0, 3, &[500, 500, 500], 1023, 1000, &mut row);
-        assert!(row.iter().all(|r| r.is_nan()));
+        let tags: Vec<_> = row.iter().map(|&r| nan_reason(r)).collect();
+        assert_eq!(
+            tags,
+            [
+                Some(Reason::Saturated),
+                Some(Reason::Dark),
+                Some(Reason::Saturated)
+            ]
+        );
         // Past the end of the plane: only the pixels it has are written.
         row.fill(0.0);
         c.apply_row(0, 6, &[500, 1023, 500], 1023, 1000, &mut row);
-        assert!(row[0].is_finite() && row[1].is_nan() && row[2] == 0.0);
+        assert_eq!(nan_reason(row[0]), Some(Reason::Dark), "dead pixel 6");
+        assert_eq!(nan_reason(row[1]), Some(Reason::Saturated));
+        assert_eq!(row[2], 0.0);
+        c.apply_row(0, 7, &[500], 1023, 1000, &mut row[..1]);
+        assert!(row[0].is_finite());
     }
 
     #[test]
