@@ -8,6 +8,7 @@
 use super::common::{SceneOverrides, SceneSource};
 use crate::estimate::{Cube, Mode, ParamMaps, Reason, Solver};
 use crate::io::{envi, exr_maps};
+use crate::pipeline::calibration;
 use crate::scene::{AngleKnowledge, Scene};
 use anyhow::{bail, Context};
 use serde::Serialize;
@@ -35,6 +36,11 @@ pub struct FitArgs {
     /// Reflectance of the white reference.
     #[arg(long, value_name = "R", default_value_t = 1.0, requires = "white")]
     pub white_reflectance: f32,
+    /// The sensor's full scale, counts, with --dark/--white: samples at or
+    /// above it are saturated, and a pixel needs white − dark ≥ 1 % of it
+    /// (default: 255 for u8 cubes, 65535 for u16, none for other types).
+    #[arg(long, value_name = "COUNTS", requires = "white")]
+    pub full_scale: Option<f32>,
     /// Scene overrides.
     #[command(flatten)]
     pub overrides: SceneOverrides,
@@ -100,7 +106,10 @@ fn read_input(a: &FitArgs) -> anyhow::Result<Cube> {
                 a.white_reflectance.is_finite() && a.white_reflectance > 0.0,
                 "--white-reflectance must be positive"
             );
-            envi::read_calibrated(&a.cube, d, w, a.white_reflectance)?
+            if let Some(f) = a.full_scale {
+                anyhow::ensure!(f > 0.0, "--full-scale must be positive");
+            }
+            calibration::read_calibrated(&a.cube, d, w, a.white_reflectance, a.full_scale)?
         }
         _ => envi::read_cube(&a.cube)?,
     })
