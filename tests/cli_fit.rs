@@ -336,6 +336,37 @@ fn fit_with_known_film_and_angle_map_from_the_truth() {
             assert!((th - a[i]).abs() < 1e-4, "known angle changed at {i}");
         }
     }
+    // The thickness. With film and angle known, every pixel of this scene
+    // (two or more fringe extrema, σ_R = 0.001) is identifiable: all must
+    // be valid. The Cramér–Rao bound is σ_d ≈ 0.28 nm per pixel (README):
+    // no honest σ is below it. `fast` uses only the extrema, and the σ it
+    // reports is its own (≈ 0.7 nm here); a Gaussian error of σ has a mean
+    // |Δd| of √(2/π)·σ ≈ 0.8σ, so the mean |Δd| must be ≈ 0.6 nm: 1 nm
+    // (and 1.5 × 0.8 × the mean σ) leaves room for the noise of 1960
+    // pixels while a wrong fringe order (≈ λ/(2 n2 cos θ2) ≈ 180 nm) on
+    // even a dozen pixels breaks it. A Gaussian error is within 3σ 99.7 %
+    // of the time; ≥ 90 % allows σ to be somewhat optimistic.
+    let d = truth.channel("thickness_nm").unwrap();
+    let n = maps.valid.len();
+    let valid: Vec<usize> = (0..n).filter(|&i| maps.valid[i] > 0.5).collect();
+    assert_eq!(valid.len(), n, "every pixel valid");
+    let err = |i: usize| f64::from((maps.thickness_nm[i] - d[i]).abs());
+    let sigma = |i: usize| f64::from(maps.sigma_thickness_nm[i]);
+    let count = valid.len() as f64;
+    let mean = valid.iter().map(|&i| err(i)).sum::<f64>() / count;
+    let mean_sigma = valid.iter().map(|&i| sigma(i)).sum::<f64>() / count;
+    let within = valid.iter().filter(|&&i| err(i) <= 3.0 * sigma(i)).count() as f64 / count;
+    let max = valid.iter().map(|&i| err(i)).fold(0.0, f64::max);
+    let stats = format!(
+        "mean |Δd| {mean:.3} nm, max {max:.3} nm, mean σ {mean_sigma:.3} nm, {:.1} % within 3σ",
+        100.0 * within
+    );
+    assert!(mean < 1.0, "{stats}");
+    assert!(mean < 1.5 * 0.8 * mean_sigma, "σ too small: {stats}");
+    assert!((0.25..1.5).contains(&mean_sigma), "{stats}");
+    assert!(within >= 0.90, "{stats}");
+    // No pixel on a wrong fringe order.
+    assert!(max < 10.0, "{stats}");
 }
 
 #[test]

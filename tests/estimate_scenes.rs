@@ -354,20 +354,22 @@ seed = 9
     assert!(acc.thickness_max_nm < 3.0, "{acc:?}");
 }
 
-#[test]
-fn extremes_give_finite_or_flagged_outputs() {
-    // Grazing incidence, films matching an adjacent medium, total internal
-    // reflection in the film, Brewster's angle for p.
-    let cases = [
-        ("1.0", "1.37", "1.6", "s", "[80.0, 89.0]"),
-        ("1.0", "1.6", "1.6", "s", "[10.0, 40.0]"),
-        ("1.0", "1.0001", "1.6", "s", "[10.0, 40.0]"),
-        ("1.5", "1.0", "1.5", "s", "[30.0, 60.0]"),
-        ("1.0", "1.37", "1.6", "p", "[50.0, 65.0]"),
-    ];
-    for (n1, n2, n3, pol, ang) in cases {
-        let text = format!(
-            r#"
+/// The extreme scenes: grazing incidence, a film matching the substrate, a
+/// film matching the ambient, total internal reflection in the film,
+/// Brewster's angle for p. Film index known, angle unknown (searched over
+/// the default 0–80°), thickness 0 → 1500 nm across 12 columns.
+const EXTREMES: [(f64, f64, f64, &str, [f64; 2]); 5] = [
+    (1.0, 1.37, 1.6, "s", [80.0, 89.0]),
+    (1.0, 1.6, 1.6, "s", [10.0, 40.0]),
+    (1.0, 1.0001, 1.6, "s", [10.0, 40.0]),
+    (1.5, 1.0, 1.5, "s", [30.0, 60.0]),
+    (1.0, 1.37, 1.6, "p", [50.0, 65.0]),
+];
+
+fn extreme_scene(case: (f64, f64, f64, &str, [f64; 2]), noise: f64) -> Scene {
+    let (n1, n2, n3, pol, [a0, a1]) = case;
+    scene(&format!(
+        r#"
 [ambient]
 n = {n1}
 [substrate]
@@ -385,16 +387,149 @@ fwhm_nm = 0
 width = 12
 height = 6
 thickness_nm = {{ linear_x = [0.0, 1500.0] }}
-angle_deg = {{ linear_y = {ang} }}
-noise_sigma = 0.001
+angle_deg = {{ linear_y = [{a0:?}, {a1:?}] }}
+noise_sigma = {noise:?}
 seed = 1
 "#
-        );
+    ))
+}
+
+/// Whether a pixel of an extreme scene is physically identifiable with the
+/// angle unknown: its angle inside the searched 0–80°; no total internal
+/// reflection (n1 sin θ below n2 and n3: the fringes exist); a fringe
+/// contrast |R(δ = 0) − R(δ = π)| of at least 0.01, ten times the noise a
+/// camera adds (σ_R = 0.001), for the scene's polarisation; and at least
+/// two fringe extrema within 410–690 nm (one band in from the ends), since
+/// one extremum or none cannot fix both thickness and angle.
+fn identifiable(n1: f64, n2: f64, n3: f64, pol: &str, theta_deg: f64, d_nm: f64) -> bool {
+    let s = n1 * theta_deg.to_radians().sin();
+    if !(0.0..=80.0).contains(&theta_deg) || s >= n2 || s >= n3 {
+        return false;
+    }
+    let cos = |n: f64| (1.0 - (s / n).powi(2)).sqrt();
+    let (c1, c2, c3) = (cos(n1), cos(n2), cos(n3));
+    let r = |na: f64, ca: f64, nb: f64, cb: f64| match pol {
+        "p" => (nb * ca - na * cb) / (nb * ca + na * cb),
+        _ => (na * ca - nb * cb) / (na * ca + nb * cb),
+    };
+    let (r12, r23) = (r(n1, c1, n2, c2), r(n2, c2, n3, c3));
+    let half_wave = ((r12 + r23) / (1.0 + r12 * r23)).powi(2);
+    let quarter_wave = ((r12 - r23) / (1.0 - r12 * r23)).powi(2);
+    if (half_wave - quarter_wave).abs() < 0.01 {
+        return false;
+    }
+    // Extrema where 4 g / λ is an integer, g = n2 d cos θ2.
+    let g = n2 * d_nm * c2;
+    let extrema = (4.0 * g / 410.0).floor() - (4.0 * g / 690.0).ceil() + 1.0;
+    extrema >= 2.0
+}
+
+/// Per case and mode: identifiable pixels, how many of them are valid,
+/// and the valid pixels (identifiable or not) farther than max(3σ, 2 nm)
+/// from the truth, on noise-free data.
+struct ExtremeOutcome {
+    label: String,
+    identifiable: usize,
+    identifiable_valid: usize,
+    wrong: Vec<String>,
+}
+
+fn extreme_outcomes() -> Vec<ExtremeOutcome> {
+    let mut out = vec![];
+    for case in EXTREMES {
+        let (n1, n2, n3, pol, ang) = case;
+        let s = extreme_scene(case, 0.0);
         for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
-            let (maps, _, _, _) = fit(&scene(&text), mode);
+            let (maps, truth, _, _) = fit(&s, mode);
+            all_finite_or_flagged(&maps);
+            let mut o = ExtremeOutcome {
+                label: format!("n {n1}/{n2}/{n3} {pol} θ {ang:?} {mode:?}"),
+                identifiable: 0,
+                identifiable_valid: 0,
+                wrong: vec![],
+            };
+            for i in 0..maps.width * maps.height {
+                let (d, th) = (
+                    f64::from(truth.thickness_nm[i]),
+                    f64::from(truth.theta_deg[i]),
+                );
+                let valid = maps.valid[i] > 0.5;
+                let ident = identifiable(n1, n2, n3, pol, th, d);
+                if ident {
+                    o.identifiable += 1;
+                    o.identifiable_valid += usize::from(valid);
+                }
+                let err = f64::from(maps.thickness_nm[i]) - d;
+                let tol = (3.0 * f64::from(maps.sigma_thickness_nm[i])).max(2.0);
+                if valid && err.abs() > tol {
+                    o.wrong.push(format!(
+                        "d {d:.0} nm θ {th:.1}°{}: Δd {err:+.1} nm (σ {:.2}, reason {})",
+                        if ident { " (identifiable)" } else { "" },
+                        maps.sigma_thickness_nm[i],
+                        maps.reason[i]
+                    ));
+                }
+            }
+            out.push(o);
+        }
+    }
+    out
+}
+
+#[test]
+fn extremes_give_finite_or_flagged_outputs() {
+    // With the noise a camera adds, nothing panics and every output is a
+    // finite estimate or flagged with a reason.
+    for case in EXTREMES {
+        for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
+            let (maps, _, _, _) = fit(&extreme_scene(case, 0.001), mode);
             all_finite_or_flagged(&maps);
         }
     }
+    // Noise-free: the pixels that physically can be solved mostly are (at
+    // least three quarters of them in every case and mode; flagging them all would
+    // pass the check above).
+    let outcomes = extreme_outcomes();
+    for o in &outcomes {
+        eprintln!(
+            "{}: {} of {} identifiable pixels valid; {} valid pixels wrong",
+            o.label,
+            o.identifiable_valid,
+            o.identifiable,
+            o.wrong.len()
+        );
+        for w in &o.wrong {
+            eprintln!("    {w}");
+        }
+    }
+    for o in &outcomes {
+        assert!(
+            4 * o.identifiable_valid >= 3 * o.identifiable,
+            "{}: only {} of {} identifiable pixels valid",
+            o.label,
+            o.identifiable_valid,
+            o.identifiable
+        );
+    }
+}
+
+/// The strict half: on noise-free data, a pixel the solver calls valid is
+/// within max(3σ, 2 nm) of the truth. Today it is not (see the `ignore`
+/// reason and `extremes_give_finite_or_flagged_outputs`' output).
+#[test]
+#[ignore = "the solver calls wrong pixels valid in the extreme scenes: grazing angles beyond the 80° search range (d ≈ 0 reported), TIR in the film, p near Brewster, a film matching the substrate or the ambient, d ≤ 136 nm; the lead's flag rework is to fix it"]
+fn extremes_never_call_a_wrong_pixel_valid() {
+    let outcomes = extreme_outcomes();
+    let wrong: Vec<String> = outcomes
+        .iter()
+        .filter(|o| !o.wrong.is_empty())
+        .map(|o| format!("{}:\n    {}", o.label, o.wrong.join("\n    ")))
+        .collect();
+    assert!(
+        wrong.is_empty(),
+        "valid pixels farther than max(3σ, 2 nm) from the truth:\n{}",
+        wrong.join("\n")
+    );
 }
 
 #[test]

@@ -21,7 +21,7 @@ fn render(s: &Scene) -> (Cube, TruthMaps) {
 }
 
 /// Apply `y = gain_k·R + offset` per band.
-fn miscalibrate(cube: &mut Cube, gain: impl Fn(usize) -> f64, offset: f64) {
+fn miscalibrate(cube: &mut Cube, gain: &dyn Fn(usize) -> f64, offset: f64) {
     let n = cube.plane_len();
     for k in 0..cube.bands.len() {
         let g = gain(k);
@@ -79,8 +79,9 @@ fn report(label: &str, acc: &Accuracy, wrong: f64, solver: &Solver) {
 
 #[test]
 fn calibration_errors_are_corrected_by_default_and_flagged_when_absolute() {
-    let base = Scene::paper_cylinder();
-    let (clean, truth) = render(&base);
+    // A level error is shared by every pixel of an image, so one image's
+    // coverage is not a binomial count: what σ must cover is the scatter
+    // of the level estimate over noise realisations. Four seeds per case.
     type Gain = Box<dyn Fn(usize) -> f64>;
     let cases: Vec<(&str, Gain, f64)> = vec![
         ("white 5 % high", Box::new(|_| 1.0 / 1.05), 0.0),
@@ -88,34 +89,55 @@ fn calibration_errors_are_corrected_by_default_and_flagged_when_absolute() {
         ("stray light +0.004", Box::new(|_| 1.0), 0.004),
         ("per-band ±6 %", Box::new(per_band(0.06)), 0.0),
     ];
-    let mut results = Vec::new();
     for (label, gain, offset) in cases {
-        let mut cube = clean.clone();
-        miscalibrate(&mut cube, gain, offset);
-        // The default level (auto) corrects it: the paper-scene accuracy
-        // (MAE 0.37 nm at the Cramér–Rao bound) within 0.6 nm, honest σ.
-        let (maps, solver) = fit_with(&base, &cube, Mode::Balanced);
-        let acc = compare(&maps, &truth);
-        let wrong = valid_wrong(&maps, &truth);
-        report(label, &acc, wrong, &solver);
-        results.push((label, acc.clone(), wrong));
-        assert_eq!(solver.level().1, LevelMode::Scaled, "{label}");
-        if label == "white 5 % high" {
-            assert!(acc.valid_fraction >= 0.95, "{label}: {acc:?}");
-            assert!(acc.thickness_mae_nm <= 0.6, "{label}: {acc:?}");
+        let (mut covered, mut valid, mut total, mut abs_err, mut sig) = (0, 0, 0, 0.0, 0.0);
+        for seed in 1..=4u64 {
+            let mut base = Scene::paper_cylinder();
+            base.truth.as_mut().unwrap().seed = seed;
+            let (mut cube, truth) = render(&base);
+            miscalibrate(&mut cube, &gain, offset);
+            // The default level (auto) corrects it.
+            let (maps, solver) = fit_with(&base, &cube, Mode::Balanced);
+            let acc = compare(&maps, &truth);
+            let wrong = valid_wrong(&maps, &truth);
+            report(&format!("{label} seed {seed}"), &acc, wrong, &solver);
+            assert_eq!(solver.level().1, LevelMode::Scaled, "{label} seed {seed}");
+            assert!(acc.valid_fraction >= 0.95, "{label} seed {seed}: {acc:?}");
+            let n = maps.width * maps.height;
+            for i in (0..n).filter(|&i| maps.valid[i] > 0.5) {
+                let e = (maps.thickness_nm[i] - truth.thickness_nm[i]).abs() as f64;
+                let s = maps.sigma_thickness_nm[i] as f64;
+                covered += usize::from(e <= 2.0 * s);
+                abs_err += e;
+                sig += s;
+                valid += 1;
+            }
+            total += n;
+            // Told to trust the calibration, irid flags instead of guessing.
+            let mut s = base.clone();
+            s.level = LevelMode::Absolute;
+            let (maps, solver) = fit_with(&s, &cube, Mode::Balanced);
+            let acc = compare(&maps, &truth);
+            let wrong = valid_wrong(&maps, &truth);
+            report(
+                &format!("{label} seed {seed}, absolute"),
+                &acc,
+                wrong,
+                &solver,
+            );
             assert!(
-                (0.88..=0.99).contains(&acc.coverage_2sigma),
-                "{label}: {acc:?}"
+                wrong <= 0.01,
+                "{label} seed {seed} absolute: {wrong} {acc:?}"
             );
         }
-        // Told to trust the calibration, irid flags instead of guessing.
-        let mut s = base.clone();
-        s.level = LevelMode::Absolute;
-        let (maps, solver) = fit_with(&s, &cube, Mode::Balanced);
-        let acc = compare(&maps, &truth);
-        let wrong = valid_wrong(&maps, &truth);
-        report(&format!("{label}, absolute"), &acc, wrong, &solver);
-        assert!(wrong <= 0.01, "{label} absolute: {wrong} {acc:?}");
+        let coverage = covered as f64 / valid as f64;
+        let (mae, mean_sigma) = (abs_err / valid as f64, sig / valid as f64);
+        eprintln!("{label}: pooled coverage {coverage:.3}, mean |Δd| {mae:.2} nm, mean σ {mean_sigma:.2} nm, valid {:.3}", valid as f64 / total as f64);
+        // σ neither too small nor too large over the realisations; and the
+        // error what a Gaussian of that σ gives (E|x| = 0.8 σ), within
+        // the spread of four shared level errors.
+        assert!((0.88..=0.995).contains(&coverage), "{label}: {coverage}");
+        assert!(mae <= 1.2 * mean_sigma, "{label}: {mae} vs σ {mean_sigma}");
     }
 }
 
@@ -146,7 +168,7 @@ fn clean_data_keep_the_absolute_level_and_the_statistical_limit() {
 fn a_cube_that_is_not_reflectance_is_never_valid_and_wrong() {
     let base = Scene::paper_cylinder();
     let (mut cube, truth) = render(&base);
-    miscalibrate(&mut cube, |_| 5.0, 0.1);
+    miscalibrate(&mut cube, &|_| 5.0, 0.1);
     for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
         let mut s = base.clone();
         s.level = LevelMode::Absolute;

@@ -3,12 +3,15 @@
 //! the fixture manifest (valid / invalid / damaged), the writer, dark/white
 //! calibration, and fuzz-style "an error, not a panic" properties.
 
-use irid::estimate::Cube;
+use irid::estimate::{nan_reason, Cube, Reason};
 use irid::io::envi::{
-    self, calibrate, parse_header, read_calibrated, read_cube, read_image, write_cube, ByteOrder,
-    DataType, Interleave, WriteOptions,
+    self, parse_header, read_cube, read_image, write_cube, ByteOrder, DataType, Interleave,
+    WriteOptions,
 };
 use irid::optics::band::Band;
+use irid::pipeline::calibration::{
+    calibrate_counts, read_calibrated, CalibrationPolicy, PACKED_ERROR_BOUND,
+};
 use proptest::prelude::*;
 use std::path::{Path, PathBuf};
 
@@ -292,13 +295,16 @@ fn calibration_divides_by_white_minus_dark() {
     let mut raw = vec![110.0f32, 50.0, 10.0, 200.0, f32::NAN, 30.0];
     let dark = [10.0f32, 10.0, 10.0, 100.0, 0.0, f32::INFINITY];
     let white = [210.0f32, 90.0, 5.0, 100.0, 100.0, 40.0];
-    calibrate(&mut raw, &dark, &white, 0.9);
-    assert!((raw[0] - 0.45).abs() < 1e-6, "{raw:?}");
-    assert!((raw[1] - 0.45).abs() < 1e-6);
-    assert!(raw[2].is_nan(), "white < dark");
-    assert!(raw[3].is_nan(), "white = dark");
+    // Full scale unknown (float counts): only white > dark is required.
+    let policy = CalibrationPolicy::for_full_scale(f32::INFINITY);
+    calibrate_counts(&mut raw, dark.to_vec(), white.to_vec(), 6, 0.9, &policy);
+    assert!((raw[0] - 0.45).abs() < PACKED_ERROR_BOUND, "{raw:?}");
+    assert!((raw[1] - 0.45).abs() < PACKED_ERROR_BOUND);
+    assert_eq!(nan_reason(raw[2]), Some(Reason::Dark), "white < dark");
+    assert_eq!(nan_reason(raw[3]), Some(Reason::Dark), "white = dark");
     assert!(raw[4].is_nan(), "non-finite raw");
-    assert!(raw[5].is_nan(), "non-finite dark");
+    assert_eq!(nan_reason(raw[4]), None, "a missing value is not a tag");
+    assert_eq!(nan_reason(raw[5]), Some(Reason::Dark), "non-finite dark");
 }
 
 #[test]
@@ -322,16 +328,16 @@ fn calibrated_cube_from_files_and_mismatches() {
     let dark = mk("dark", &|_| 100.0, 3, 4);
     let white = mk("white", &|i| if i == 5 { 50.0 } else { 1100.0 }, 3, 4);
     let raw = mk("raw", &|i| 100.0 + (i % 10) as f32 * 100.0, 3, 4);
-    let cube = read_calibrated(&raw, &dark, &white, 1.0).unwrap();
+    let cube = read_calibrated(&raw, &dark, &white, 1.0, None).unwrap();
     for (i, v) in cube.data.iter().enumerate() {
         if i == 5 {
-            assert!(v.is_nan());
+            assert_eq!(nan_reason(*v), Some(Reason::Dark));
         } else {
             assert!((v - (i % 10) as f32 / 10.0).abs() < 1e-6, "{i}: {v}");
         }
     }
     let narrow = mk("narrow", &|_| 1.0, 2, 4);
-    let e = read_calibrated(&raw, &dark, &narrow, 1.0)
+    let e = read_calibrated(&raw, &dark, &narrow, 1.0, None)
         .unwrap_err()
         .to_string();
     assert!(
@@ -339,7 +345,7 @@ fn calibrated_cube_from_files_and_mismatches() {
         "{e}"
     );
     let fewer = mk("fewer", &|_| 1.0, 3, 3);
-    let e = read_calibrated(&raw, &fewer, &white, 1.0)
+    let e = read_calibrated(&raw, &fewer, &white, 1.0, None)
         .unwrap_err()
         .to_string();
     assert!(e.contains("3 × 2 × 4 bands and 3 × 2 × 3 bands"), "{e}");

@@ -106,8 +106,12 @@ fn controller_errors_quote_the_code() {
 
 #[test]
 fn sequence_runs_on_sync_and_raises_settled_events() {
+    // Scale 2: a visible unit's 50 ms settle is 25 ms of wall time, long
+    // enough for the "settled" level to be seen low while the filter moves.
+    const SCALE: f64 = 2.0;
+    let settle_wall = Duration::from_secs_f64(0.050 / SCALE);
     let mut h = emulator(EmuConfig {
-        time_scale: TimeScale::new(10.0),
+        time_scale: TimeScale::new(SCALE),
         ..EmuConfig::ready()
     });
     let events = h.take_settled_events().unwrap();
@@ -118,12 +122,47 @@ fn sequence_runs_on_sync_and_raises_settled_events() {
     f.wait_settled(Duration::from_secs(2)).unwrap();
     let first = events.recv_timeout(Duration::from_secs(2)).unwrap();
     assert_eq!(first.wavelength_nm, 450.0);
+    assert!(h.settled(), "settled after wait_settled");
     f.arm_sync(1).unwrap();
     for &nm in seq[1..].iter().chain(&seq[..1]) {
+        assert!(h.settled(), "idle before the pulse");
+        let pulsed = Instant::now();
         h.pulse_sync();
-        let e = events.recv_timeout(Duration::from_secs(2)).unwrap();
+        // While the filter moves to the next band the level is low ("busy"):
+        // watch it until the settled edge arrives.
+        let mut saw_busy = false;
+        let e = loop {
+            saw_busy |= !h.settled();
+            match events.try_recv() {
+                Ok(e) => break e,
+                Err(std::sync::mpsc::TryRecvError::Empty) => {
+                    assert!(
+                        pulsed.elapsed() < Duration::from_secs(2),
+                        "no edge for {nm} nm"
+                    );
+                    std::thread::yield_now();
+                }
+                Err(e) => panic!("{e}"),
+            }
+        };
         assert_eq!(e.wavelength_nm, nm);
-        assert!(h.settled() || !h.settled()); // level is readable at any time
+        assert!(saw_busy, "the level never went low while tuning to {nm} nm");
+        // The edge cannot come before the settle time (50 ms device, the
+        // lower bound is exact; jitter only adds).
+        assert!(
+            e.at.duration_since(pulsed) >= settle_wall,
+            "{nm} nm settled after {:?}",
+            e.at.duration_since(pulsed)
+        );
+        // The level follows the edge within the emulator's loop iteration.
+        let t = Instant::now();
+        while !h.settled() {
+            assert!(
+                t.elapsed() < Duration::from_secs(1),
+                "level stuck low after the edge"
+            );
+            std::thread::yield_now();
+        }
     }
     f.trigger().unwrap();
     f.wait_settled(Duration::from_secs(2)).unwrap();

@@ -6,7 +6,7 @@ mod pipeline_common;
 
 use irid::device::camera::faults::{FaultConfig, FaultySource};
 use irid::device::camera::CameraInfo;
-use irid::pipeline::calibration::{CalExpect, Calibration, Calibrator};
+use irid::pipeline::calibration::{CalExpect, Calibration, CalibrationPolicy, Calibrator};
 use irid::pipeline::runner::{run, CollectSink, RunReport};
 use pipeline_common::*;
 use std::sync::atomic::AtomicBool;
@@ -201,7 +201,7 @@ fn a_calibration_with_dark_brighter_than_white_flags_pixels_and_never_panics() {
         r.cal.meta.clone(),
         &acc(&r.cal.white, nb),
         &acc(&r.cal.dark, nb),
-        655.0,
+        &CalibrationPolicy::for_format(r.cal.meta.format),
     );
     assert!(cal.flags.iter().all(|&f| f != 0));
     let mut setup = r.setup(false);

@@ -17,6 +17,7 @@ use crate::estimate::solver::MAX_BANDS;
 use crate::estimate::{Cube, Mode, ParamMaps, Reason, Solver};
 use crate::io::spectrum_table::{self, SpectrumTable};
 use crate::io::{envi, exr_maps, results_csv};
+use crate::pipeline::calibration;
 use crate::scene::{AngleKnowledge, Scene};
 use anyhow::{bail, Context};
 use serde::Serialize;
@@ -55,6 +56,11 @@ pub struct FitArgs {
     /// the mean of the table values within ±STEP/2 of its centre (FWHM STEP).
     #[arg(long, value_name = "LO:HI:STEP")]
     pub bands: Option<String>,
+    /// The sensor's full scale, counts, with --dark/--white: samples at or
+    /// above it are saturated, and a pixel needs white − dark ≥ 1 % of it
+    /// (default: 255 for u8 cubes, 65535 for u16, none for other types).
+    #[arg(long, value_name = "COUNTS", requires = "white")]
+    pub full_scale: Option<f32>,
     /// Scene overrides.
     #[command(flatten)]
     pub overrides: SceneOverrides,
@@ -313,7 +319,10 @@ fn read_envi(a: &FitArgs) -> anyhow::Result<Cube> {
                 a.white_reflectance.is_finite() && a.white_reflectance > 0.0,
                 "--white-reflectance must be positive"
             );
-            envi::read_calibrated(&a.cube, d, w, a.white_reflectance)?
+            if let Some(f) = a.full_scale {
+                anyhow::ensure!(f > 0.0, "--full-scale must be positive");
+            }
+            calibration::read_calibrated(&a.cube, d, w, a.white_reflectance, a.full_scale)?
         }
         _ => envi::read_cube(&a.cube)?,
     })

@@ -15,7 +15,7 @@ use crate::device::camera::{FrameSource, PixelFormat, Target};
 use crate::estimate::{Mode, ParamMaps};
 use crate::optics::band::Band;
 use crate::pipeline::calibration::{
-    capture_reference, CalExpect, CalMeta, Calibration, Calibrator, CapturePlan,
+    capture_reference, CalExpect, CalMeta, Calibration, CalibrationPolicy, Calibrator, CapturePlan,
 };
 use crate::pipeline::output::{sweep_path, write_map, SweepSummary};
 use crate::pipeline::profile::ProfileLayer;
@@ -570,13 +570,11 @@ pub fn capture_calibration(
         white_reflectance,
         frames,
     };
-    // A usable pixel's white stands 1% of full scale above its dark.
-    let min_contrast = f32::from(info.format.max_value()) * 0.01;
     Ok(Calibration::from_references(
         meta,
         &refs[0],
         &refs[1],
-        min_contrast,
+        &CalibrationPolicy::for_format(info.format),
     ))
 }
 

@@ -68,13 +68,6 @@ pub const GAIN_PRIOR_SIGMA: f64 = 0.5;
 /// See [`GAIN_PRIOR_SIGMA`].
 pub const OFFSET_PRIOR_SIGMA: f64 = 0.2;
 
-/// Prior σ of a gain error in the covariance the level reports: what a
-/// calibration plausibly errs by (a white reference a few percent off).
-pub const COV_GAIN_SIGMA: f64 = 0.02;
-/// Prior σ of an offset in the reported covariance (stray light of a few
-/// thousandths).
-pub const COV_OFFSET_SIGMA: f64 = 0.003;
-
 /// Largest gain error `scaled` corrects: beyond it the data are not a
 /// miscalibrated reflectance but something else (normalised intensities,
 /// raw counts), and correcting them would invent a film; they are flagged
@@ -97,7 +90,7 @@ pub struct Level {
     /// Covariance of each band's gain and offset.
     pub cov: Vec<f64>,
     /// Factor by which the level's own uncertainty widens a pixel's σ_d:
-    /// `sqrt(1 + ⟨var_level(d)/var_noise(d)⟩)` over the sample, each
+    /// `sqrt(1 + median(var_level(d)/var_noise(d)))` over the sample, each
     /// pixel's share propagated exactly through its fit (a gain error
     /// common to all bands moves d far less than independent band errors
     /// of the same size would).
@@ -386,25 +379,7 @@ pub fn level_step(
     }
     let l = cholesky(&s, m)?;
     let delta = chol_solve(&l, m, &rhs);
-    // The covariance reported (and carried into σ) is the posterior under
-    // the plausible-calibration prior: a direction the data cannot tell
-    // keeps the prior's width (a few percent), not the weak one that only
-    // keeps the step finite.
-    let mut s_cov = s.clone();
-    for j in 0..m_level {
-        let (dg, doff) = drow.iter().map(|r| r[j]).fold((0.0f64, 0.0f64), |a, v| {
-            (a.0.max(v.0.abs()), a.1.max(v.1.abs()))
-        });
-        let (weak, plausible) = if dg > 0.0 {
-            (GAIN_PRIOR_SIGMA, COV_GAIN_SIGMA)
-        } else if doff > 0.0 {
-            (OFFSET_PRIOR_SIGMA, COV_OFFSET_SIGMA)
-        } else {
-            continue;
-        };
-        s_cov[j * m + j] += 1.0 / (plausible * plausible) - 1.0 / (weak * weak);
-    }
-    let inv = chol_inverse(&cholesky(&s_cov, m)?, m);
+    let inv = chol_inverse(&l, m);
     let new_gamma: Vec<f64> = gamma.iter().zip(&delta).map(|(g, d)| g + d).collect();
     let mut out = Level::identity(nb);
     let mut change: f64 = 0.0;
@@ -448,8 +423,14 @@ pub fn level_step(
             v / vn
         })
         .collect();
-    let mean_ratio = ratios.iter().sum::<f64>() / ratios.len().max(1) as f64;
-    out.sigma_inflation = (1.0 + mean_ratio).sqrt();
+    let mut ratios = ratios;
+    let mid = ratios.len() / 2;
+    let med_ratio = if ratios.is_empty() {
+        0.0
+    } else {
+        *ratios.select_nth_unstable_by(mid, f64::total_cmp).1
+    };
+    out.sigma_inflation = (1.0 + med_ratio).sqrt();
     Some(LevelStep {
         level: out,
         change,

@@ -29,7 +29,7 @@ pub mod quality;
 pub mod range;
 pub mod solver;
 
-pub use cube::Cube;
+pub use cube::{nan_reason, Cube, DARK_NAN, SATURATED_NAN};
 pub use maps::{MapRowMut, ParamMaps, PixelEstimate, Reason};
 pub use solver::{IndexEstimate, Solver};
 

@@ -775,47 +775,21 @@ pub fn image_to_cube(img: EnviImage) -> Result<Cube, IoError> {
     })
 }
 
-/// Reflectance from raw counts: `R · (raw − dark) / (white − dark)` per pixel
-/// and band, with `R` the white reference's reflectance. Where `white ≤ dark`
-/// or any input is non-finite the result is NaN (the solver reports such
-/// pixels as non-finite input). The three slices have the same layout.
-pub fn calibrate(raw: &mut [f32], dark: &[f32], white: &[f32], white_reflectance: f32) {
-    for ((r, &d), &w) in raw.iter_mut().zip(dark).zip(white) {
-        let span = w - d;
-        *r = if span > 0.0 && span.is_finite() && r.is_finite() && d.is_finite() {
-            white_reflectance * (*r - d) / span
-        } else {
-            f32::NAN
-        };
-    }
-}
-
-/// Read a raw-count cube and its dark and white reference cubes, and
-/// calibrate to reflectance (see [`calibrate`]). The references must have
-/// the cube's size and band count; where they list wavelengths, the cube's.
-/// Stored values are used as they are: a scale factor common to the three
-/// cancels.
-pub fn read_calibrated(
-    cube_path: &Path,
+/// Read the dark and white reference cubes of the raw-count image `cube`:
+/// they must have its size and band count and, where they list
+/// wavelengths, its wavelengths. Calibrating is the pipeline's business
+/// (`pipeline::calibration::read_calibrated`).
+pub fn read_references(
+    cube: &EnviImage,
     dark_path: &Path,
     white_path: &Path,
-    white_reflectance: f32,
-) -> Result<Cube, IoError> {
-    let cube = read_image(cube_path)?;
-    let bands = header_bands(&cube.header, &cube.header_path)?;
+) -> Result<(EnviImage, EnviImage), IoError> {
     let dark = read_image(dark_path)?;
     let white = read_image(white_path)?;
     for refimg in [&dark, &white] {
-        check_same_shape(&cube, refimg)?;
+        check_same_shape(cube, refimg)?;
     }
-    let mut data = cube.data;
-    calibrate(&mut data, &dark.data, &white.data, white_reflectance);
-    Ok(Cube {
-        width: cube.header.samples,
-        height: cube.header.lines,
-        bands,
-        data,
-    })
+    Ok((dark, white))
 }
 
 fn check_same_shape(cube: &EnviImage, other: &EnviImage) -> Result<(), IoError> {

@@ -1,13 +1,23 @@
 //! Radiometric calibration: dark and white references per band, and the
-//! per-frame conversion of counts to reflectance.
+//! per-frame conversion of counts to reflectance — for `irid run` and for
+//! `irid fit --dark/--white` alike.
 //!
 //! `R = (counts − dark) / (white − dark) × R_white × (t_white / t_frame)`:
 //! the exposure ratio normalises frames taken at another exposure than the
-//! white reference. Pixels that cannot be calibrated are flagged, per band,
-//! and come out as NaN (a missing band for that pixel), never as a wrong
-//! number: saturated in the white reference, too dark (white − dark below a
-//! floor, or dark brighter than white), dead (no response at all).
-//! Saturated samples are left out of the averages, not averaged in.
+//! white reference. One [`CalibrationPolicy`] decides what cannot be
+//! calibrated, for both commands: a sample at or above the sensor's full
+//! scale is saturated, and so is a pixel whose white reference reached it;
+//! a pixel whose white stands less than 1 % of full scale above its dark
+//! (or below it) is too dark; one with no valid reference sample is dead.
+//! Such values come out as NaN (a missing band for that pixel), never as a
+//! wrong number, and the NaN carries the reason: [`SATURATED_NAN`] or
+//! [`DARK_NAN`] (see [`crate::estimate::cube`]), so the maps can say why.
+//! Saturated samples are left out of the reference averages, not averaged
+//! in.
+//!
+//! [`read_calibrated`] reads raw-count ENVI cubes with dark and white
+//! reference cubes and converts them through the same [`Calibrator`] the
+//! live pipeline uses, so equal counts give bit-identical reflectance.
 //!
 //! A calibration file (`.ircal`) is one line of JSON metadata (size, bands,
 //! exposure, gain, camera id, creation time, white reflectance), a newline,
@@ -17,6 +27,9 @@
 //! that says what differs.
 
 use crate::device::camera::{CameraInfo, Frame, PixelFormat};
+use crate::estimate::cube::{nan_reason, Cube, DARK_NAN, SATURATED_NAN};
+use crate::estimate::Reason;
+use crate::io::{envi, IoError};
 use multiversion::multiversion;
 use rayon::prelude::*;
 use std::io::{Read, Write};
@@ -31,6 +44,94 @@ pub mod flag {
     /// No valid sample at all (every white sample saturated or the pixel
     /// never responded).
     pub const DEAD: u8 = 4;
+
+    /// The value a flagged pixel's bands take: [`SATURATED_NAN`] if
+    /// `flags` has [`SATURATED`] (saturation wins: it is the thing to fix
+    /// first), [`DARK_NAN`] for [`DARK`] or [`DEAD`]; for 0 (not flagged),
+    /// `None`.
+    ///
+    /// [`SATURATED_NAN`]: crate::estimate::cube::SATURATED_NAN
+    /// [`DARK_NAN`]: crate::estimate::cube::DARK_NAN
+    pub fn tag(flags: u8) -> Option<f32> {
+        use crate::estimate::cube::{DARK_NAN, SATURATED_NAN};
+        if flags & SATURATED != 0 {
+            Some(SATURATED_NAN)
+        } else if flags != 0 {
+            Some(DARK_NAN)
+        } else {
+            None
+        }
+    }
+}
+
+/// The one rule for what can be calibrated, shared by `irid run` (camera
+/// frames) and `irid fit --dark/--white` (ENVI cubes).
+///
+/// - A sample is **saturated** at or above `saturation_level` (the
+///   sensor's full scale): it becomes [`SATURATED_NAN`]. A pixel whose
+///   white reference saturated is flagged [`flag::SATURATED`] in every
+///   frame.
+/// - A pixel is **dark** when `white − dark` is below `min_contrast` (1 %
+///   of full scale), not positive, or not a number, and **dead** when a
+///   reference has no valid sample: flagged [`flag::DARK`] /
+///   [`flag::DEAD`], its bands become [`DARK_NAN`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CalibrationPolicy {
+    /// Counts at or above which a sample is saturated; `+∞` where the full
+    /// scale is unknown (nothing saturates).
+    pub saturation_level: f32,
+    /// The least `white − dark`, counts, of a usable pixel (`white > dark`
+    /// is always required).
+    pub min_contrast: f32,
+}
+
+impl CalibrationPolicy {
+    /// The contrast floor as a fraction of full scale.
+    pub const MIN_CONTRAST_FRACTION: f32 = 0.01;
+
+    /// The policy for a sensor of full scale `full_scale` counts: saturated
+    /// at full scale, a floor of 1 % of it. `+∞` (unknown full scale): no
+    /// saturation and no floor beyond `white > dark`.
+    pub fn for_full_scale(full_scale: f32) -> CalibrationPolicy {
+        let min_contrast = if full_scale.is_finite() {
+            full_scale * Self::MIN_CONTRAST_FRACTION
+        } else {
+            0.0
+        };
+        CalibrationPolicy {
+            saturation_level: full_scale,
+            min_contrast,
+        }
+    }
+
+    /// The policy for a camera pixel format (full scale = its largest
+    /// value).
+    pub fn for_format(format: PixelFormat) -> CalibrationPolicy {
+        Self::for_full_scale(f32::from(format.max_value()))
+    }
+
+    /// Whether a sample of `counts` is saturated.
+    pub fn is_saturated(&self, counts: f32) -> bool {
+        counts >= self.saturation_level
+    }
+
+    /// The [`flag`] bits of a pixel with mean `dark` and `white` (NaN where
+    /// a reference has no valid sample); `white_saturated` if some white
+    /// sample saturated (and was left out of the mean). A white mean at or
+    /// above the saturation level counts as saturated too.
+    pub fn flags(&self, dark: f32, white: f32, white_saturated: bool) -> u8 {
+        let mut f = 0;
+        if white_saturated || self.is_saturated(white) {
+            f |= flag::SATURATED;
+        }
+        let contrast = white - dark;
+        if !(dark.is_finite() && white.is_finite()) {
+            f |= flag::DEAD;
+        } else if !(contrast >= self.min_contrast && contrast > 0.0) {
+            f |= flag::DARK;
+        }
+        f
+    }
 }
 
 /// Calibration errors.
@@ -44,6 +145,9 @@ pub enum CalibrationError {
         /// The cause.
         source: std::io::Error,
     },
+    /// A raw-count or reference ENVI cube could not be read or does not fit.
+    #[error(transparent)]
+    Envi(#[from] IoError),
     /// The file is not a calibration or is damaged.
     #[error("calibration {path}: {message}")]
     Format {
@@ -151,7 +255,7 @@ impl Accumulator {
         if px.len() != self.n {
             return Err(format!("frame of {} pixels, expected {}", px.len(), self.n));
         }
-        let sat = frame.meta.format.max_value();
+        let policy = CalibrationPolicy::for_format(frame.meta.format);
         let o = band * self.n;
         let (sum, count, satd) = (
             &mut self.sum[o..o + self.n],
@@ -159,7 +263,7 @@ impl Accumulator {
             &mut self.saturated[o..o + self.n],
         );
         for i in 0..self.n {
-            if px[i] >= sat {
+            if policy.is_saturated(f32::from(px[i])) {
                 satd[i] = true;
             } else {
                 sum[i] += f64::from(px[i]);
@@ -169,7 +273,9 @@ impl Accumulator {
         Ok(())
     }
 
-    fn mean(&self) -> (Vec<f32>, Vec<bool>, Vec<bool>) {
+    /// The means (NaN where no sample was valid) and which pixels saw a
+    /// saturated sample.
+    fn mean(&self) -> (Vec<f32>, Vec<bool>) {
         let mean = self
             .sum
             .iter()
@@ -182,35 +288,27 @@ impl Accumulator {
                 }
             })
             .collect();
-        let empty = self.count.iter().map(|&c| c == 0).collect();
-        (mean, self.saturated.clone(), empty)
+        (mean, self.saturated.clone())
     }
 }
 
 impl Calibration {
-    /// Build from accumulated dark and white references. `min_contrast` is
-    /// the least `white − dark`, in counts, a usable pixel has.
+    /// Build from accumulated dark and white references, flagging pixels by
+    /// `policy` (a reference with no valid sample has a NaN mean: dead).
     pub fn from_references(
         meta: CalMeta,
         dark: &Accumulator,
         white: &Accumulator,
-        min_contrast: f32,
+        policy: &CalibrationPolicy,
     ) -> Calibration {
-        let (d, _, d_empty) = dark.mean();
-        let (w, w_sat, w_empty) = white.mean();
-        let mut flags = vec![0u8; d.len()];
-        for i in 0..d.len() {
-            let mut f = 0;
-            if w_sat[i] {
-                f |= flag::SATURATED;
-            }
-            if w_empty[i] || d_empty[i] {
-                f |= flag::DEAD;
-            } else if w[i] - d[i] < min_contrast || (w[i] - d[i]).is_nan() {
-                f |= flag::DARK;
-            }
-            flags[i] = f;
-        }
+        let (d, _) = dark.mean();
+        let (w, w_sat) = white.mean();
+        let flags = d
+            .iter()
+            .zip(&w)
+            .zip(&w_sat)
+            .map(|((&d, &w), &sat)| policy.flags(d, w, sat))
+            .collect();
         Calibration {
             meta,
             dark: d,
@@ -362,6 +460,84 @@ impl Calibration {
     }
 }
 
+/// The full scale of raw counts stored as ENVI `data_type` when the user
+/// does not give it: the type's range for u8 and u16 (what a camera
+/// writes natively, as `irid run` takes a Grey8 or Y16 camera's), unknown
+/// (`+∞`) for the others.
+pub fn envi_full_scale(data_type: envi::DataType) -> f32 {
+    match data_type {
+        envi::DataType::U8 => f32::from(u8::MAX),
+        envi::DataType::U16 => f32::from(u16::MAX),
+        _ => f32::INFINITY,
+    }
+}
+
+/// Calibrate `raw`, band-sequential counts in planes of `n` pixels, to
+/// reflectance in place, with mean `dark` and `white` references of the
+/// same layout: flags by `policy`, then the [`Calibrator`] `irid run` uses
+/// (the references count as taken at the frames' exposure).
+pub fn calibrate_counts(
+    raw: &mut [f32],
+    dark: Vec<f32>,
+    white: Vec<f32>,
+    n: usize,
+    white_reflectance: f32,
+    policy: &CalibrationPolicy,
+) {
+    let flags: Vec<u8> = dark
+        .iter()
+        .zip(&white)
+        .map(|(&d, &w)| policy.flags(d, w, false))
+        .collect();
+    let cal = Calibrator::from_planes(n, dark, white, &flags, white_reflectance, 1);
+    if n == 0 {
+        return;
+    }
+    let mut out = vec![0.0f32; n];
+    for (b, plane) in raw.chunks_exact_mut(n).enumerate() {
+        cal.apply_counts(b, plane, policy.saturation_level, 1, &mut out);
+        plane.copy_from_slice(&out);
+    }
+}
+
+/// Read a raw-count ENVI cube and its dark and white reference cubes (same
+/// size and bands; see [`envi::read_references`]) and calibrate to
+/// reflectance by [`CalibrationPolicy::for_full_scale`] with `full_scale`
+/// (default [`envi_full_scale`] of the cube's data type), exactly as `irid
+/// run` calibrates frames. Stored values are used as they are: a scale
+/// factor common to the three cancels. A non-finite raw value (e.g. the
+/// `data ignore value`) stays a plain NaN.
+pub fn read_calibrated(
+    cube_path: &Path,
+    dark_path: &Path,
+    white_path: &Path,
+    white_reflectance: f32,
+    full_scale: Option<f32>,
+) -> Result<Cube, CalibrationError> {
+    let raw = envi::read_image(cube_path)?;
+    let bands = envi::header_bands(&raw.header, &raw.header_path)?;
+    let (dark, white) = envi::read_references(&raw, dark_path, white_path)?;
+    let policy = CalibrationPolicy::for_full_scale(
+        full_scale.unwrap_or_else(|| envi_full_scale(raw.header.data_type)),
+    );
+    let (width, height) = (raw.header.samples, raw.header.lines);
+    let mut data = raw.data;
+    calibrate_counts(
+        &mut data,
+        dark.data,
+        white.data,
+        width * height,
+        white_reflectance,
+        &policy,
+    );
+    Ok(Cube {
+        width,
+        height,
+        bands,
+        data,
+    })
+}
+
 /// How to capture a reference.
 #[derive(Clone, Copy, Debug)]
 pub struct CapturePlan<'a> {
@@ -445,9 +621,21 @@ pub const PACKED_ERROR_BOUND: f32 = 2e-5;
 /// the rest covers f32 rounding (≲ 1e-6 for |R| ≤ 1; see `Packing`).
 const QUANT_BUDGET: f64 = 1.9e-5;
 
-/// Code of a flagged pixel (never a valid code: the dark field of a valid
-/// code is at most its maximum − 1).
-const FLAGGED: u32 = u32::MAX;
+/// Code of a pixel flagged dark or dead (never a valid code: the dark field
+/// of a valid code is at most its maximum − 1, so any code whose dark field
+/// is all ones, [`FLAGGED_SATURATED`] too, is free).
+const FLAGGED_DARK: u32 = u32::MAX;
+
+/// Code of a pixel flagged saturated (the white reference saturated).
+const FLAGGED_SATURATED: u32 = u32::MAX - 1;
+
+/// The code of a flagged pixel whose scale holds the tag `s`.
+fn flagged_code(s: f32) -> u32 {
+    match nan_reason(s) {
+        Some(Reason::Saturated) => FLAGGED_SATURATED,
+        _ => FLAGGED_DARK,
+    }
+}
 
 /// Bits of 1.0f32.
 const ONE_BITS: u32 = 0x3F80_0000;
@@ -501,7 +689,7 @@ impl Packing {
     }
 
     fn dark_max(&self) -> u32 {
-        // Leave the all-ones dark field free so no valid code is FLAGGED.
+        // Leave the all-ones dark field free so no valid code is flagged.
         (1u32 << (32 - self.gain_bits)) - 2
     }
 
@@ -516,7 +704,7 @@ impl Packing {
         ((above + half) >> self.gain_shift).min(self.gain_mask())
     }
 
-    /// Pack one band: `dark` and `scale` (NaN where flagged) in, the codes
+    /// Pack one band: `dark` and `scale` (a tagged NaN where flagged) in, the codes
     /// out in `code`, as f32 bit patterns (the codes go over the white plane
     /// they were computed from). `None` if some pixel cannot be packed
     /// within the budget (the band then stays f32); `gain` is scratch.
@@ -536,7 +724,9 @@ impl Packing {
             dmin = dmin.min(d);
         }
         if !any {
-            code.fill(f32::from_bits(FLAGGED));
+            for (c, &s) in code.iter_mut().zip(scale) {
+                *c = f32::from_bits(flagged_code(s));
+            }
             return Some(Packing::PLAIN);
         }
         let dark_base = f64::from(dmin).floor();
@@ -603,7 +793,7 @@ impl Packing {
         let mut worst = 0.0f64;
         for (((c, &d), &s), &q) in code.iter_mut().zip(dark).zip(scale).zip(gain.iter()) {
             if s.is_nan() {
-                *c = f32::from_bits(FLAGGED);
+                *c = f32::from_bits(flagged_code(s));
                 continue;
             }
             let g = f64::from(p.gamma(q));
@@ -662,15 +852,29 @@ impl Calibrator {
     /// white plane: no second copy of a large calibration in memory).
     pub fn from_calibration(cal: Calibration) -> Calibrator {
         let n = cal.meta.width as usize * cal.meta.height as usize;
-        let len = cal.dark.len().min(cal.white.len()).min(cal.flags.len());
-        let bands = len.checked_div(n).unwrap_or(0);
         let rw = cal.meta.white_reflectance as f32;
         let Calibration {
             meta,
             dark,
-            mut white,
+            white,
             flags,
         } = cal;
+        Calibrator::from_planes(n, dark, white, &flags, rw, meta.exposure_us)
+    }
+
+    /// Prepare band-sequential `dark`, `white` and [`flag`] planes of `n`
+    /// pixels, for a white of reflectance `rw` taken at `exposure_us`
+    /// (the codes are written over `white`).
+    pub fn from_planes(
+        n: usize,
+        dark: Vec<f32>,
+        mut white: Vec<f32>,
+        flags: &[u8],
+        rw: f32,
+        exposure_us: u32,
+    ) -> Calibrator {
+        let len = dark.len().min(white.len()).min(flags.len());
+        let bands = len.checked_div(n).unwrap_or(0);
         // Bands in parallel; each keeps its codes in its white plane, or
         // hands back its scale plane if it stays f32. The codes are stored
         // as f32 bit patterns (to_bits/from_bits are transmutes: bits
@@ -687,12 +891,12 @@ impl Calibrator {
                     || (vec![0.0f32; n], Vec::new()),
                     |(s, gain), ((w, d), f)| {
                         for (((s, &w), &d), &f) in s.iter_mut().zip(w.iter()).zip(d).zip(f) {
-                            *s = if f == 0 { rw / (w - d) } else { f32::NAN };
+                            *s = flag::tag(f).unwrap_or_else(|| rw / (w - d));
                         }
                         match Packing::pack(d, s, w, gain) {
                             Some(p) => (Some(p), Vec::new()),
                             None => {
-                                w.fill(f32::from_bits(FLAGGED));
+                                w.fill(f32::from_bits(FLAGGED_DARK));
                                 (None, s.clone())
                             }
                         }
@@ -720,7 +924,7 @@ impl Calibrator {
             code,
             offset,
             scale,
-            exposure_us: meta.exposure_us,
+            exposure_us,
         }
     }
 
@@ -783,7 +987,8 @@ impl Calibrator {
     }
 
     /// Convert `counts` (band `band`, exposure `exposure_us`) to reflectance
-    /// in `out`. Saturated samples (`>= sat`) become NaN.
+    /// in `out`. Saturated samples (`>= sat`) become [`SATURATED_NAN`],
+    /// flagged pixels their flag's tag ([`flag::tag`]).
     pub fn apply(&self, band: usize, counts: &[u16], sat: u16, exposure_us: u32, out: &mut [f32]) {
         self.apply_row(band, 0, counts, sat, exposure_us, out);
     }
@@ -824,11 +1029,117 @@ impl Calibrator {
             }
         }
     }
+
+    /// As [`Calibrator::apply`] for counts stored as f32 (an ENVI cube of
+    /// raw counts), with the same arithmetic: integer counts give the bits
+    /// [`Calibrator::apply`] gives. A non-finite count (a missing value)
+    /// gives a plain NaN; `sat` is the policy's saturation level. Not the
+    /// hot path: one pass per cube.
+    pub fn apply_counts(
+        &self,
+        band: usize,
+        counts: &[f32],
+        sat: f32,
+        exposure_us: u32,
+        out: &mut [f32],
+    ) {
+        let n = counts.len().min(out.len()).min(self.n);
+        let Some(&form) = self.forms.get(band) else {
+            return;
+        };
+        let k = self.exposure_us as f32 / exposure_us.max(1) as f32;
+        let samples = counts[..n].iter().zip(out[..n].iter_mut());
+        match form {
+            BandForm::Packed(p) => {
+                let o = band * self.n;
+                let Some(code) = self.code.get(o..o + n) else {
+                    return;
+                };
+                let l = PackedLoop::new(p, k);
+                for ((&c, o), &q) in samples.zip(code) {
+                    *o = if c.is_finite() {
+                        l.sample(c, c >= sat, q)
+                    } else {
+                        f32::NAN
+                    };
+                }
+            }
+            BandForm::Full { at } => {
+                let (Some(off), Some(sc)) =
+                    (self.offset.get(at..at + n), self.scale.get(at..at + n))
+                else {
+                    return;
+                };
+                for (((&c, o), &d), &s) in samples.zip(off).zip(sc) {
+                    *o = if c.is_finite() {
+                        full_sample(c, c >= sat, d, s, k)
+                    } else {
+                        f32::NAN
+                    };
+                }
+            }
+        }
+    }
+}
+
+/// The constants of the packed loop for one band and exposure ratio `k`.
+#[derive(Clone, Copy)]
+struct PackedLoop {
+    mask: u32,
+    shift: u32,
+    bits: u32,
+    base: f32,
+    unit: f32,
+    ks: f32,
+}
+
+impl PackedLoop {
+    #[inline(always)]
+    fn new(p: Packing, k: f32) -> PackedLoop {
+        PackedLoop {
+            mask: p.gain_mask(),
+            shift: p.gain_shift,
+            bits: p.gain_bits,
+            base: p.dark_base,
+            unit: p.dark_unit,
+            ks: p.scale * k,
+        }
+    }
+
+    /// One sample of `c` counts with code `q`: the reflectance, or the tag
+    /// of a saturated sample or a flagged pixel — by selects, not branches
+    /// (a saturated sample wins over a dark flag).
+    #[inline(always)]
+    fn sample(&self, c: f32, saturated: bool, q: u32) -> f32 {
+        let g = f32::from_bits(((q & self.mask) << self.shift).wrapping_add(ONE_BITS));
+        let qd = q.wrapping_shr(self.bits) as i32 as f32;
+        let r = ((c - self.base) * g - self.unit * qd) * self.ks;
+        let v = if q == FLAGGED_DARK { DARK_NAN } else { r };
+        if saturated || q == FLAGGED_SATURATED {
+            SATURATED_NAN
+        } else {
+            v
+        }
+    }
+}
+
+/// One sample of an unpacked band: dark `d`, scale `s` (a flagged pixel's
+/// scale is its tag, passed through by a select: arithmetic need not keep a
+/// NaN's payload).
+#[inline(always)]
+fn full_sample(c: f32, saturated: bool, d: f32, s: f32, k: f32) -> f32 {
+    let r = (c - d) * (s * k);
+    let v = if s.is_nan() { s } else { r };
+    if saturated {
+        SATURATED_NAN
+    } else {
+        v
+    }
 }
 
 /// The packed hot loop (see `Packing`), compiled for the best vector unit
-/// the CPU offers. Flagged pixels and saturated samples give NaN by a
-/// select, not a branch.
+/// the CPU offers. Flagged pixels and saturated samples give their tagged
+/// NaN by a select, not a branch.
 #[multiversion(targets(
     "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
     "x86_64+avx2+fma",
@@ -837,17 +1148,9 @@ impl Calibrator {
 ))]
 fn apply_packed(counts: &[u16], code: &[u32], out: &mut [f32], p: Packing, k: f32, sat: u16) {
     let n = counts.len().min(code.len()).min(out.len());
-    let (mask, shift, bits) = (p.gain_mask(), p.gain_shift, p.gain_bits);
-    let (base, unit, ks) = (p.dark_base, p.dark_unit, p.scale * k);
+    let l = PackedLoop::new(p, k);
     for ((o, &c), &q) in out[..n].iter_mut().zip(&counts[..n]).zip(&code[..n]) {
-        let g = f32::from_bits(((q & mask) << shift).wrapping_add(ONE_BITS));
-        let qd = q.wrapping_shr(bits) as i32 as f32;
-        let r = ((f32::from(c) - base) * g - unit * qd) * ks;
-        *o = if c >= sat || q == FLAGGED {
-            f32::NAN
-        } else {
-            r
-        };
+        *o = l.sample(f32::from(c), c >= sat, q);
     }
 }
 
@@ -855,8 +1158,7 @@ fn apply_packed(counts: &[u16], code: &[u32], out: &mut [f32], p: Packing, k: f3
 #[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
 fn apply_full(counts: &[u16], off: &[f32], sc: &[f32], out: &mut [f32], k: f32, sat: u16) {
     for (((o, &c), &d), &s) in out.iter_mut().zip(counts).zip(off).zip(sc) {
-        let r = (f32::from(c) - d) * (s * k);
-        *o = if c >= sat { f32::NAN } else { r };
+        *o = full_sample(f32::from(c), c >= sat, d, s, k);
     }
 }
 
@@ -893,7 +1195,11 @@ mod tests {
         d.add(0, &frame([100, 100, 5000, 100])).unwrap();
         // Pixel 1 saturated in the white, pixel 2 dark brighter than white.
         w.add(0, &frame([1100, 65535, 1000, 100])).unwrap();
-        let cal = Calibration::from_references(meta(), &d, &w, 10.0);
+        let policy = CalibrationPolicy {
+            saturation_level: 65535.0,
+            min_contrast: 10.0,
+        };
+        let cal = Calibration::from_references(meta(), &d, &w, &policy);
         assert_eq!(
             cal.flags,
             vec![0, flag::SATURATED | flag::DEAD, flag::DARK, flag::DARK]
@@ -914,7 +1220,8 @@ mod tests {
     fn round_trip_and_refusals() {
         let mut d = Accumulator::new(4, 1);
         d.add(0, &frame([1, 2, 3, 4])).unwrap();
-        let cal = Calibration::from_references(meta(), &d, &d, 1.0);
+        let cal =
+            Calibration::from_references(meta(), &d, &d, &CalibrationPolicy::for_full_scale(100.0));
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("c.ircal");
         cal.save(&p).unwrap();
@@ -1163,29 +1470,69 @@ mod tests {
             flags[b * n + 3] = flag::SATURATED;
             flags[b * n + 4] = flag::DARK;
             flags[b * n + 5] = flag::DEAD | flag::SATURATED;
+            flags[b * n + 6] = flag::DEAD;
         }
         let cal = calibration(n as u32, PixelFormat::Y10, dark, white, flags.clone());
         let c = Calibrator::new(&cal);
         assert_eq!(c.packed_bands(), 1);
         let mut out = vec![0.0f32; n];
+        let mut out_f32 = vec![0.0f32; n];
         for b in 0..2 {
             for v in [0u16, 64, 500, 1022, 1023, 5000] {
                 let counts = vec![v; n];
                 c.apply(b, &counts, 1023, 1000, &mut out);
+                // The f32-count entry (ENVI raw cubes) gives the same bits.
+                let counts_f32: Vec<f32> = counts.iter().map(|&c| f32::from(c)).collect();
+                c.apply_counts(b, &counts_f32, 1023.0, 1000, &mut out_f32);
                 for i in 0..n {
-                    let nan = flags[b * n + i] != 0 || v >= 1023;
-                    assert_eq!(out[i].is_nan(), nan, "band {b} pixel {i} counts {v}");
+                    let f = flags[b * n + i];
+                    let want = if v >= 1023 || f & flag::SATURATED != 0 {
+                        Some(Reason::Saturated)
+                    } else if f != 0 {
+                        Some(Reason::Dark)
+                    } else {
+                        None
+                    };
+                    let at = format!("band {b} pixel {i} counts {v}");
+                    assert_eq!(nan_reason(out[i]), want, "{at}: {}", out[i]);
+                    assert_eq!(out[i].is_nan(), want.is_some(), "{at}");
+                    assert_eq!(out[i].to_bits(), out_f32[i].to_bits(), "{at}");
                 }
             }
+        }
+        // A missing raw value stays a plain NaN (not a calibration tag).
+        for b in 0..2 {
+            c.apply_counts(
+                b,
+                &[f32::NAN, f32::INFINITY, -f32::INFINITY],
+                1023.0,
+                1000,
+                &mut out_f32[..3],
+            );
+            assert!(out_f32[..3]
+                .iter()
+                .all(|v| v.is_nan() && nan_reason(*v).is_none()));
         }
         // Rows: the same through apply_row at an offset.
         let mut row = vec![0.0f32; 3];
         c.apply_row(0, 3, &[500, 500, 500], 1023, 1000, &mut row);
-        assert!(row.iter().all(|r| r.is_nan()));
+        let tags: Vec<_> = row.iter().map(|&r| nan_reason(r)).collect();
+        assert_eq!(
+            tags,
+            [
+                Some(Reason::Saturated),
+                Some(Reason::Dark),
+                Some(Reason::Saturated)
+            ]
+        );
         // Past the end of the plane: only the pixels it has are written.
         row.fill(0.0);
         c.apply_row(0, 6, &[500, 1023, 500], 1023, 1000, &mut row);
-        assert!(row[0].is_finite() && row[1].is_nan() && row[2] == 0.0);
+        assert_eq!(nan_reason(row[0]), Some(Reason::Dark), "dead pixel 6");
+        assert_eq!(nan_reason(row[1]), Some(Reason::Saturated));
+        assert_eq!(row[2], 0.0);
+        c.apply_row(0, 7, &[500], 1023, 1000, &mut row[..1]);
+        assert!(row[0].is_finite());
     }
 
     #[test]

@@ -415,4 +415,39 @@ mod tests {
         assert!(buf.cube.plane(3).iter().all(|v| v.is_nan()));
         assert_eq!(buf.missing(), 1);
     }
+
+    #[test]
+    fn calibration_tags_reach_the_sweep_cube() {
+        use crate::estimate::Reason;
+        use crate::pipeline::calibration::{flag, Calibrator};
+        let b = bands();
+        let n = 4;
+        let t = Tracker::new(2, 2, &b);
+        // Pixel 1 dark in band 2, pixel 2 saturated in the white of band 4;
+        // pixel 3's sample saturates in band 5 (and is dark in band 1).
+        let mut flags = vec![0u8; n * b.len()];
+        flags[2 * n + 1] = flag::DARK;
+        flags[4 * n + 2] = flag::SATURATED | flag::DEAD;
+        flags[n + 3] = flag::DEAD;
+        let dark = vec![100.0; n * b.len()];
+        let white = vec![20000.0; n * b.len()];
+        let cal = Calibrator::from_planes(n, dark, white, &flags, 0.9, 1000);
+        let mut buf = t.new_sweep_buf();
+        t.begin(&mut buf, 0);
+        for band in 0..b.len() {
+            let mut f = Frame::with_size(2, 2, PixelFormat::Y16);
+            f.meta.exposure_us = 1000;
+            f.data.copy_from_slice(&[5000, 5000, 5000, 5000]);
+            if band == 5 {
+                f.data[3] = u16::MAX;
+            }
+            t.ingest(&mut buf, band, &f, &cal).unwrap();
+        }
+        let c = &buf.cube;
+        assert_eq!(c.input_reason(0, 0), None);
+        assert!(c.plane(2)[0].is_finite());
+        assert_eq!(c.input_reason(1, 0), Some(Reason::Dark));
+        assert_eq!(c.input_reason(0, 1), Some(Reason::Saturated));
+        assert_eq!(c.input_reason(1, 1), Some(Reason::Saturated));
+    }
 }

@@ -7,7 +7,7 @@ use irid::device::camera::{FrameSource, Target};
 use irid::estimate::ParamMaps;
 use irid::optics::band::Band;
 use irid::pipeline::calibration::{
-    capture_reference, CalMeta, Calibration, Calibrator, CapturePlan,
+    capture_reference, CalMeta, Calibration, CalibrationPolicy, Calibrator, CapturePlan,
 };
 use irid::pipeline::runner::{run, RunConfig, RunError, RunReport, Setup, SweepSink};
 use irid::pipeline::sequencer::{order_for, BandTuner, EmulatedTuner, SeqMode};
@@ -115,7 +115,12 @@ pub fn calibrate(
         white_reflectance: 0.99,
         frames,
     };
-    Calibration::from_references(meta, &dark, &white, 655.0)
+    Calibration::from_references(
+        meta,
+        &dark,
+        &white,
+        &CalibrationPolicy::for_format(info.format),
+    )
 }
 
 impl Rig {

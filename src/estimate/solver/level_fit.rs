@@ -62,38 +62,39 @@ impl Solver {
         if abs.is_empty() {
             return Ok(None);
         }
-        let basis = self.level_basis(&abs, &noise.typical_sigma(0.05));
-        let m = basis.n_params(nb);
-        let mut level = identity.clone();
-        let mut est = est_abs.clone();
-        let mut chi2_abs = f64::NAN;
         let unknown_index = matches!(self.scene.film, FilmKnowledge::Unknown { .. });
-        // Gauss–Newton on the level and (where unknown) the film index
-        // together, the pixels refitted on the corrected data every step.
-        for step_no in 0..MAX_STEPS {
-            let px = if step_no == 0 {
-                abs.clone()
-            } else {
-                self.level_pixels(sample, &level)
-            };
-            let Some(step) = level_step(&px, &level, basis, &wn, &var) else {
-                break;
-            };
-            if step_no == 0 {
-                chi2_abs = step.chi2;
-            }
-            level = step.level;
-            let mut dn = 0.0;
-            if unknown_index {
-                if let (Some(&d), Some(&v)) = (step.extra_step.first(), step.extra_var.first()) {
-                    dn = d.clamp(-0.02, 0.02);
-                    est.n += dn;
-                    est.sigma = v.sqrt();
-                    self.set_film_index(est.clone())?;
-                }
-            }
-            if step.change < CONVERGED && dn.abs() < 1e-5 {
-                break;
+        let mut est = est_abs.clone();
+        // Model only what the data require: a smooth level first (4
+        // parameters, so a common gain error is detected with the power of
+        // a 4-degree test), a gain and offset per band only where they
+        // lower χ² significantly beyond it.
+        let (smooth, chi2_abs, chi2_smooth) = self.level_gauss_newton(
+            sample,
+            &identity,
+            Some(abs.clone()),
+            LevelBasis::Smooth,
+            &mut est,
+            &wn,
+            &var,
+        )?;
+        let (mut level, mut basis, mut chi2_scaled) =
+            (smooth.clone(), LevelBasis::Smooth, chi2_smooth);
+        if self.level_basis(&abs, &noise.typical_sigma(0.05)) == LevelBasis::PerBand {
+            let mut est_pb = est.clone();
+            let (per_band, _, chi2_pb) = self.level_gauss_newton(
+                sample,
+                &smooth,
+                None,
+                LevelBasis::PerBand,
+                &mut est_pb,
+                &wn,
+                &var,
+            )?;
+            let extra = (LevelBasis::PerBand.n_params(nb) - LevelBasis::Smooth.n_params(nb)) as f64;
+            if chi2_smooth - chi2_pb > chi2_upper_quantile(extra, AUTO_PROBABILITY) {
+                (level, basis, chi2_scaled, est) = (per_band, LevelBasis::PerBand, chi2_pb, est_pb);
+            } else if unknown_index {
+                self.set_film_index(est.clone())?;
             }
         }
         if unknown_index {
@@ -101,14 +102,15 @@ impl Solver {
                 .trim_start()
                 .to_string();
         }
-        // χ² of the sample under the fitted level, with the same pixels'
-        // fits redone on the corrected data.
-        let px = self.level_pixels(sample, &level);
-        let chi2_scaled = level_step(&px, &level, basis, &wn, &var).map_or(f64::NAN, |s| s.chi2);
+        // Against absolute, the smooth level's test decides (a per-band
+        // level was only kept where it beat a smooth one significantly).
+        let threshold =
+            chi2_upper_quantile(LevelBasis::Smooth.n_params(nb) as f64, AUTO_PROBABILITY);
+        let significant = chi2_abs - chi2_smooth > threshold || basis == LevelBasis::PerBand;
         let delta = chi2_abs - chi2_scaled;
-        let threshold = chi2_upper_quantile(m as f64, AUTO_PROBABILITY);
+        let m = basis.n_params(nb);
         let (g, o) = level.mean();
-        let significant = delta > threshold;
+        let significant = chi2_abs - chi2_smooth > threshold || basis == LevelBasis::PerBand;
         if self.scene.level == LevelMode::Absolute {
             // Told to trust the calibration: the level is only tested. A
             // significant, correctable misfit shared by the image means the
@@ -176,6 +178,55 @@ impl Solver {
             }
             Ok(None)
         }
+    }
+
+    /// Gauss–Newton on the level and (where unknown) the film index
+    /// together, from `start`, the pixels refitted on the corrected data
+    /// every step. Returns the level and the sample's χ² at the start and
+    /// at the end.
+    #[allow(clippy::too_many_arguments)]
+    fn level_gauss_newton(
+        &mut self,
+        sample: &[SamplePixel],
+        start: &Level,
+        start_pixels: Option<Vec<LevelPixel>>,
+        basis: LevelBasis,
+        est: &mut IndexEstimate,
+        wn: &[f64],
+        var: &[f64],
+    ) -> Result<(Level, f64, f64), EstimateError> {
+        let unknown_index = matches!(self.scene.film, FilmKnowledge::Unknown { .. });
+        let mut level = start.clone();
+        let mut chi2_start = f64::NAN;
+        let mut px = match start_pixels {
+            Some(p) => p,
+            None => self.level_pixels(sample, &level),
+        };
+        for step_no in 0..MAX_STEPS {
+            let Some(step) = level_step(&px, &level, basis, wn, var) else {
+                break;
+            };
+            if step_no == 0 {
+                chi2_start = step.chi2;
+            }
+            level = step.level;
+            let mut dn = 0.0;
+            if unknown_index {
+                if let (Some(&d), Some(&v)) = (step.extra_step.first(), step.extra_var.first()) {
+                    dn = d.clamp(-0.02, 0.02);
+                    est.n += dn;
+                    est.sigma = v.sqrt();
+                    self.set_film_index(est.clone())?;
+                }
+            }
+            px = self.level_pixels(sample, &level);
+            if step.change < CONVERGED && dn.abs() < 1e-5 {
+                break;
+            }
+        }
+        // χ² under the final level, the pixels' fits redone on its data.
+        let chi2_end = level_step(&px, &level, basis, wn, var).map_or(f64::NAN, |s| s.chi2);
+        Ok((level, chi2_start, chi2_end))
     }
 
     /// A gain and offset per band where the sample spreads every band's
@@ -286,7 +337,12 @@ impl Solver {
         for k in 0..cube.bands.len().min(self.level.gain.len()) {
             let (g, o) = (self.level.gain[k] as f32, self.level.offset[k] as f32);
             let inv = 1.0 / g;
-            for v in &mut cube.data[k * n..(k + 1) * n] {
+            // Non-finite values (missing, or tagged dark/saturated) are kept
+            // bit for bit.
+            for v in cube.data[k * n..(k + 1) * n]
+                .iter_mut()
+                .filter(|v| v.is_finite())
+            {
                 *v = (*v - o) * inv;
             }
         }

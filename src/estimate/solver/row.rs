@@ -45,6 +45,15 @@ impl Solver {
             cube.spectrum_into(x, y, &mut pixel);
             *o = self.solve_pixel(&pixel, self.scene.angle.known_at(x, y), scratch);
         }
+        // A pixel lost to unusable bands says why, where the calibration
+        // tagged them (dark, saturated).
+        for (x, o) in out.iter_mut().enumerate().take(cube.width) {
+            if matches!(o.reason, Reason::NonFinite | Reason::MissingBands) {
+                if let Some(r) = cube.input_reason(x, y) {
+                    *o = PixelEstimate::invalid(r);
+                }
+            }
+        }
         scratch.pixel = pixel;
     }
 
