@@ -338,7 +338,8 @@ fn fit_with_known_film_and_angle_map_from_the_truth() {
     }
     // The thickness. With film and angle known, every pixel of this scene
     // (two or more fringe extrema, σ_R = 0.001) is identifiable: all must
-    // be valid. The Cramér–Rao bound is σ_d ≈ 0.28 nm per pixel (README):
+    // be valid but for the χ² test's nominal flags. The Cramér–Rao bound
+    // is σ_d ≈ 0.28 nm per pixel (README):
     // no honest σ is below it. `fast` uses only the extrema, and the σ it
     // reports is its own (≈ 0.7 nm here); a Gaussian error of σ has a mean
     // |Δd| of √(2/π)·σ ≈ 0.8σ, so the mean |Δd| must be ≈ 0.6 nm: 1 nm
@@ -349,7 +350,8 @@ fn fit_with_known_film_and_angle_map_from_the_truth() {
     let d = truth.channel("thickness_nm").unwrap();
     let n = maps.valid.len();
     let valid: Vec<usize> = (0..n).filter(|&i| maps.valid[i] > 0.5).collect();
-    assert_eq!(valid.len(), n, "every pixel valid");
+    // The χ² test flags about 0.5 % of clean pixels by design (p = 0.005).
+    assert!(valid.len() * 100 >= 98 * n, "{} of {n} valid", valid.len());
     let err = |i: usize| f64::from((maps.thickness_nm[i] - d[i]).abs());
     let sigma = |i: usize| f64::from(maps.sigma_thickness_nm[i]);
     let count = valid.len() as f64;

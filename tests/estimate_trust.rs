@@ -9,10 +9,12 @@
 //! cover. The paper's cylinder has σ_R = 0.001; its Cramér–Rao bound gives
 //! a mean |Δd| of 0.37 nm with the angle unknown (see estimate_scenes.rs).
 
+mod scene_common;
 use irid::estimate::level::LevelMode;
 use irid::estimate::{Cube, Mode, ParamMaps, Reason, Solver};
 use irid::scene::Scene;
 use irid::synth::{compare, scene_bands, Accuracy, Renderer, TruthMaps};
+use scene_common::with_known_angle;
 
 fn render(s: &Scene) -> (Cube, TruthMaps) {
     let bands = scene_bands(s).unwrap();
@@ -205,18 +207,4 @@ fn a_cube_that_is_not_reflectance_is_never_valid_and_wrong() {
     let n = maps.width * maps.height;
     assert_eq!(maps.valid_count(), 0);
     assert!(count(&maps, Reason::OutOfModel) * 10 >= 9 * n);
-}
-
-fn with_known_angle(mut s: Scene) -> Scene {
-    let t = s.truth.clone().unwrap();
-    let deg = (0..t.height)
-        .flat_map(|y| (0..t.width).map(move |x| (x, y)))
-        .map(|(x, y)| t.angle_deg.at(x, y, t.width, t.height) as f32)
-        .collect();
-    s.angle = irid::scene::AngleKnowledge::Map {
-        width: t.width,
-        height: t.height,
-        deg,
-    };
-    s
 }

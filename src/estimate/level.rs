@@ -57,8 +57,10 @@ impl LevelMode {
 }
 
 /// Upper-tail probability of the likelihood-ratio test with which `auto`
-/// switches to `scaled`: clean data switch about once in a thousand images.
-pub const AUTO_PROBABILITY: f64 = 1e-3;
+/// switches to `scaled`: clean data switch about once in 10 000 images (a
+/// needless switch costs precision, since a level trades with each pixel's
+/// angle and the film index).
+pub const AUTO_PROBABILITY: f64 = 1e-4;
 
 /// Prior σ of a band's gain about 1 and of its offset about 0 (weak: they
 /// only keep an unidentifiable direction finite; a stronger prior would
@@ -122,14 +124,6 @@ impl Level {
     #[inline]
     pub fn correct(&self, k: usize, y: f64) -> f64 {
         (y - self.offset[k]) / self.gain[k]
-    }
-
-    /// Variance the level's own uncertainty adds to a corrected value of
-    /// band `k` at reflectance `r`.
-    #[inline]
-    pub fn var_at(&self, k: usize, r: f64) -> f64 {
-        let g = self.gain[k];
-        (self.var_offset[k] + r * r * self.var_gain[k] + 2.0 * r * self.cov[k]) / (g * g)
     }
 
     /// Whether the level is a plausible calibration error (within
@@ -200,6 +194,13 @@ pub struct LevelPixel {
     /// parameters other than the level (the film index where unknown),
     /// estimated jointly with it.
     pub extra: Vec<Vec<f64>>,
+    /// The caller's id of the pixel and its fitted thickness and σ (not
+    /// used by the step; they tell what a level changes).
+    pub id: usize,
+    /// See [`LevelPixel::id`].
+    pub d: f64,
+    /// See [`LevelPixel::id`].
+    pub sigma_d: f64,
 }
 
 /// Result of one Gauss–Newton step of the level.
@@ -553,6 +554,9 @@ mod tests {
                 r: (0..nb).map(|k| model(phi, k)).collect(),
                 jac: vec![(0..nb).map(|k| dmodel(phi, k)).collect()],
                 extra: Vec::new(),
+                id: 0,
+                d: 0.0,
+                sigma_d: 0.0,
             })
             .collect();
         let wn = (0..nb).map(|k| 1.0 / (400.0 + 10.0 * k as f64)).collect();

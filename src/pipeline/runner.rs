@@ -35,7 +35,7 @@ use super::sequencer::{BandTuner, Discard, SeqMode, Sequencer, SequencerError, V
 use super::tracker::{SweepBuf, TrackError, Tracker};
 use crate::device::camera::{CameraError, Frame, FrameSource};
 use crate::estimate::solver::Scratch;
-use crate::estimate::{EstimateError, MapRowMut, Mode, ParamMaps, PixelEstimate, Solver};
+use crate::estimate::{Cube, EstimateError, MapRowMut, Mode, ParamMaps, PixelEstimate, Solver};
 use crate::optics::band::Band;
 use crate::scene::Scene;
 use ringbuf::traits::{Consumer, Producer, Split};
@@ -437,6 +437,9 @@ struct Solve {
     /// Rows solved (in parallel) and emitted together.
     block: usize,
     index_tried: bool,
+    /// The sweep corrected by the image-wide level, when one is in force
+    /// (allocated on first use, reused after).
+    level_buf: Option<Cube>,
     /// One block of rows' estimates (each row is written into the maps by
     /// the thread that solved it).
     estimates: Vec<PixelEstimate>,
@@ -454,7 +457,6 @@ impl Solve {
         rows: &mut dyn RowSink,
     ) -> SweepSummary {
         let _span = tracing::info_span!("solve.sweep", sweep = buf.sweep).entered();
-        let mut corrected = None;
         let cube = &buf.cube;
         if self.solver.film_index().is_none() {
             let _s = tracing::info_span!("solve.index").entered();
@@ -474,12 +476,15 @@ impl Solve {
         }
         // Pixels are solved on data corrected by the image-wide level, when
         // one is in force (`scaled`, or `auto` that chose it).
-        if !self.solver.level().0.is_identity() {
-            let mut c = buf.cube.clone();
-            self.solver.apply_level(&mut c);
-            corrected = Some(c);
-        }
-        let cube = corrected.as_ref().unwrap_or(&buf.cube);
+        let cube = if self.solver.level().0.is_identity() {
+            &buf.cube
+        } else {
+            let dst = self
+                .level_buf
+                .get_or_insert_with(|| Cube::zeros(0, 0, Vec::new()));
+            self.solver.correct_into(&buf.cube, dst);
+            &*dst
+        };
         let (w, h) = (cube.width, cube.height);
         let solver = &self.solver;
         let candidates = buf.candidates.as_ref();
@@ -602,6 +607,7 @@ pub fn run_with_rows(
         scratch: Scratch::default(),
         block,
         index_tried: false,
+        level_buf: None,
         estimates: vec![PixelEstimate::invalid(crate::estimate::Reason::Masked); block * w],
         counters: counters.clone(),
         reported_frames: 0,

@@ -6,6 +6,7 @@ use super::linalg::inv3;
 use crate::optics::band::Band;
 
 /// The band layout, worked out once per band set.
+#[derive(Clone, Debug)]
 pub(super) struct BandTable {
     /// Bands by increasing wavelength: (plane index, λ, wavenumber 1/λ).
     pub(super) sorted: Vec<(usize, f64, f64)>,

@@ -137,7 +137,7 @@ impl Solver {
         noise: Option<f64>,
         scratch: &mut Scratch,
     ) -> Option<PixelEstimate> {
-        let nb = self.sorted.len();
+        let nb = self.table.sorted.len();
         if nb < 7 {
             return None;
         }
@@ -146,11 +146,11 @@ impl Solver {
         let Scratch {
             spectrum, sorted_y, ..
         } = scratch;
-        let ys: &[f64] = if self.sorted_identity {
+        let ys: &[f64] = if self.table.sorted_identity {
             &spectrum[..nb]
         } else {
             sorted_y.resize(nb, 0.0);
-            for (i, b) in self.sorted.iter().enumerate() {
+            for (i, b) in self.table.sorted.iter().enumerate() {
                 sorted_y[i] = spectrum[b.0];
             }
             &sorted_y[..]
@@ -179,7 +179,9 @@ impl Solver {
                 i += 1;
                 continue;
             }
-            let win = self.parabola[i].as_ref().map_or((0, 0), |w| (w.lo, w.len));
+            let win = self.table.parabola[i]
+                .as_ref()
+                .map_or((0, 0), |w| (w.lo, w.len));
             let y5 = std::array::from_fn(|k| if k < win.1 { ys[win.0 + k] } else { 0.0 });
             self.fit_extremum(i, kind, y5, &mut acc);
             i += 2;
@@ -195,7 +197,7 @@ impl Solver {
     /// 0) and hand a usable extremum to `acc`.
     #[inline]
     pub(super) fn fit_extremum(&self, i: usize, kind: i8, y: [f64; 5], acc: &mut ExtremaAcc) {
-        let Some(win) = &self.parabola[i] else {
+        let Some(win) = &self.table.parabola[i] else {
             return;
         };
         let (mut t0, mut t1, mut t2, mut tvv) = (0.0, 0.0, 0.0, 0.0);
@@ -221,7 +223,7 @@ impl Solver {
         acc.rss += (tvv - (qa * t2 + qb * t1 + qc * t0)).max(0.0);
         acc.rdof += (win.len - 3) as f64;
         acc.push(Ext {
-            pos: self.sorted[i].2 + u * 1e-4,
+            pos: self.table.sorted[i].2 + u * 1e-4,
             val: qc + 0.5 * qb * u,
             kind,
             band: i as u16,
@@ -233,7 +235,7 @@ impl Solver {
     /// [`Ext::var_pos`] in its window.
     #[inline]
     fn ext_var_pos(&self, e: &Ext) -> f64 {
-        self.parabola[usize::from(e.band)]
+        self.table.parabola[usize::from(e.band)]
             .as_ref()
             .map_or(f64::INFINITY, |w| e.var_pos(w))
     }
@@ -241,7 +243,7 @@ impl Solver {
     /// [`Ext::var_val`] in its window.
     #[inline]
     fn ext_var_val(&self, e: &Ext) -> f64 {
-        self.parabola[usize::from(e.band)]
+        self.table.parabola[usize::from(e.band)]
             .as_ref()
             .map_or(f64::INFINITY, |w| e.var_val(w))
     }
@@ -336,7 +338,7 @@ impl Solver {
         // noise; faster fringes (thick films) take the fitted path.
         let omega = 4.0 * PI * g * 1e-4;
         for e in ext {
-            let h = self.parabola[usize::from(e.band)]
+            let h = self.table.parabola[usize::from(e.band)]
                 .as_ref()
                 .map_or(f64::INFINITY, |w| w.spacing);
             if omega * h > MAX_PHASE_STEP {
@@ -349,8 +351,8 @@ impl Solver {
         // Near an end, a fringe top flattened against it can escape the
         // detection: only points an eighth wave inside are required.
         let eighth = 0.125 / g;
-        let lo_s = self.interior.0.max(self.sigma_range.0 + eighth);
-        let hi_s = self.interior.1.min(self.sigma_range.1 - eighth);
+        let lo_s = self.table.interior.0.max(self.table.sigma_range.0 + eighth);
+        let hi_s = self.table.interior.1.min(self.table.sigma_range.1 - eighth);
         // Half-integers strictly between: ⌈4g·hi⌉ − ⌊4g·lo⌋ − 1, with the
         // rounding of `fastmath` (libm's floor is a call without SSE4.1).
         let expected = round(4.0 * g * hi_s + 0.5) - round(4.0 * g * lo_s - 0.5) - 1.0;

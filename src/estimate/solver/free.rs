@@ -61,7 +61,7 @@ impl Solver {
         if n_ok < nb.div_ceil(2).max(10) {
             return PixelEstimate::invalid(Reason::MissingBands);
         }
-        let (s_lo, s_hi) = self.sigma_range;
+        let (s_lo, s_hi) = self.table.sigma_range;
         let half = 0.5 * (s_hi - s_lo).max(1e-12);
         let u: Vec<f64> = self
             .bands
@@ -69,7 +69,7 @@ impl Solver {
             .map(|b| (1.0 / b.center_nm - s_lo) / half - 1.0)
             .collect();
         let q2 = prep.model.q2_mid(theta);
-        let lam_min = self.sorted.first().map_or(400.0, |b| b.1);
+        let lam_min = self.table.sorted.first().map_or(400.0, |b| b.1);
         let step = lam_min / (4.0 * GRID_PER_QUARTER_FRINGE * 2.0 * q2);
         let n_grid = (((self.d_max - self.d_min) / step).ceil() as usize + 1).min(200_000);
         let mut trial = std::mem::take(&mut scratch.trial);

@@ -63,11 +63,22 @@ impl Solver {
                 let res = (sse / (n_obs - n_par).max(1.0)).sqrt();
                 let data = self.noise.as_ref().map_or(0.0, |n| n.typical_sigma(0.05));
                 if res.is_finite() && res > data {
-                    self.set_noise(NoiseModel::uniform(
-                        res,
-                        self.bands.len(),
-                        crate::estimate::noise::NoiseSource::Data,
-                    ));
+                    // Scaled up as a whole: the bands keep their relative
+                    // noise (a lamp's spectrum makes some bands noisier).
+                    let noise = match self.noise.take() {
+                        Some(mut n) if data > 0.0 => {
+                            let f = (res / data).powi(2);
+                            n.var0.iter_mut().for_each(|v| *v *= f);
+                            n.shot.iter_mut().for_each(|v| *v *= f);
+                            n
+                        }
+                        _ => NoiseModel::uniform(
+                            res,
+                            self.bands.len(),
+                            crate::estimate::noise::NoiseSource::Data,
+                        ),
+                    };
+                    self.set_noise(noise);
                 }
             }
         }

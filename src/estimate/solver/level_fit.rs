@@ -26,6 +26,11 @@ const CONVERGED: f64 = 2e-5;
 /// (and three noise σ) for a gain and offset of its own to be told apart
 /// from the pixels' parameters; otherwise the level is smooth.
 const MIN_SPREAD: f64 = 0.003;
+/// A level is modelled only where it moves the sample's thicknesses by
+/// more than this many of their σ (median).
+const MIN_MEDIAN_SHIFT: f64 = 1.0;
+/// ... or where it lowers the sample's χ² by more than this per pixel.
+const MIN_CHI2_PER_PIXEL: f64 = 1.0;
 /// Fewest sample pixels for a gain and offset per band.
 const MIN_PIXELS_PER_BAND_BASIS: usize = 50;
 
@@ -109,8 +114,17 @@ impl Solver {
         let significant = chi2_abs - chi2_smooth > threshold || basis == LevelBasis::PerBand;
         let delta = chi2_abs - chi2_scaled;
         let m = basis.n_params(nb);
+        // And it must matter: a level worth modelling moves the sample's
+        // thicknesses by more than their own σ (median over pixels). A
+        // smaller one costs more precision (it trades with each pixel's
+        // angle and the index) than the bias it removes.
+        // Or the misfit it removes is large enough to fail pixels' own χ²
+        // tests: on average more than one unit of χ² per pixel.
+        let shift = median_shift(&abs, &self.level_pixels(sample, &level));
+        let per_pixel = delta / abs.len() as f64;
+        let significant =
+            significant && (shift > MIN_MEDIAN_SHIFT || per_pixel > MIN_CHI2_PER_PIXEL);
         let (g, o) = level.mean();
-        let significant = chi2_abs - chi2_smooth > threshold || basis == LevelBasis::PerBand;
         if self.scene.level == LevelMode::Absolute {
             // Told to trust the calibration: the level is only tested. A
             // significant, correctable misfit shared by the image means the
@@ -126,7 +140,7 @@ impl Solver {
                     "absolute as asked, but the image shows a calibration error (a gain {g:.4} and offset {o:.5} would lower χ² by {delta:.0} > {threshold:.0}): every pixel flagged poor fit; use --level auto or scaled"
                 )
             } else {
-                format!("absolute (a fitted level would lower χ² by {delta:.0} < {threshold:.0})")
+                format!("absolute (a fitted level would lower χ² by {delta:.0}, threshold {threshold:.0}, and move thicknesses by {shift:.2} σ)")
             };
             return Ok(None);
         }
@@ -144,7 +158,7 @@ impl Solver {
         }
         if want && chi2_scaled.is_finite() {
             self.level_note = format!(
-                "scaled ({}, {} parameters): gain {:.4} (per band {:.4}–{:.4}), offset {:.5}; Δχ² = {:.0} against absolute (threshold {:.0})",
+                "scaled ({}, {} parameters): gain {:.4} (per band {:.4}–{:.4}), offset {:.5}; Δχ² = {:.0} against absolute (threshold {:.0}), thicknesses moved by {:.1} σ",
                 match basis {
                     LevelBasis::PerBand => "gain and offset per band",
                     LevelBasis::Smooth => "gain quadratic in wavenumber, one offset",
@@ -155,7 +169,8 @@ impl Solver {
                 level.gain.iter().copied().fold(f64::NEG_INFINITY, f64::max),
                 o,
                 delta,
-                threshold
+                threshold,
+                shift
             );
             self.level = level;
             self.level_mode = LevelMode::Scaled;
@@ -168,7 +183,7 @@ impl Solver {
             Ok(Some(est))
         } else {
             self.level_note = format!(
-                "absolute (a fitted level would lower χ² by {delta:.0}, below the {threshold:.0} that {m} parameters need)"
+                "absolute (a fitted level of {m} parameters would lower χ² by {delta:.0}, threshold {threshold:.0}, and move thicknesses by {shift:.2} σ, at least {MIN_MEDIAN_SHIFT} needed)"
             );
             self.level = identity;
             self.level_mode = LevelMode::Absolute;
@@ -275,6 +290,7 @@ impl Solver {
         };
         sample
             .par_iter()
+            .enumerate()
             .map_init(
                 || {
                     (
@@ -284,7 +300,7 @@ impl Solver {
                         vec![0.0; nb],
                     )
                 },
-                |(scratch, out, out_up, corr), px| {
+                |(scratch, out, out_up, corr), (id, px)| {
                     for (k, (c, &y)) in corr.iter_mut().zip(&px.spectrum).enumerate() {
                         *c = level.correct(k, y);
                     }
@@ -315,6 +331,9 @@ impl Solver {
                         None => Vec::new(),
                     };
                     Some(LevelPixel {
+                        id,
+                        d: est.thickness_nm,
+                        sigma_d: est.sigma_thickness_nm,
                         y: px.spectrum.clone(),
                         r: out.r[..nb].to_vec(),
                         jac,
@@ -329,14 +348,9 @@ impl Solver {
     /// Correct a cube by the level in force (nothing to do for the
     /// identity): what every pixel is then solved on.
     pub fn apply_level(&self, cube: &mut Cube) {
-        if self.level.gain.iter().all(|&g| g == 1.0) && self.level.offset.iter().all(|&o| o == 0.0)
-        {
-            return;
-        }
         let n = cube.plane_len();
         for k in 0..cube.bands.len().min(self.level.gain.len()) {
-            let (g, o) = (self.level.gain[k] as f32, self.level.offset[k] as f32);
-            let inv = 1.0 / g;
+            let (o, inv) = self.level_band(k);
             // Non-finite values (missing, or tagged dark/saturated) are kept
             // bit for bit.
             for v in cube.data[k * n..(k + 1) * n]
@@ -347,4 +361,49 @@ impl Solver {
             }
         }
     }
+
+    /// `src` corrected by the level in force, written into `dst` (whose
+    /// buffer is reused from one sweep to the next).
+    pub fn correct_into(&self, src: &Cube, dst: &mut Cube) {
+        if dst.bands != src.bands {
+            dst.bands = src.bands.clone();
+        }
+        (dst.width, dst.height) = (src.width, src.height);
+        dst.data.resize(src.data.len(), 0.0);
+        let n = src.plane_len();
+        for k in 0..src.bands.len() {
+            let (o, inv) = self.level_band(k);
+            let range = k * n..(k + 1) * n;
+            for (d, &v) in dst.data[range.clone()].iter_mut().zip(&src.data[range]) {
+                *d = if v.is_finite() { (v - o) * inv } else { v };
+            }
+        }
+    }
+
+    /// Band `k`'s offset and inverse gain, as f32 (identity past the level).
+    fn level_band(&self, k: usize) -> (f32, f32) {
+        match (self.level.offset.get(k), self.level.gain.get(k)) {
+            (Some(&o), Some(&g)) => (o as f32, 1.0 / g as f32),
+            _ => (0.0, 1.0),
+        }
+    }
+}
+
+/// Median over the pixels fitted both ways of |d_b − d_a| / σ_a.
+fn median_shift(a: &[LevelPixel], b: &[LevelPixel]) -> f64 {
+    let by_id: std::collections::HashMap<usize, &LevelPixel> =
+        b.iter().map(|p| (p.id, p)).collect();
+    let mut shifts: Vec<f64> = a
+        .iter()
+        .filter_map(|p| {
+            let q = by_id.get(&p.id)?;
+            let s = (q.d - p.d).abs() / p.sigma_d;
+            s.is_finite().then_some(s)
+        })
+        .collect();
+    if shifts.is_empty() {
+        return 0.0;
+    }
+    let mid = shifts.len() / 2;
+    *shifts.select_nth_unstable_by(mid, f64::total_cmp).1
 }

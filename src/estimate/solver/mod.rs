@@ -67,7 +67,7 @@ use crate::optics::band::Band;
 use crate::optics::dispersion::Dispersion;
 use crate::optics::Polarization;
 use crate::scene::{AngleKnowledge, FilmKnowledge, Scene};
-use bands::{BandTable, Window};
+use bands::BandTable;
 use closed_form::Slopes;
 use index::SamplePixel;
 use search::FringeBasis;
@@ -278,20 +278,9 @@ pub struct Solver {
     /// Raise the model-free noise estimate to the index sample's pooled
     /// residual (see [`Solver::set_residual_noise_floor`]).
     residual_noise_floor: bool,
-    /// Bands by increasing wavelength: (plane index, λ, wavenumber 1/λ).
-    sorted: Vec<(usize, f64, f64)>,
-    /// Centre of the band range in wavenumber, nm⁻¹.
-    sigma_center: f64,
-    /// The band range in wavenumber, nm⁻¹.
-    sigma_range: (f64, f64),
-    /// That range less 1.5 band spacings at each end, where an extremum
-    /// is always found if it exists.
-    interior: (f64, f64),
-    /// The planes are already in increasing wavelength.
-    sorted_identity: bool,
-    /// The least-squares parabola around each sorted band (`None` at the
-    /// two end bands or if singular).
-    parabola: Vec<Option<Window>>,
+    /// The band layout: bands by wavelength, the range in wavenumber,
+    /// the parabola windows.
+    table: BandTable,
 }
 
 impl Solver {
@@ -356,15 +345,9 @@ impl Solver {
             None => (g_max.0 / q_lo).min(crate::scene::MAX_THICKNESS_LIMIT_NM),
         };
         let d_min = scene.min_thickness_nm.min(0.5 * d_max);
-        let basis = FringeBasis::new(bands, (d_max * n2_hi).min(1.05 * g_max.0.max(d_max)));
-        let BandTable {
-            sorted,
-            sigma_center,
-            sigma_range,
-            interior,
-            sorted_identity,
-            parabola,
-        } = BandTable::new(bands);
+        // The search covers what may be reported, and a little past the
+        // resolved range so a film beyond it is found and flagged.
+        let basis = FringeBasis::new(bands, (d_max * n2_hi).min(1.05 * g_max.0));
         let mut solver = Solver {
             scene: scene.clone(),
             bands: bands.to_vec(),
@@ -388,12 +371,7 @@ impl Solver {
             level_note: String::new(),
             calibration_suspect: false,
             residual_noise_floor: false,
-            sorted,
-            sigma_center,
-            sigma_range,
-            interior,
-            sorted_identity,
-            parabola,
+            table: BandTable::new(bands),
         };
         if let FilmKnowledge::Known(film) = &scene.film {
             let film = film.clone();

@@ -71,7 +71,7 @@ impl Solver {
                 return (PixelEstimate::invalid(Reason::OutOfModel), f64::NAN);
             }
         }
-        let lam_min = self.sorted.first().map_or(400.0, |b| b.1);
+        let lam_min = self.table.sorted.first().map_or(400.0, |b| b.1);
         if effort.closed_form && n_ok == nb {
             if let Some(fe) = self.extrema_estimate(prep, theta_known, noise, scratch) {
                 if effort.closed_form_only {
@@ -124,7 +124,7 @@ impl Solver {
                     // the order is ambiguous.
                     let q2 = prep.model.q2_mid(fit.theta);
                     let g = fit.d * q2;
-                    let dg = 0.5 / self.sigma_center;
+                    let dg = 0.5 / self.table.sigma_center;
                     let mut alt = None;
                     let mut alt_sse = f64::INFINITY;
                     for ga in [g - dg, g + dg] {

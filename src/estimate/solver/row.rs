@@ -37,7 +37,7 @@ impl Solver {
         let mut done = 0;
         if self.mode == Mode::Fast && self.level_mode != crate::estimate::level::LevelMode::Free {
             let pre = candidates.filter(|c| {
-                c.size() == (cube.width, cube.height) && c.bands() == self.sorted.len()
+                c.size() == (cube.width, cube.height) && c.bands() == self.table.sorted.len()
             });
             done = self.solve_row_fast(cube, y, out, &mut pixel, scratch, pre);
         }
@@ -75,7 +75,7 @@ impl Solver {
         let (Some(prep), Some(index)) = (&self.prepared, &self.index) else {
             return 0;
         };
-        let nb = self.sorted.len();
+        let nb = self.table.sorted.len();
         let (w, n) = (cube.width, cube.plane_len());
         if !(7..=detect::MAX_DETECT_BANDS).contains(&nb)
             || cube.bands.len() != nb
@@ -88,7 +88,7 @@ impl Solver {
         let data = &cube.data;
         let base = y * w;
         // Start of sorted band r's row in the cube.
-        let row_of = |r: usize| self.sorted[r].0 * n + base;
+        let row_of = |r: usize| self.table.sorted[r].0 * n + base;
         const CH: usize = detect::CHUNK;
         const NB: usize = detect::MAX_DETECT_BANDS;
         let mut rows: [&[f32]; NB] = [&[]; NB];
@@ -131,7 +131,9 @@ impl Solver {
                             continue;
                         }
                         let kind = if maxima[j] >> i & 1 == 1 { 1 } else { -1 };
-                        let (lo, len) = self.parabola[i].as_ref().map_or((0, 0), |w| (w.lo, w.len));
+                        let (lo, len) = self.table.parabola[i]
+                            .as_ref()
+                            .map_or((0, 0), |w| (w.lo, w.len));
                         let y5 = std::array::from_fn(|k| {
                             let v = f64::from(flat[((lo + k) % NB) * CH + j % CH]);
                             if k < len {
@@ -205,8 +207,8 @@ impl Solver {
         let cube = if self.level.is_identity() {
             cube
         } else {
-            let mut c = cube.clone();
-            self.apply_level(&mut c);
+            let mut c = Cube::zeros(0, 0, Vec::new());
+            self.correct_into(cube, &mut c);
             corrected = c;
             &corrected
         };
