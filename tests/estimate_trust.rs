@@ -208,3 +208,96 @@ fn a_cube_that_is_not_reflectance_is_never_valid_and_wrong() {
     assert_eq!(maps.valid_count(), 0);
     assert!(count(&maps, Reason::OutOfModel) * 10 >= 9 * n);
 }
+
+#[test]
+fn each_input_problem_gets_its_reason() {
+    use irid::estimate::cube::{DARK_NAN, SATURATED_NAN};
+    // The paper's cylinder with the angle known, seeded with one bad pixel
+    // of each kind in its first row.
+    let base = with_known_angle(Scene::paper_cylinder());
+    let (mut cube, _) = render(&base);
+    let n = cube.plane_len();
+    let nb = cube.bands.len();
+    let set = |cube: &mut Cube, x: usize, f: &dyn Fn(usize, f32) -> f32| {
+        for k in 0..nb {
+            let v = cube.data[k * n + x];
+            cube.data[k * n + x] = f(k, v);
+        }
+    };
+    set(&mut cube, 0, &|_, _| f32::INFINITY);
+    set(&mut cube, 1, &|_, _| DARK_NAN);
+    set(&mut cube, 2, &|_, _| SATURATED_NAN);
+    set(&mut cube, 3, &|k, v| if k % 3 == 0 { v } else { f32::NAN });
+    // Far brighter than any film on this substrate reflects at its angle.
+    set(&mut cube, 4, &|_, _| 0.9);
+    // A fringe-sized wiggle no film makes.
+    set(&mut cube, 5, &|k, v| {
+        v + 0.01 * ((k % 2) as f32 * 2.0 - 1.0)
+    });
+    let (maps, _) = fit_with(&base, &cube, Mode::Balanced);
+    let expect = [
+        Reason::NonFinite,
+        Reason::Dark,
+        Reason::Saturated,
+        Reason::MissingBands,
+        Reason::OutOfModel,
+        Reason::PoorFit,
+    ];
+    for (x, r) in expect.iter().enumerate() {
+        assert_eq!(maps.reason[x] as u8, *r as u8, "pixel {x}");
+        assert!(maps.valid[x] < 0.5 && maps.thickness_nm[x].is_nan());
+    }
+    // The rest of the image is unaffected.
+    assert!(maps.valid_count() * 100 >= 97 * (n - expect.len()));
+
+    // A film past what 10 nm bands resolve (optical thickness ≥ 3.3 µm):
+    // never a valid number; the fit lands beyond the range (11) or fails.
+    let thick = Scene::from_toml(
+        r#"
+[ambient]
+n = 1.0
+[substrate]
+n = 1.6
+[film]
+n = 1.37
+[angle]
+deg = 10.0
+[light]
+polarization = "s"
+[bands]
+start_nm = 400
+stop_nm = 700
+step_nm = 10
+fwhm_nm = 0
+[truth]
+width = 40
+height = 4
+thickness_nm = { linear_x = [2500.0, 3000.0] }
+angle_deg = { constant = 10.0 }
+noise_sigma = 0.001
+seed = 1
+"#,
+        "<test>",
+        std::path::Path::new("."),
+    )
+    .unwrap();
+    let (cube, _) = render(&thick);
+    let (maps, _) = fit_with(&thick, &cube, Mode::Balanced);
+    assert_eq!(maps.valid_count(), 0);
+    assert!(count(&maps, Reason::Unresolved) > 0, "{:?}", maps.reason);
+    assert_eq!(
+        count(&maps, Reason::Unresolved) + count(&maps, Reason::PoorFit),
+        maps.width * maps.height
+    );
+
+    // A film index pinned at an end of its search: every pixel says so.
+    let mut narrow = Scene::paper_cylinder();
+    if let irid::scene::FilmKnowledge::Unknown { search, .. } = &mut narrow.film {
+        *search = (1.45, 1.6);
+    }
+    let (cube, _) = render(&narrow);
+    let (maps, solver) = fit_with(&narrow, &cube, Mode::Balanced);
+    assert!(solver.film_index().unwrap().at_bound);
+    assert_eq!(maps.valid_count(), 0);
+    assert!(count(&maps, Reason::AtBound) > 0);
+}

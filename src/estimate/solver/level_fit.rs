@@ -28,7 +28,7 @@ const CONVERGED: f64 = 2e-5;
 const MIN_SPREAD: f64 = 0.003;
 /// A level is modelled only where it moves the sample's thicknesses by
 /// more than this many of their σ (median).
-const MIN_MEDIAN_SHIFT: f64 = 1.0;
+const MIN_MEDIAN_SHIFT: f64 = 2.0;
 /// ... or where it lowers the sample's χ² by more than this per pixel.
 const MIN_CHI2_PER_PIXEL: f64 = 1.0;
 /// Fewest sample pixels for a gain and offset per band.
@@ -217,12 +217,35 @@ impl Solver {
             Some(p) => p,
             None => self.level_pixels(sample, &level),
         };
+        // The best level seen (χ², level, index): a step that raises χ²
+        // (the pixels' refits are nonlinear) is halved back toward it.
+        let mut best: Option<(f64, Level, IndexEstimate)> = None;
         for step_no in 0..MAX_STEPS {
             let Some(step) = level_step(&px, &level, basis, wn, var) else {
                 break;
             };
             if step_no == 0 {
                 chi2_start = step.chi2;
+            }
+            match &best {
+                Some((b, bl, be)) if step.chi2 > *b => {
+                    // Worse than the best: halfway back, then look again.
+                    for k in 0..level.gain.len() {
+                        level.gain[k] = 0.5 * (level.gain[k] + bl.gain[k]);
+                        level.offset[k] = 0.5 * (level.offset[k] + bl.offset[k]);
+                    }
+                    let back = 0.5 * (est.n - be.n);
+                    if unknown_index && back != 0.0 {
+                        est.n -= back;
+                        self.set_film_index(est.clone())?;
+                    }
+                    px = self.level_pixels(sample, &level);
+                    if (level.gain[0] - bl.gain[0]).abs() < CONVERGED && back.abs() < 1e-5 {
+                        break;
+                    }
+                    continue;
+                }
+                _ => best = Some((step.chi2, level.clone(), est.clone())),
             }
             level = step.level;
             let mut dn = 0.0;
@@ -239,8 +262,18 @@ impl Solver {
                 break;
             }
         }
-        // χ² under the final level, the pixels' fits redone on its data.
-        let chi2_end = level_step(&px, &level, basis, wn, var).map_or(f64::NAN, |s| s.chi2);
+        // χ² under the final level, the pixels' fits redone on its data;
+        // the best seen if that was better.
+        let mut chi2_end = level_step(&px, &level, basis, wn, var).map_or(f64::NAN, |s| s.chi2);
+        if let Some((b, bl, be)) = best {
+            if !(chi2_end <= b) {
+                (chi2_end, level) = (b, bl);
+                *est = be;
+                if unknown_index {
+                    self.set_film_index(est.clone())?;
+                }
+            }
+        }
         Ok((level, chi2_start, chi2_end))
     }
 

@@ -342,7 +342,9 @@ impl Solver {
         let q_lo = (n2_lo * n2_lo - kx * kx).max(0.09 * n2_lo * n2_lo).sqrt();
         let d_max = match scene.max_thickness_nm {
             Some(d) => d,
-            None => (g_max.0 / q_lo).min(crate::scene::MAX_THICKNESS_LIMIT_NM),
+            // A little past the resolved range, so a film beyond it is
+            // found there and flagged "fringes unresolved".
+            None => (1.05 * g_max.0 / q_lo).min(crate::scene::MAX_THICKNESS_LIMIT_NM),
         };
         let d_min = scene.min_thickness_nm.min(0.5 * d_max);
         // The search covers what may be reported, and a little past the
