@@ -266,7 +266,7 @@ impl Solver {
         // the best seen if that was better.
         let mut chi2_end = level_step(&px, &level, basis, wn, var).map_or(f64::NAN, |s| s.chi2);
         if let Some((b, bl, be)) = best {
-            if !(chi2_end <= b) {
+            if chi2_end.is_nan() || chi2_end > b {
                 (chi2_end, level) = (b, bl);
                 *est = be;
                 if unknown_index {
