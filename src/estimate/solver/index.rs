@@ -182,6 +182,7 @@ impl Solver {
                     noise: None,
                     effort: Effort::INDEX_SEARCH,
                     pre: Some(px),
+                    start: None,
                 };
                 let (est, sse) = self.solve_with(prep, job, scratch);
                 if est.is_valid() && sse.is_finite() {

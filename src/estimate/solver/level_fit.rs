@@ -343,6 +343,7 @@ impl Solver {
                         noise: None,
                         effort: Effort::INDEX_SEARCH,
                         pre: None,
+                        start: None,
                     };
                     let (est, _) = self.solve_with(prep, job, scratch);
                     if !est.is_valid() {

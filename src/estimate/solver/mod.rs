@@ -204,6 +204,9 @@ struct Job<'a> {
     effort: Effort,
     /// Precomputed fringe candidates (index search).
     pre: Option<&'a SamplePixel>,
+    /// A closed-form estimate (d, θ in radians) the caller already found and
+    /// judged wanting: refined from, not recomputed.
+    start: Option<(f64, f64)>,
 }
 
 /// Result of refining one start.
@@ -541,7 +544,7 @@ impl Solver {
         theta_known: Option<f64>,
         scratch: &mut Scratch,
     ) -> PixelEstimate {
-        self.solve_pixel_with(spectrum, theta_known, scratch, Effort::of(self.mode))
+        self.solve_pixel_with(spectrum, theta_known, scratch, Effort::of(self.mode), None)
     }
 
     /// [`Solver::solve_pixel`] at a given effort.
@@ -551,6 +554,7 @@ impl Solver {
         theta_known: Option<f64>,
         scratch: &mut Scratch,
         effort: Effort,
+        start: Option<(f64, f64)>,
     ) -> PixelEstimate {
         let (Some(prep), Some(index)) = (&self.prepared, &self.index) else {
             return PixelEstimate::invalid(Reason::Masked);
@@ -569,6 +573,7 @@ impl Solver {
                 noise,
                 effort,
                 pre: None,
+                start,
             },
             scratch,
         );

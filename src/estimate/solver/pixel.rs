@@ -25,6 +25,7 @@ impl Solver {
             noise,
             effort,
             pre,
+            start: job_start,
         } = job;
         let nb = self.bands.len();
         if spectrum.len() != nb {
@@ -73,26 +74,37 @@ impl Solver {
         }
         let lam_min = self.table.sorted.first().map_or(400.0, |b| b.1);
         if effort.closed_form && n_ok == nb {
-            if let Some(fe) = self.extrema_estimate(prep, theta_known, noise, scratch) {
-                if effort.closed_form_only {
-                    // The closed form is checked against the full model
-                    // spectrum; one that does not explain it takes the
-                    // fitted path from its estimate.
-                    if !judging {
-                        return (fe, f64::NAN);
+            // The closed form: given by the caller (who found it wanting),
+            // or found here.
+            let start = match job_start {
+                Some(s) => Some(s),
+                None => match self.extrema_estimate(prep, theta_known, noise, scratch) {
+                    Some(fe) => {
+                        let (d, th) = (fe.thickness_nm, fe.theta_deg.to_radians());
+                        if effort.closed_form_only {
+                            // The closed form is checked against the full
+                            // model spectrum; one that does not explain it
+                            // takes the fitted path from its estimate.
+                            if !judging {
+                                return (fe, f64::NAN);
+                            }
+                            let chi2 = self.chi2_at(&prep.model, d, th, scratch);
+                            if self.fit_passes(chi2, n_ok, n_par)
+                                && self.bound_reason(prep, d, th, theta_known).is_none()
+                            {
+                                return (fe, f64::NAN);
+                            }
+                        }
+                        Some((d, th))
                     }
-                    let (d, th) = (fe.thickness_nm, fe.theta_deg.to_radians());
-                    let chi2 = self.chi2_at(&prep.model, d, th, scratch);
-                    if self.fit_passes(chi2, n_ok, n_par)
-                        && self.bound_reason(prep, d, th, theta_known).is_none()
-                    {
-                        return (fe, f64::NAN);
-                    }
-                }
+                    None => None,
+                },
+            };
+            if let Some((d0, th0)) = start {
                 let fit = self.refine(
                     &prep.model,
-                    fe.thickness_nm,
-                    fe.theta_deg.to_radians(),
+                    d0,
+                    th0,
                     theta_known.is_none(),
                     effort.iters,
                     scratch,

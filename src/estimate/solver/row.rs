@@ -147,7 +147,7 @@ impl Solver {
                     }
                     est = self.closed_form(prep, &acc, theta_known, noise, Some(index));
                 }
-                let mut retry_closed_form = false;
+                let mut retry_from = None;
                 if let (Some(e), true) = (&est, self.judging()) {
                     // The closed form must explain the whole spectrum.
                     cube.spectrum_into(x, y, pixel);
@@ -161,7 +161,7 @@ impl Solver {
                         && self.bound_reason(prep, d, th, theta_known).is_none())
                     {
                         est = None;
-                        retry_closed_form = true;
+                        retry_from = Some((d, th));
                     }
                 }
                 out[x] = match est {
@@ -169,10 +169,11 @@ impl Solver {
                         self.with_level(&mut e);
                         e
                     }
-                    None if retry_closed_form => {
+                    None if retry_from.is_some() => {
                         // Refined from the closed form (and searched if
                         // that does not fit either), then judged.
-                        self.solve_pixel_with(pixel, theta_known, scratch, Effort::of(Mode::Fast))
+                        let effort = Effort::of(Mode::Fast);
+                        self.solve_pixel_with(pixel, theta_known, scratch, effort, retry_from)
                     }
                     None => {
                         // The closed form was just tried on these very
@@ -182,7 +183,7 @@ impl Solver {
                             closed_form: false,
                             ..Effort::of(Mode::Fast)
                         };
-                        self.solve_pixel_with(pixel, theta_known, scratch, effort)
+                        self.solve_pixel_with(pixel, theta_known, scratch, effort, None)
                     }
                 };
             }
