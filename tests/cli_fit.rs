@@ -2,43 +2,14 @@
 //! back, error messages for bad input (non-zero exit, the field named, no
 //! panic), and the synth → fit loop on the paper's cylinder.
 
+mod cli_common;
+use cli_common::{fails_with, ok, s};
 use irid::io::envi::read_cube;
 use irid::io::exr_maps::{read_channels, read_maps};
 use irid::scene::Scene;
 use irid::synth::{scene_bands, Renderer};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
-
-fn irid(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_irid"))
-        .args(args)
-        .output()
-        .expect("run irid")
-}
-
-fn ok(args: &[&str]) -> Output {
-    let out = irid(args);
-    assert!(
-        out.status.success(),
-        "irid {args:?}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    out
-}
-
-fn fails_with(args: &[&str], fragments: &[&str]) {
-    let out = irid(args);
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success(), "irid {args:?} succeeded");
-    assert!(!err.contains("panicked"), "irid {args:?} panicked: {err}");
-    for f in fragments {
-        assert!(err.contains(f), "irid {args:?}: {err:?} lacks {f:?}");
-    }
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
+use std::process::Output;
 
 fn scene_file() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("data/scenes/paper-cylinder.toml")

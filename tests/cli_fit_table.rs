@@ -4,41 +4,11 @@
 //! read back from the CSV; a 1 nm spectrometer file that needs `--bands`;
 //! cubes to CSV; errors naming the file and line; no partial output.
 
+mod cli_common;
+use cli_common::{fails_with, ok, s};
 use irid::io::results_csv::HEADER;
 use irid::optics::{airy, Complex64, Media, Polarization};
 use std::path::Path;
-use std::process::{Command, Output};
-
-fn irid(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_irid"))
-        .args(args)
-        .output()
-        .expect("run irid")
-}
-
-fn ok(args: &[&str]) -> Output {
-    let out = irid(args);
-    assert!(
-        out.status.success(),
-        "irid {args:?}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    out
-}
-
-fn fails_with(args: &[&str], fragments: &[&str]) {
-    let out = irid(args);
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success(), "irid {args:?} succeeded");
-    assert!(!err.contains("panicked"), "irid {args:?} panicked: {err}");
-    for f in fragments {
-        assert!(err.contains(f), "irid {args:?}: {err:?} lacks {f:?}");
-    }
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
 
 const THICKNESSES: [f64; 3] = [300.0, 500.0, 800.0];
 
