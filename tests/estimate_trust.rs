@@ -301,3 +301,76 @@ seed = 1
     assert_eq!(maps.valid_count(), 0);
     assert!(count(&maps, Reason::AtBound) > 0);
 }
+
+#[test]
+fn the_free_level_reads_thickness_from_normalised_intensities() {
+    // Free-standing water films (H2O-Hale, air both sides, normal
+    // incidence) seen as a spectrometer sees them after an imperfect lamp
+    // division: scaled, offset and tilted by a slow envelope the model was
+    // never told, then noise.
+    let s = Scene::from_toml(
+        r#"
+[ambient]
+n = 1.0
+[substrate]
+n = 1.0
+[film]
+material = "H2O-Hale"
+[angle]
+deg = 0.0
+[light]
+polarization = "u"
+[measurement]
+level = "free"
+[bands]
+start_nm = 450
+stop_nm = 900
+step_nm = 3
+fwhm_nm = 0
+[truth]
+width = 60
+height = 1
+film_material = "H2O-Hale"
+thickness_nm = { linear_x = [300.0, 3000.0] }
+angle_deg = { constant = 0.0 }
+noise_sigma = 0.0005
+seed = 3
+"#,
+        "<test>",
+        std::path::Path::new("."),
+    )
+    .unwrap();
+    let (mut cube, truth) = render(&s);
+    let n = cube.plane_len();
+    let nb = cube.bands.len();
+    for k in 0..nb {
+        let u = 2.0 * k as f64 / (nb - 1) as f64 - 1.0;
+        let env = 6.0 * (1.0 + 0.25 * u - 0.15 * u * u);
+        for v in &mut cube.data[k * n..(k + 1) * n] {
+            *v = (f64::from(*v) * env + 0.12) as f32;
+        }
+    }
+    let (maps, _) = fit_with(&s, &cube, Mode::Balanced);
+    let mut valid = 0;
+    for x in 0..n {
+        let d = f64::from(truth.thickness_nm[x]);
+        if maps.valid[x] < 0.5 {
+            continue;
+        }
+        valid += 1;
+        let e = (f64::from(maps.thickness_nm[x]) - d).abs();
+        let sig = f64::from(maps.sigma_thickness_nm[x]);
+        // Within 1 % of the truth and within 3σ + 1 nm of it: the
+        // thickness comes from the fringes, not the level.
+        assert!(e <= 0.01 * d, "d {d:.0}: error {e:.2} nm (σ {sig:.2})");
+        assert!(
+            e <= 3.0 * sig + 1.0,
+            "d {d:.0}: error {e:.2} nm, σ {sig:.2}"
+        );
+    }
+    assert!(
+        valid * 10 >= 9 * n,
+        "{valid} of {n} valid: {:?}",
+        maps.reason
+    );
+}

@@ -26,6 +26,8 @@ const DEGREES: [usize; 3] = [0, 2, 4];
 const DEGREE_PROBABILITY: f64 = 1e-3;
 /// Grid points per quarter fringe (at the shortest wavelength).
 const GRID_PER_QUARTER_FRINGE: f64 = 4.0;
+/// Local minima of the grid profile refined per degree.
+const REFINED_MINIMA: usize = 4;
 /// Largest relative σ of a valid thickness: beyond it the fringes no longer
 /// pin the thickness once the level is free ("no fringe in range").
 const MAX_RELATIVE_SIGMA: f64 = 0.033;
@@ -80,20 +82,44 @@ impl Solver {
             prep.model.eval(d, theta, &mut trial, false);
             prof.push(profile_sse(scratch, &trial.r, &u));
         }
+        let sse_at = |j: usize, d: f64, trial: &mut crate::estimate::model::ModelOut| {
+            prep.model.eval(d, theta, trial, false);
+            profile_sse(scratch, &trial.r, &u)[j]
+        };
+        // For each degree, the grid's best local minima refined by golden
+        // section on their bracketing cells (a grid point can sit far up a
+        // sharp minimum's walls, so minima are compared refined): the two
+        // best as (d, SSE).
+        let mut best = [[(f64::NAN, f64::INFINITY); 2]; DEGREES.len()];
+        for (j, best_j) in best.iter_mut().enumerate() {
+            let mut minima: Vec<usize> = (0..prof.len())
+                .filter(|&i| {
+                    let here = prof[i][j];
+                    (i == 0 || prof[i - 1][j] >= here)
+                        && (i + 1 == prof.len() || prof[i + 1][j] >= here)
+                })
+                .collect();
+            minima.sort_by(|&x, &y| prof[x][j].total_cmp(&prof[y][j]));
+            let mut refined: Vec<(f64, f64)> = minima
+                .iter()
+                .take(REFINED_MINIMA)
+                .map(|&i| {
+                    let lo = (self.d_min + step * i as f64 - step).max(self.d_min);
+                    let hi = (self.d_min + step * i as f64 + step).min(self.d_max);
+                    golden(lo, hi, |d| sse_at(j, d, &mut trial))
+                })
+                .collect();
+            refined.sort_by(|x, y| x.1.total_cmp(&y.1));
+            for (slot, r) in best_j.iter_mut().zip(&refined) {
+                *slot = *r;
+            }
+        }
+        let var_noise = self.noise_var(scratch, &vec![0.0; nb]);
         // Degree: the lowest whose best fit a higher one does not beat
         // significantly.
-        let best_of = |j: usize| -> (usize, f64) {
-            prof.iter()
-                .enumerate()
-                .map(|(i, p)| (i, p[j]))
-                .min_by(|a, b| a.1.total_cmp(&b.1))
-                .unwrap_or((0, f64::INFINITY))
-        };
-        let var_noise = self.noise_var(scratch, &vec![0.0; nb]);
         let mut deg_j = 0;
         for j in 1..DEGREES.len() {
-            let (_, lo_sse) = best_of(deg_j);
-            let (_, hi_sse) = best_of(j);
+            let (lo_sse, hi_sse) = (best[deg_j][0].1, best[j][0].1);
             let extra = (DEGREES[j] - DEGREES[deg_j]) as f64;
             let var = if var_noise > 0.0 {
                 var_noise
@@ -105,40 +131,13 @@ impl Solver {
             }
         }
         let n_lin = DEGREES[deg_j] + 2;
-        let (i_best, _) = best_of(deg_j);
-        // Golden section on the bracketing grid cells.
-        let sse_at = |d: f64, trial: &mut crate::estimate::model::ModelOut| {
-            prep.model.eval(d, theta, trial, false);
-            profile_sse(scratch, &trial.r, &u)[deg_j]
-        };
-        let lo = (self.d_min + step * i_best as f64 - step).max(self.d_min);
-        let hi = (self.d_min + step * i_best as f64 + step).min(self.d_max);
-        let g = 0.5 * (5f64.sqrt() - 1.0);
-        let (mut a, mut b) = (lo, hi);
-        let (mut c, mut e) = (b - g * (b - a), a + g * (b - a));
-        let (mut fc, mut fe) = (sse_at(c, &mut trial), sse_at(e, &mut trial));
-        for _ in 0..48 {
-            if fc < fe {
-                b = e;
-                e = c;
-                fe = fc;
-                c = b - g * (b - a);
-                fc = sse_at(c, &mut trial);
-            } else {
-                a = c;
-                c = e;
-                fc = fe;
-                e = a + g * (b - a);
-                fe = sse_at(e, &mut trial);
-            }
-        }
-        let d = 0.5 * (a + b);
-        let sse = sse_at(d, &mut trial);
+        let ((d, sse), (_, second)) = (best[deg_j][0], best[deg_j][1]);
         let dof = n_ok.saturating_sub(n_lin + 1).max(1);
         let var = (sse / dof as f64).max(var_noise).max(1e-14);
         // σ from the profile's curvature: SSE(d ± h) ≈ SSE + (SSE''/2)·h².
         let h = (0.02 * step).max(1e-3);
-        let curv = (sse_at(d + h, &mut trial) + sse_at((d - h).max(0.0), &mut trial) - 2.0 * sse)
+        let curv = (sse_at(deg_j, d + h, &mut trial) + sse_at(deg_j, (d - h).max(0.0), &mut trial)
+            - 2.0 * sse)
             / (h * h);
         let sigma = if curv > 0.0 {
             (2.0 * var / curv).sqrt()
@@ -149,17 +148,6 @@ impl Solver {
         scratch.trial = trial;
         let mut reason = Reason::Ok;
         // Another fringe order about as good: ambiguous.
-        let second = prof
-            .iter()
-            .enumerate()
-            .filter(|(i, _)| i.abs_diff(i_best) > 2)
-            .filter(|(i, p)| {
-                let here = p[deg_j];
-                (*i == 0 || prof[i - 1][deg_j] >= here)
-                    && (i + 1 == prof.len() || prof[i + 1][deg_j] >= here)
-            })
-            .map(|(_, p)| p[deg_j])
-            .fold(f64::INFINITY, f64::min);
         if (second - sse) / var < 9.0 {
             reason = Reason::AmbiguousOrder;
         }
@@ -188,6 +176,27 @@ impl Solver {
             reason,
         }
     }
+}
+
+/// Golden-section minimum of `f` on `[lo, hi]`: `(x, f(x))`.
+fn golden(lo: f64, hi: f64, mut f: impl FnMut(f64) -> f64) -> (f64, f64) {
+    let g = 0.5 * (5f64.sqrt() - 1.0);
+    let (mut a, mut b) = (lo, hi);
+    let (mut c, mut e) = (b - g * (b - a), a + g * (b - a));
+    let (mut fc, mut fe) = (f(c), f(e));
+    for _ in 0..48 {
+        if fc < fe {
+            (b, e, fe) = (e, c, fc);
+            c = b - g * (b - a);
+            fc = f(c);
+        } else {
+            (a, c, fc) = (c, e, fe);
+            e = a + g * (b - a);
+            fe = f(e);
+        }
+    }
+    let x = 0.5 * (a + b);
+    (x, f(x))
 }
 
 /// Residual sum of squares of `y ≈ R·(c0 + c1 u + … + c_m u^m) + b` for
