@@ -63,11 +63,69 @@ impl Solver {
         let var: Vec<f64> = (0..nb).map(|k| noise.var(k, 0.05)).collect();
         let wn: Vec<f64> = self.bands.iter().map(|b| 1.0 / b.center_nm).collect();
         let identity = Level::identity(nb);
+        let unknown_index = matches!(self.scene.film, FilmKnowledge::Unknown { .. });
+        // Only pixels a level can explain take part: a first smooth fit,
+        // then the pixels still far off it (films out of range, defects)
+        // are left out, so they cannot pass for a calibration error.
+        let all = self.level_pixels(sample, &identity);
+        if all.is_empty() {
+            return Ok(None);
+        }
+        // Trial levels: smooth, and per band where the sample can tell one.
+        let mut trials = vec![(identity.clone(), est_abs.clone())];
+        let mut est_trial = est_abs.clone();
+        let (smooth_trial, _, _) = self.level_gauss_newton(
+            sample,
+            &identity,
+            Some(all.clone()),
+            LevelBasis::Smooth,
+            &mut est_trial,
+            &wn,
+            &var,
+        )?;
+        trials.push((smooth_trial.clone(), est_trial.clone()));
+        if self.level_basis(&all, &noise.typical_sigma(0.05)) == LevelBasis::PerBand {
+            let (pb, _, _) = self.level_gauss_newton(
+                sample,
+                &smooth_trial,
+                None,
+                LevelBasis::PerBand,
+                &mut est_trial,
+                &wn,
+                &var,
+            )?;
+            trials.push((pb, est_trial));
+        }
+        // A pixel is consistent if one of them explains it (judged with the
+        // index found with that level, then reset).
+        let mut consistent = std::collections::BTreeSet::new();
+        for (t, e) in &trials {
+            if unknown_index {
+                self.set_film_index(e.clone())?;
+            }
+            for p in self.level_pixels(sample, t) {
+                if pixel_chi2_passes(&p, t, &var) {
+                    consistent.insert(p.id);
+                }
+            }
+        }
+        if unknown_index {
+            self.set_film_index(est_abs.clone())?;
+        }
+        if 2 * consistent.len() < all.len() {
+            self.level_note = format!(
+                "absolute (only {} of {} sample pixels fit any level: the misfit is not a calibration error)",
+                consistent.len(),
+                all.len()
+            );
+            return Ok(None);
+        }
+        let kept: Vec<SamplePixel> = consistent.iter().map(|&i| sample[i].clone()).collect();
+        let sample = &kept[..];
         let abs = self.level_pixels(sample, &identity);
         if abs.is_empty() {
             return Ok(None);
         }
-        let unknown_index = matches!(self.scene.film, FilmKnowledge::Unknown { .. });
         let mut est = est_abs.clone();
         // Model only what the data require: a smooth level first (4
         // parameters, so a common gain error is detected with the power of
@@ -350,6 +408,13 @@ impl Solver {
                         return None;
                     }
                     let th = est.theta_deg.to_radians();
+                    // A fit outside the range says nothing about the level.
+                    if self
+                        .bound_reason(prep, est.thickness_nm, th, px.theta)
+                        .is_some()
+                    {
+                        return None;
+                    }
                     prep.model.eval(est.thickness_nm, th, out, true);
                     let mut jac = vec![out.dr_dd[..nb].to_vec()];
                     if px.theta.is_none() {
@@ -440,4 +505,20 @@ fn median_shift(a: &[LevelPixel], b: &[LevelPixel]) -> f64 {
     }
     let mid = shifts.len() / 2;
     *shifts.select_nth_unstable_by(mid, f64::total_cmp).1
+}
+
+/// Whether a pixel's values fit the model under `level` as well as noise
+/// allows (its χ² below the 1e-4 upper quantile): the pixel is consistent
+/// with an image-wide level.
+fn pixel_chi2_passes(p: &LevelPixel, level: &Level, var: &[f64]) -> bool {
+    let (mut chi2, mut n) = (0.0, 0usize);
+    for (k, (&y, &r)) in p.y.iter().zip(&p.r).enumerate() {
+        if y.is_finite() && r.is_finite() {
+            let e = y - level.gain[k] * r - level.offset[k];
+            chi2 += e * e / var[k];
+            n += 1;
+        }
+    }
+    let dof = n.saturating_sub(p.jac.len()).max(1);
+    chi2 <= chi2_upper_quantile(dof as f64, 1e-4)
 }
