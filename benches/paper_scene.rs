@@ -6,7 +6,7 @@
 //! `cargo bench --bench paper_scene` (add `-- --repeat N` to tile the scene
 //! N×N times for steadier speed numbers, `--best-of K` to time each fit K
 //! times and report the fastest, which a busy machine disturbs least,
-//! `--mode M` for one mode only, and `--scene FILE` to run another scene
+//! `--mode M` for one mode only, `--angle known|unknown` for one case, and `--scene FILE` to run another scene
 //! TOML with a `[truth]` section instead of the paper's; `--bins` adds the
 //! accuracy per 100 nm of true thickness, `--worst` the worst pixel).
 
@@ -125,7 +125,17 @@ fn main() {
             0.798 * s1 / n
         );
     }
+    let angle_arg = args
+        .iter()
+        .position(|a| a == "--angle")
+        .and_then(|i| args.get(i + 1))
+        .cloned();
     for angle_known in [false, true] {
+        if let Some(a) = &angle_arg {
+            if a != if angle_known { "known" } else { "unknown" } {
+                continue;
+            }
+        }
         let mut sc = scene.clone();
         if angle_known {
             sc.angle = AngleKnowledge::Map {

@@ -56,6 +56,7 @@ mod pixel;
 mod refine;
 mod row;
 mod search;
+mod table;
 
 use super::level::{Level, LevelMode};
 use super::model::{FilmModel, ModelOut};
@@ -67,6 +68,7 @@ use crate::optics::band::Band;
 use crate::optics::dispersion::Dispersion;
 use crate::optics::Polarization;
 use crate::scene::{AngleKnowledge, FilmKnowledge, Scene};
+use std::f64::consts::PI;
 use bands::BandTable;
 use closed_form::Slopes;
 use index::SamplePixel;
@@ -125,6 +127,8 @@ pub struct Scratch {
     weight: Vec<f64>,
     cur: ModelOut,
     trial: ModelOut,
+    /// The thickness table's working memory.
+    grid: table::GridScratch,
 }
 
 impl Scratch {
@@ -149,6 +153,9 @@ struct Effort {
     n_refine: usize,
     /// Iteration cap of each refinement.
     iters: usize,
+    /// Fit against the thickness table where one was built for the
+    /// pixel's angle (one unknown left).
+    table: bool,
     /// After a closed-form start, also refine the best other fringe order
     /// and flag the pixel if it fits as well.
     verify_order: bool,
@@ -162,6 +169,7 @@ impl Effort {
                 closed_form_only: true,
                 n_refine: 1,
                 iters: 6,
+                table: true,
                 verify_order: false,
             },
             Mode::Balanced => Effort {
@@ -169,6 +177,7 @@ impl Effort {
                 closed_form_only: false,
                 n_refine: 2,
                 iters: 8,
+                table: true,
                 verify_order: false,
             },
             Mode::Accurate => Effort {
@@ -176,6 +185,7 @@ impl Effort {
                 closed_form_only: false,
                 n_refine: 3,
                 iters: 25,
+                table: false,
                 verify_order: true,
             },
         }
@@ -188,6 +198,7 @@ impl Effort {
         closed_form_only: false,
         n_refine: 2,
         iters: 10,
+        table: false,
         verify_order: false,
     };
 }
@@ -219,6 +230,9 @@ struct Fit {
     jtj: [f64; 3],
     /// Fitted with the passband-integrated model.
     integrated: bool,
+    /// Fitted on the thickness table at `theta` (judged on its
+    /// interpolant, within 1e-5 of the fringe amplitude of the model).
+    tabled: bool,
 }
 
 /// Everything that depends on the film index.
@@ -242,6 +256,8 @@ struct Prepared {
     integrated: Option<FilmModel>,
     /// Largest fringe amplitude over the angle range, for the criterion.
     fringe_amplitude: f64,
+    /// The model over thickness at each known angle (`fast`, `balanced`).
+    tables: table::Tables,
 }
 
 /// Solves pixels for the scene's unknowns.
@@ -497,7 +513,9 @@ impl Solver {
             .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
                 (a.min(v), b.max(v))
             });
+        let tables = self.build_tables(&model);
         Ok(Prepared {
+            tables,
             model,
             envelope_range,
             sign,
@@ -506,6 +524,46 @@ impl Solver {
             closed_form,
             integrated,
             fringe_amplitude,
+        })
+    }
+
+    /// Thickness tables at each known angle, where one unknown is left and
+    /// the mode fits against them (`fast`, `balanced`; not `accurate`, whose
+    /// refinement is exact, nor the free level).
+    fn build_tables(&self, model: &FilmModel) -> table::Tables {
+        /// A map with more distinct angles than this fits pixel by pixel.
+        const MAX_TABLES: usize = 4096;
+        if self.mode == Mode::Accurate || self.scene.level == LevelMode::Free {
+            return table::Tables::default();
+        }
+        let angles: Vec<f64> = match &self.scene.angle {
+            AngleKnowledge::Uniform(t) => vec![*t],
+            AngleKnowledge::Map { deg, .. } => {
+                let mut bits: Vec<u32> = deg
+                    .iter()
+                    .filter(|d| d.is_finite() && (0.0..90.0).contains(*d))
+                    .map(|d| d.to_bits())
+                    .collect();
+                bits.sort_unstable();
+                bits.dedup();
+                if bits.len() > MAX_TABLES {
+                    return table::Tables::default();
+                }
+                // Exactly as `AngleKnowledge::known_at` converts them.
+                bits.iter()
+                    .map(|&b| f64::from(f32::from_bits(b)).to_radians())
+                    .collect()
+            }
+            AngleKnowledge::Unknown { .. } => return table::Tables::default(),
+        };
+        let angles: Vec<f64> = angles
+            .into_iter()
+            .filter(|t| t.is_finite() && (0.0..PI / 2.0).contains(t))
+            .collect();
+        let g_hi = 1.05 * self.g_max.0;
+        table::Tables::build(model, &angles, |t| {
+            let d_hi = self.d_max.min(g_hi / model.q2_mid(t).max(1e-6));
+            (self.d_min, d_hi.max(self.d_min))
         })
     }
 

@@ -73,6 +73,11 @@ impl Solver {
             }
         }
         let lam_min = self.table.sorted.first().map_or(400.0, |b| b.1);
+        if let Some(t) = theta_known.filter(|_| effort.table && job_start.is_none()) {
+            if let Some(table) = prep.tables.get(t) {
+                return self.solve_table(prep, table, t, n_ok, noise, effort, lam_min, scratch);
+            }
+        }
         if effort.closed_form && n_ok == nb {
             // The closed form: given by the caller (who found it wanting),
             // or found here.
@@ -262,7 +267,7 @@ impl Solver {
 
     /// From refined fits to an estimate: best fit, covariance, flags.
     #[allow(clippy::too_many_arguments)]
-    fn finish(
+    pub(super) fn finish(
         &self,
         fits: &[Fit],
         n_ok: usize,
@@ -293,7 +298,10 @@ impl Solver {
         let judging = noise.is_some() && self.judging();
         let (chi2, noise_var) = if judging {
             let mut trial = std::mem::take(&mut scratch.trial);
-            model.eval(best.d, best.theta, &mut trial, false);
+            match prep.tables.get(best.theta).filter(|_| best.tabled) {
+                Some(t) => t.values(best.d, &mut trial.r, &mut scratch.grid),
+                None => model.eval(best.d, best.theta, &mut trial, false),
+            }
             let out = (
                 self.chi2_of(scratch, &trial.r),
                 self.noise_var(scratch, &trial.r),

@@ -92,6 +92,7 @@ impl Solver {
             sse: cur_sse,
             jtj: [a, b, c],
             integrated: false,
+            tabled: false,
         }
     }
 

@@ -35,7 +35,13 @@ impl Solver {
         let mut pixel = std::mem::take(&mut scratch.pixel);
         pixel.resize(cube.bands.len(), 0.0);
         let mut done = 0;
-        if self.mode == Mode::Fast && self.level_mode != crate::estimate::level::LevelMode::Free {
+        // Where the thickness tables serve the known angles, every pixel
+        // takes them (no extremum pass needed).
+        let tabled = self.prepared.as_ref().is_some_and(|p| !p.tables.is_empty());
+        if self.mode == Mode::Fast
+            && !tabled
+            && self.level_mode != crate::estimate::level::LevelMode::Free
+        {
             let pre = candidates.filter(|c| {
                 c.size() == (cube.width, cube.height) && c.bands() == self.table.sorted.len()
             });

@@ -12,8 +12,12 @@
 //! sample, several when the passband has to be integrated. The model value
 //! of a band is the weighted sum over its nodes.
 
+mod node;
+
 use super::fastmath::{sin_cos, sin_cos_bounded};
 use crate::optics::airy;
+use node::NodeCoef;
+use std::sync::atomic::{AtomicU64, Ordering};
 use crate::optics::band::Band;
 use crate::optics::dispersion::Dispersion;
 use crate::optics::{Complex64, Media, Polarization};
@@ -231,9 +235,15 @@ impl Coeffs {
     }
 }
 
+/// Identity of each built model, so a scratch's cached coefficients are
+/// never reused for another model.
+static NEXT_MODEL_ID: AtomicU64 = AtomicU64::new(1);
+
 /// The forward model for one film index (known or trial) and one band set.
 #[derive(Clone, Debug)]
 pub struct FilmModel {
+    /// Identity for the coefficient cache in [`ModelOut`].
+    id: u64,
     nodes: Vec<Node>,
     /// `4π/λ` per band, for the uniform path.
     w: Vec<f64>,
@@ -260,6 +270,11 @@ pub struct ModelOut {
     pub dr_dd: Vec<f64>,
     /// dR/dθ per band (per radian).
     pub dr_dth: Vec<f64>,
+    /// The general path's per-node coefficients at one angle, kept between
+    /// evaluations at that angle (a known angle pays for them once).
+    coef: Vec<NodeCoef>,
+    /// `(model id, angle bits)` the coefficients belong to.
+    coef_key: (u64, u64),
 }
 
 impl ModelOut {
@@ -269,6 +284,8 @@ impl ModelOut {
             r: vec![0.0; n],
             dr_dd: vec![0.0; n],
             dr_dth: vec![0.0; n],
+            coef: Vec::new(),
+            coef_key: (0, 0),
         }
     }
 }
@@ -320,6 +337,7 @@ impl FilmModel {
             .map(|n| (n.n2.re / n.n1.re).min(n.n3.re / n.n1.re))
             .fold(f64::INFINITY, f64::min);
         Ok(FilmModel {
+            id: NEXT_MODEL_ID.fetch_add(1, Ordering::Relaxed),
             sin_critical,
             w: nodes.iter().map(|n| n.w).collect(),
             n_bands: bands.len(),
@@ -365,6 +383,16 @@ impl FilmModel {
         (self.n2_mid * self.n2_mid - kx * kx).max(1e-12).sqrt()
     }
 
+    /// The fastest rate at which any node's phase `4π q2 / λ` moves with
+    /// thickness at angle `theta`, rad per nm.
+    pub fn max_phase_rate(&self, theta: f64) -> f64 {
+        let s = sin_cos(theta).0;
+        self.nodes
+            .iter()
+            .map(|n| n.w * airy::normal_component(n.n2, n.n1 * s).re.abs())
+            .fold(0.0, f64::max)
+    }
+
     /// Whether the fast real path applies at angle `theta`.
     fn real_at(&self, theta: f64) -> bool {
         self.real && sin_cos(theta).0 < self.sin_critical
@@ -387,10 +415,29 @@ impl FilmModel {
             out.dr_dd[..self.n_bands].fill(0.0);
             out.dr_dth[..self.n_bands].fill(0.0);
         }
-        if real {
-            self.eval_real(d, &a, out, with_derivative);
-        } else {
-            self.eval_complex(d, theta, out, with_derivative);
+        self.eval_general(d, theta, &a, out, with_derivative);
+    }
+
+    /// Any media: per-node coefficients at `theta`, computed once per angle
+    /// and cached in `out`, then one `sin_cos` (and an `exp` where the film
+    /// absorbs) per node.
+    fn eval_general(&self, d: f64, theta: f64, a: &AngleAt, out: &mut ModelOut, deriv: bool) {
+        let key = (self.id, theta.to_bits());
+        if out.coef_key != key || out.coef.len() != self.nodes.len() {
+            out.coef.clear();
+            out.coef.extend(self.nodes.iter().map(|n| {
+                NodeCoef::new([n.n1, n.n2, n.n3], n.w, a.s, a.sh, THETA_STEP)
+            }));
+            out.coef_key = key;
+        }
+        let ws = self.s_weight;
+        for (n, c) in self.nodes.iter().zip(&out.coef) {
+            let (rv, dd, dth) = c.eval(d, ws, deriv);
+            out.r[n.band] += n.weight * rv;
+            if deriv {
+                out.dr_dd[n.band] += n.weight * dd;
+                out.dr_dth[n.band] += n.weight * dth;
+            }
         }
     }
 
@@ -425,25 +472,6 @@ impl FilmModel {
         }
     }
 
-    #[inline(always)]
-    fn node_value(&self, k: &CoeffSet, w: f64, d: f64, deriv: bool) -> (f64, f64, f64) {
-        let ws = self.s_weight;
-        let wp = 1.0 - ws;
-        let kq = w * k.q2;
-        let (sin_d, cos_d) = sin_cos(kq * d);
-        let (rs, dxs) = k.cs.eval(cos_d);
-        let (rp, dxp) = k.cp.eval(cos_d);
-        let r = ws * rs + wp * rp;
-        if !deriv {
-            return (r, 0.0, 0.0);
-        }
-        let dx = ws * dxs + wp * dxp;
-        let r_h = ws * k.cs_h.eval(cos_d).0 + wp * k.cp_h.eval(cos_d).0;
-        let dr_dd = dx * (-sin_d) * kq;
-        let dr_dth = (r_h - r) / THETA_STEP + dx * (-sin_d) * w * d * k.dq2;
-        (r, dr_dd, dr_dth)
-    }
-
     /// The common case: lossless, non-dispersive media, one node per band.
     /// Written as straight loops over bands (phases, then `sin_cos`, then
     /// the rational function) so the compiler vectorises them.
@@ -469,18 +497,9 @@ impl FilmModel {
         );
     }
 
-    fn eval_real(&self, d: f64, a: &AngleAt, out: &mut ModelOut, deriv: bool) {
-        for n in &self.nodes {
-            let k = self.coeffs_with_slope(n, a);
-            let (rv, a, b) = self.node_value(&k, n.w, d, deriv);
-            out.r[n.band] += n.weight * rv;
-            if deriv {
-                out.dr_dd[n.band] += n.weight * a;
-                out.dr_dth[n.band] += n.weight * b;
-            }
-        }
-    }
-
+    /// The complex Airy summation per node: the reference the other paths
+    /// are tested against.
+    #[cfg(test)]
     fn eval_complex(&self, d: f64, theta: f64, out: &mut ModelOut, deriv: bool) {
         let pol = Polarization::Mixed {
             s_weight: self.s_weight,

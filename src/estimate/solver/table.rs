@@ -1,0 +1,497 @@
+//! Where one unknown remains (film index and angle known), the model over
+//! thickness is a fixed curve: tabulate it once per angle and fit every
+//! pixel against the table instead of searching fringes.
+//!
+//! The table holds `R` and `dR/dd` per band on a thickness grid fine enough
+//! that the fastest band's phase moves [`PHASE_STEP`] between points. A
+//! pixel's fit is then
+//! 1. the residual at every grid point (one vectorised pass, f32), whose
+//!    lowest local minima are the candidate fringe orders, and
+//! 2. Gauss–Newton in `d` on the cubic Hermite interpolant of the table
+//!    (f64, no transcendental functions), whose error at this step is
+//!    ~h⁴R''''/384 ≈ 1e-5 of the fringe amplitude — far below any noise.
+//!
+//! The fit is then judged with the exact model (stage 4, unchanged), so an
+//! interpolation error could cost a pixel its validity but never make a
+//! wrong one valid.
+
+use super::{Effort, Fit, Prepared, Scratch, Solver};
+use crate::estimate::PixelEstimate;
+use crate::estimate::model::{FilmModel, ModelOut};
+use multiversion::multiversion;
+use std::collections::HashMap;
+use std::sync::Arc;
+
+/// Largest phase change of any band between adjacent grid points, rad.
+pub const PHASE_STEP: f64 = 0.3;
+
+/// The residual is scanned on every `SCAN_STRIDE`-th grid point (a phase
+/// step of 0.6 rad: a minimum's basin spans ±π), then the best coarse minima
+/// are polished on the full grid.
+const SCAN_STRIDE: usize = 2;
+
+/// Memory all of a solver's tables may take, bytes.
+pub const TABLE_BUDGET_BYTES: usize = 256 << 20;
+
+/// The model at one angle over a thickness grid.
+#[derive(Debug)]
+pub struct ThicknessTable {
+    d0: f64,
+    h: f64,
+    m: usize,
+    nb: usize,
+    /// `nb` rounded up to whole vectors of 8 (the padding is zero).
+    nbp: usize,
+    /// `r[j * nbp + k]`: R of band k at `d0 + j h`.
+    r: Vec<f32>,
+    /// `Σ_k R²` at each grid point, for the complete-spectrum residual.
+    rr: Vec<f32>,
+    /// `dr[j * nb + k]`: dR/dd, per nm.
+    dr: Vec<f32>,
+}
+
+/// Working memory of the grid scan (per thread).
+#[derive(Clone, Debug, Default)]
+pub struct GridScratch {
+    y: Vec<f32>,
+    w: Vec<f32>,
+    sse: Vec<f32>,
+    r: Vec<f64>,
+    dr: Vec<f64>,
+}
+
+/// A local minimum of the residual over the grid.
+#[derive(Clone, Copy, Debug)]
+pub struct GridMin {
+    pub j: usize,
+    pub sse: f32,
+}
+
+impl ThicknessTable {
+    /// Grid points needed for `model` at `theta` over `[d_lo, d_hi]`, and
+    /// the step.
+    pub fn size(model: &FilmModel, theta: f64, d_lo: f64, d_hi: f64) -> (usize, f64) {
+        let k = model.max_phase_rate(theta).max(1e-9);
+        let h = PHASE_STEP / k;
+        let m = ((d_hi - d_lo).max(0.0) / h).ceil() as usize + 1;
+        (m.max(2), h)
+    }
+
+    /// Tabulate `model` at `theta` over `[d_lo, d_hi]`.
+    pub fn new(model: &FilmModel, theta: f64, d_lo: f64, d_hi: f64) -> ThicknessTable {
+        let (m, h) = Self::size(model, theta, d_lo, d_hi);
+        let nb = model.n_bands();
+        let nbp = nb.div_ceil(8) * 8;
+        let mut out = ModelOut::new(nb);
+        let mut r = vec![0f32; m * nbp];
+        let mut rr = Vec::with_capacity(m);
+        let mut dr = Vec::with_capacity(m * nb);
+        for j in 0..m {
+            model.eval(d_lo + j as f64 * h, theta, &mut out, true);
+            let row = &mut r[j * nbp..j * nbp + nb];
+            for (d, &v) in row.iter_mut().zip(&out.r[..nb]) {
+                *d = v as f32;
+            }
+            rr.push(row.iter().map(|v| v * v).sum());
+            dr.extend(out.dr_dd[..nb].iter().map(|&v| v as f32));
+        }
+        ThicknessTable {
+            d0: d_lo,
+            h,
+            m,
+            nb,
+            nbp,
+            r,
+            rr,
+            dr,
+        }
+    }
+
+    /// Bytes the table holds.
+    pub fn bytes(&self) -> usize {
+        (self.r.len() + self.dr.len() + self.rr.len()) * 4
+    }
+
+    /// Thickness of grid point `j`.
+    pub fn d_at(&self, j: usize) -> f64 {
+        self.d0 + j as f64 * self.h
+    }
+
+    /// The lowest local minima of `Σ w (y − R)²` over the grid, best first
+    /// (at most `out.len()`); returns how many. `y` and `w` hold `nb`
+    /// values; `sse` is working memory.
+    pub fn minima(&self, y: &[f64], w: &[f64], buf: &mut GridScratch, out: &mut [GridMin]) -> usize {
+        let (nb, nbp) = (self.nb, self.nbp);
+        buf.y.clear();
+        buf.y.extend(y[..nb].iter().map(|&v| v as f32));
+        buf.y.resize(nbp, 0.0);
+        let mc = self.m.div_ceil(SCAN_STRIDE);
+        buf.sse.resize(mc, 0.0);
+        let sse = &mut buf.sse;
+        let complete = w[..nb].iter().all(|&v| v == 1.0);
+        if complete {
+            let yy: f32 = buf.y.iter().map(|v| v * v).sum();
+            scan_complete(&self.r, &self.rr, &buf.y, yy, sse);
+        } else {
+            buf.w.clear();
+            buf.w.extend(w[..nb].iter().map(|&v| v as f32));
+            buf.w.resize(nbp, 0.0);
+            scan_weighted(&self.r, &buf.y, &buf.w, sse);
+        }
+        let cap = out.len();
+        let mut n = 0usize;
+        // The worst residual kept so far (any lower one is worth a look).
+        let mut bar = f32::INFINITY;
+        for i in 0..mc {
+            let cur = sse[i];
+            if !(cur < bar) {
+                continue;
+            }
+            let left = if i > 0 { sse[i - 1] } else { f32::INFINITY };
+            let right = if i + 1 < mc { sse[i + 1] } else { f32::INFINITY };
+            if !(cur <= left && cur < right) {
+                continue;
+            }
+            let g = GridMin {
+                j: i * SCAN_STRIDE,
+                sse: cur,
+            };
+            if n < cap {
+                out[n] = g;
+                n += 1;
+            } else if let Some(worst) = out[..n].iter_mut().max_by(|a, b| a.sse.total_cmp(&b.sse)) {
+                *worst = g;
+            }
+            if n == cap {
+                bar = out[..n].iter().map(|g| g.sse).fold(f32::NEG_INFINITY, f32::max);
+            }
+        }
+        // Polish on the full grid: the best of each coarse minimum's
+        // neighbours.
+        for g in &mut out[..n] {
+            for j in [g.j.wrapping_sub(1), g.j + 1] {
+                if j < self.m {
+                    let row = &self.r[j * nbp..(j + 1) * nbp];
+                    let e = if complete {
+                        let dot: f32 = row.iter().zip(&buf.y).map(|(a, b)| a * b).sum();
+                        buf.y.iter().map(|v| v * v).sum::<f32>() - 2.0 * dot + self.rr[j]
+                    } else {
+                        row.iter()
+                            .zip(&buf.y)
+                            .zip(&buf.w)
+                            .map(|((a, b), w)| w * (b - a) * (b - a))
+                            .sum()
+                    };
+                    if e < g.sse {
+                        *g = GridMin { j, sse: e };
+                    }
+                }
+            }
+        }
+        out[..n].sort_by(|a, b| a.sse.total_cmp(&b.sse));
+        n
+    }
+
+    /// R and dR/dd of every band at `d` (inside the grid) by cubic Hermite
+    /// interpolation.
+    fn interp(&self, d: f64, r: &mut [f64], dr: &mut [f64]) {
+        let nb = self.nb;
+        let x = ((d - self.d0) / self.h).clamp(0.0, (self.m - 1) as f64);
+        let j = (x.floor() as usize).min(self.m - 2);
+        let t = x - j as f64;
+        let (t2, t3) = (t * t, t * t * t);
+        let h = self.h;
+        let (h00, h10, h01, h11) = (
+            2.0 * t3 - 3.0 * t2 + 1.0,
+            (t3 - 2.0 * t2 + t) * h,
+            -2.0 * t3 + 3.0 * t2,
+            (t3 - t2) * h,
+        );
+        let (g00, g10, g01, g11) = (
+            (6.0 * t2 - 6.0 * t) / h,
+            3.0 * t2 - 4.0 * t + 1.0,
+            (-6.0 * t2 + 6.0 * t) / h,
+            3.0 * t2 - 2.0 * t,
+        );
+        let nbp = self.nbp;
+        let (ra, rb) = (&self.r[j * nbp..j * nbp + nb], &self.r[(j + 1) * nbp..(j + 1) * nbp + nb]);
+        let (da, db) = (&self.dr[j * nb..(j + 1) * nb], &self.dr[(j + 1) * nb..(j + 2) * nb]);
+        for k in 0..nb {
+            let (a, b, p, q) = (
+                f64::from(ra[k]),
+                f64::from(rb[k]),
+                f64::from(da[k]),
+                f64::from(db[k]),
+            );
+            r[k] = h00 * a + h10 * p + h01 * b + h11 * q;
+            dr[k] = g00 * a + g10 * p + g01 * b + g11 * q;
+        }
+    }
+
+    /// R of every band at `d` on the interpolant (as the fit saw it).
+    pub fn values(&self, d: f64, r: &mut [f64], buf: &mut GridScratch) {
+        buf.dr.resize(self.nb, 0.0);
+        self.interp(d, r, &mut buf.dr);
+    }
+
+    /// Gauss–Newton in `d` from grid point `j` on the interpolant, kept
+    /// within one grid step of `j`'s neighbours; at most `iters` steps.
+    /// Returns `(d, Σ w e², Σ w (dR/dd)²)`.
+    pub fn fit(
+        &self,
+        y: &[f64],
+        w: &[f64],
+        j: usize,
+        iters: usize,
+        buf: &mut GridScratch,
+    ) -> (f64, f64, f64) {
+        let nb = self.nb;
+        buf.r.resize(nb, 0.0);
+        buf.dr.resize(nb, 0.0);
+        let (r, dr) = (&mut buf.r[..], &mut buf.dr[..]);
+        let lo = self.d_at(j.saturating_sub(1));
+        let hi = self.d_at((j + 1).min(self.m - 1));
+        let mut d = self.d_at(j);
+        let mut state = (f64::INFINITY, 0.0);
+        for it in 0..=iters {
+            self.interp(d, r, dr);
+            let (mut e2, mut a, mut g) = (0.0, 0.0, 0.0);
+            for k in 0..nb {
+                let e = y[k] - r[k];
+                e2 += w[k] * e * e;
+                a += w[k] * dr[k] * dr[k];
+                g += w[k] * dr[k] * e;
+            }
+            state = (e2, a);
+            if it == iters || a <= 0.0 {
+                break;
+            }
+            let nd = (d + g / a).clamp(lo, hi);
+            let done = (nd - d).abs() < 1e-4 * self.h;
+            d = nd;
+            if done {
+                self.interp(d, r, dr);
+                let (mut e2, mut a) = (0.0, 0.0);
+                for k in 0..nb {
+                    let e = y[k] - r[k];
+                    e2 += w[k] * e * e;
+                    a += w[k] * dr[k] * dr[k];
+                }
+                state = (e2, a);
+                break;
+            }
+        }
+        (d, state.0, state.1)
+    }
+}
+
+/// The residual at every grid point of a complete spectrum,
+/// `Σy² − 2 y·R + ΣR²`: one multiply–add per table entry, eight lanes at a
+/// time (`y` is padded to whole vectors; f32 keeps 1e-7 of `Σy²`, far
+/// below a residual of `nb σ²` at any usable noise level).
+#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+fn scan_complete(r: &[f32], rr: &[f32], y: &[f32], yy: f32, sse: &mut [f32]) {
+    let nbp = y.len();
+    let rows = r.chunks_exact(nbp).step_by(SCAN_STRIDE);
+    for (j, (row, out)) in rows.zip(sse.iter_mut()).enumerate() {
+        let j = j * SCAN_STRIDE;
+        let mut acc = [0f32; 8];
+        for (rv, yv) in row.chunks_exact(8).zip(y.chunks_exact(8)) {
+            for i in 0..8 {
+                acc[i] += rv[i] * yv[i];
+            }
+        }
+        let dot: f32 = acc.iter().sum();
+        *out = yy - 2.0 * dot + rr[j];
+    }
+}
+
+/// `Σ w (y − R)²` at every grid point (spectra with missing bands).
+#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+fn scan_weighted(r: &[f32], y: &[f32], w: &[f32], sse: &mut [f32]) {
+    let nbp = y.len();
+    for (row, out) in r.chunks_exact(nbp).step_by(SCAN_STRIDE).zip(sse.iter_mut()) {
+        let mut acc = [0f32; 8];
+        for ((rv, yv), wv) in row.chunks_exact(8).zip(y.chunks_exact(8)).zip(w.chunks_exact(8)) {
+            for i in 0..8 {
+                let e = yv[i] - rv[i];
+                acc[i] += wv[i] * e * e;
+            }
+        }
+        *out = acc.iter().sum();
+    }
+}
+
+/// The tables of a solver, one per known angle (keyed by the angle's bits).
+#[derive(Clone, Debug, Default)]
+pub struct Tables {
+    by_angle: HashMap<u64, Arc<ThicknessTable>>,
+}
+
+impl Tables {
+    /// Tabulate `model` at each of `angles` over the thicknesses the angle
+    /// allows (`range(θ)`), unless the tables would exceed
+    /// [`TABLE_BUDGET_BYTES`] (then none: pixels take the search).
+    pub fn build(
+        model: &FilmModel,
+        angles: &[f64],
+        range: impl Fn(f64) -> (f64, f64) + Sync,
+    ) -> Tables {
+        use rayon::prelude::*;
+        let nb = model.n_bands();
+        let bytes: usize = angles
+            .iter()
+            .map(|&t| {
+                let (lo, hi) = range(t);
+                ThicknessTable::size(model, t, lo, hi).0 * nb * 8
+            })
+            .sum();
+        if angles.is_empty() || bytes > TABLE_BUDGET_BYTES {
+            return Tables::default();
+        }
+        let by_angle = angles
+            .par_iter()
+            .map(|&t| {
+                let (lo, hi) = range(t);
+                (t.to_bits(), Arc::new(ThicknessTable::new(model, t, lo, hi)))
+            })
+            .collect();
+        Tables { by_angle }
+    }
+
+    /// The table at exactly this angle, if one was built.
+    pub fn get(&self, theta: f64) -> Option<&ThicknessTable> {
+        self.by_angle.get(&theta.to_bits()).map(|t| &**t)
+    }
+
+    /// Whether any table was built.
+    pub fn is_empty(&self) -> bool {
+        self.by_angle.is_empty()
+    }
+
+    /// Bytes all tables hold.
+    pub fn bytes(&self) -> usize {
+        self.by_angle.values().map(|t| t.bytes()).sum()
+    }
+}
+
+impl Solver {
+    /// One pixel against the table at its known angle `theta`: the best
+    /// grid minima (two in `balanced`, to judge the fringe order), each
+    /// refined on the interpolant, then judged as every fit is.
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn solve_table(
+        &self,
+        prep: &Prepared,
+        table: &ThicknessTable,
+        theta: f64,
+        n_ok: usize,
+        noise: Option<f64>,
+        effort: Effort,
+        lam_min: f64,
+        scratch: &mut Scratch,
+    ) -> (PixelEstimate, f64) {
+        let mut mins = [GridMin { j: 0, sse: 0.0 }; 2];
+        let keep = if effort.closed_form_only { 1 } else { 2 };
+        let n = table.minima(
+            &scratch.spectrum,
+            &scratch.weight,
+            &mut scratch.grid,
+            &mut mins[..keep],
+        );
+        let mut fits = [Fit::default(); 2];
+        for (f, g) in fits.iter_mut().zip(&mins[..n]) {
+            let (d, sse, a) = table.fit(
+                &scratch.spectrum,
+                &scratch.weight,
+                g.j,
+                effort.iters,
+                &mut scratch.grid,
+            );
+            *f = Fit {
+                d,
+                theta,
+                sse,
+                jtj: [a, 0.0, 0.0],
+                integrated: false,
+                tabled: true,
+            };
+        }
+        self.finish(
+            &fits[..n],
+            n_ok,
+            Some(theta),
+            noise,
+            prep,
+            lam_min,
+            scratch,
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::optics::band::Band;
+    use crate::optics::dispersion::Dispersion;
+    use crate::optics::Polarization;
+
+    fn model() -> FilmModel {
+        let bands: Vec<Band> = (0..31)
+            .map(|i| Band {
+                center_nm: 400.0 + 10.0 * i as f64,
+                fwhm_nm: 0.0,
+            })
+            .collect();
+        FilmModel::new(
+            &bands,
+            &Dispersion::constant(1.0),
+            &Dispersion::constant(1.46),
+            &Dispersion::constant(1.6),
+            Polarization::Unpolarized,
+            &[false; 31],
+        )
+        .unwrap()
+    }
+
+    /// The interpolant against the exact model between grid points: its
+    /// error bound h⁴·max|R''''|/384 with |R''''| ≤ A·k⁴ (A the fringe
+    /// amplitude, k the fastest phase rate) is A·PHASE_STEP⁴/384 ≈ 2e-5·A.
+    #[test]
+    fn interpolation_error_is_far_below_noise() {
+        let m = model();
+        let th = 0.5;
+        let t = ThicknessTable::new(&m, th, 0.0, 3000.0);
+        let mut out = ModelOut::new(31);
+        let (mut r, mut dr) = ([0.0; 31], [0.0; 31]);
+        let mut worst: f64 = 0.0;
+        for i in 0..2000 {
+            let d = 0.37 + i as f64 * 1.4993;
+            m.eval(d, th, &mut out, true);
+            t.interp(d, &mut r, &mut dr);
+            for k in 0..31 {
+                worst = worst.max((r[k] - out.r[k]).abs());
+            }
+        }
+        // Fringe amplitude here is ≤ 0.05: bound 1e-6 plus f32 storage.
+        assert!(worst < 2e-6, "{worst}");
+    }
+
+    /// A noiseless spectrum is found at its true thickness from the grid.
+    #[test]
+    fn fit_recovers_the_thickness_of_a_model_spectrum() {
+        let m = model();
+        let th = 0.3;
+        let t = ThicknessTable::new(&m, th, 0.0, 2000.0);
+        let mut out = ModelOut::new(31);
+        for d_true in [12.0, 187.3, 611.1, 1499.9] {
+            m.eval(d_true, th, &mut out, false);
+            let mut buf = GridScratch::default();
+            let mut mins = [GridMin { j: 0, sse: 0.0 }; 2];
+            let n = t.minima(&out.r, &[1.0; 31], &mut buf, &mut mins);
+            assert!(n >= 1);
+            let (d, e2, _) = t.fit(&out.r, &[1.0; 31], mins[0].j, 10, &mut buf);
+            assert!((d - d_true).abs() < 0.01, "{d_true}: {d} ({e2})");
+        }
+    }
+}
