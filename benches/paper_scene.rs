@@ -10,22 +10,12 @@
 //! TOML with a `[truth]` section instead of the paper's; `--bins` adds the
 //! accuracy per 100 nm of true thickness, `--worst` the worst pixel).
 
+mod common;
+
 use irid::estimate::{Mode, Solver};
 use irid::scene::{AngleKnowledge, Scene};
 use irid::synth::{compare, scene_bands, Renderer};
 use std::time::Instant;
-
-fn machine() -> String {
-    let cpu = std::fs::read_to_string("/proc/cpuinfo")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("model name"))
-                .map(|l| l.split(':').nth(1).unwrap_or("").trim().to_string())
-        })
-        .unwrap_or_else(|| "unknown CPU".into());
-    format!("{cpu}, {} threads", rayon::current_num_threads())
-}
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
@@ -42,7 +32,7 @@ fn main() {
         .and_then(|v| v.parse().ok())
         .unwrap_or(1)
         .max(1);
-    println!("machine: {}", machine());
+    println!("machine: {}", common::machine());
     let scene_arg = args
         .iter()
         .position(|a| a == "--scene")
@@ -54,29 +44,7 @@ fn main() {
     let bands = scene_bands(&scene).unwrap();
     let renderer = Renderer::new(&scene).unwrap();
     let truth = renderer.truth_maps(&bands);
-    let mut cube = renderer.render_cube(&bands).unwrap();
-    let mut truth_t = truth.clone();
-    if repeat > 1 {
-        let (w, h) = (cube.width * repeat, cube.height * repeat);
-        let mut big = irid::estimate::Cube::zeros(w, h, bands.clone());
-        for b in 0..bands.len() {
-            for y in 0..h {
-                for x in 0..w {
-                    let v = cube.plane(b)[(y % cube.height) * cube.width + x % cube.width];
-                    big.plane_mut(b)[y * w + x] = v;
-                }
-            }
-        }
-        truth_t.thickness_nm = (0..w * h)
-            .map(|i| truth.thickness_nm[(i / w % truth.height) * truth.width + i % w % truth.width])
-            .collect();
-        truth_t.theta_deg = (0..w * h)
-            .map(|i| truth.theta_deg[(i / w % truth.height) * truth.width + i % w % truth.width])
-            .collect();
-        truth_t.width = w;
-        truth_t.height = h;
-        cube = big;
-    }
+    let (cube, truth_t) = common::tile(&renderer.render_cube(&bands).unwrap(), &truth, repeat);
     println!(
         "scene: {} {}x{} px, {} bands, sigma {}",
         scene_arg.map_or("paper cylinder", String::as_str),
@@ -85,46 +53,15 @@ fn main() {
         bands.len(),
         renderer.noise().0
     );
-    // The Cramér–Rao bound per pixel at the truth: σ_R² (JᵀJ)⁻¹ with the
-    // exact model's Jacobian in (d, θ) — an independent yardstick for the
-    // errors printed below (an efficient estimator's mean |Δd| is ≈ 0.80 σ).
-    {
-        use irid::estimate::model::{FilmModel, ModelOut};
-        let film = irid::optics::dispersion::Dispersion::constant(truth.n_film);
-        let model = FilmModel::new(
-            &bands,
-            &scene.ambient,
-            &film,
-            &scene.substrate,
-            scene.polarization,
-            &vec![false; bands.len()],
-        )
-        .unwrap();
-        let sigma_r = renderer.noise().0;
-        let mut out = ModelOut::new(bands.len());
-        let (mut s2, mut s1, mut n) = (0.0, 0.0, 0.0);
-        for i in 0..truth.thickness_nm.len() {
-            let d = f64::from(truth.thickness_nm[i]);
-            let th = f64::from(truth.theta_deg[i]).to_radians();
-            model.eval(d, th, &mut out, true);
-            let (mut a, mut b, mut c) = (0.0, 0.0, 0.0);
-            for k in 0..bands.len() {
-                a += out.dr_dd[k] * out.dr_dd[k];
-                b += out.dr_dd[k] * out.dr_dth[k];
-                c += out.dr_dth[k] * out.dr_dth[k];
-            }
-            s2 += sigma_r * (c / (a * c - b * b)).sqrt();
-            s1 += sigma_r / a.sqrt();
-            n += 1.0;
-        }
-        println!(
-            "Cramér–Rao bound on σ_d, mean over the scene: {:.3} nm (angle unknown), {:.3} nm (angle known) → efficient mean |Δd| ≈ {:.3} / {:.3} nm",
-            s2 / n,
-            s1 / n,
-            0.798 * s2 / n,
-            0.798 * s1 / n
-        );
-    }
+    // The Cramér–Rao bound per pixel at the truth: an independent
+    // yardstick for the errors printed below (an efficient estimator's mean
+    // |Δd| is ≈ 0.80 σ).
+    let (s2, s1) = common::crb(&scene, &bands, &truth, renderer.noise().0);
+    println!(
+        "Cramér–Rao bound on σ_d, mean over the scene: {s2:.3} nm (angle unknown), {s1:.3} nm (angle known) → efficient mean |Δd| ≈ {:.3} / {:.3} nm",
+        0.798 * s2,
+        0.798 * s1
+    );
     let angle_arg = args
         .iter()
         .position(|a| a == "--angle")

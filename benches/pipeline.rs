@@ -162,7 +162,7 @@ fn main() {
         &bands,
         view.clone(),
         SyntheticConfig {
-            noise_cache: 1,
+            noise_pool: true,
             sensor: sensor(),
             ..Default::default()
         },
@@ -426,7 +426,7 @@ fn keeps_up(case: &str, quick: bool) {
             &bands,
             view.clone(),
             SyntheticConfig {
-                noise_cache: 1,
+                noise_pool: true,
                 sensor: s.clone(),
                 trigger_palette: Some(palette),
                 realtime: true,

@@ -46,7 +46,14 @@ fn all_finite_or_flagged(maps: &ParamMaps) {
     for i in 0..maps.width * maps.height {
         if maps.valid[i] > 0.5 {
             for (name, ch) in maps.channels() {
-                assert!(ch[i].is_finite(), "valid pixel {i} has non-finite {name}");
+                assert!(
+                    ch[i].is_finite(),
+                    "valid pixel {i} has non-finite {name}: d {} σ {} θ {} rms {}",
+                    maps.thickness_nm[i],
+                    maps.sigma_thickness_nm[i],
+                    maps.theta_deg[i],
+                    maps.residual_rms[i]
+                );
             }
             assert!(maps.sigma_thickness_nm[i] >= 0.0);
         } else {
@@ -472,6 +479,7 @@ fn extremes_give_finite_or_flagged_outputs() {
     for case in EXTREMES {
         for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
             let (maps, _, _, _) = fit(&extreme_scene(case, 0.001), mode);
+            eprintln!("case {case:?} mode {mode:?}");
             all_finite_or_flagged(&maps);
         }
     }

@@ -349,9 +349,9 @@ pub fn demo_rig(args: &RunArgs) -> anyhow::Result<Rig> {
     let mut cfg = SyntheticConfig {
         sensor: SensorModel::default(),
         seed: args.seed,
-        // Settled frames of large images come from a per-band cache, so
-        // the camera does not limit the line.
-        noise_cache: usize::from(big),
+        // Large images draw their noise from a pool at a fresh offset per
+        // frame, so the camera does not limit the line.
+        noise_pool: big,
         ..Default::default()
     };
     let seq_mode = if args.triggered {

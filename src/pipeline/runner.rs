@@ -458,7 +458,14 @@ impl Solve {
     ) -> SweepSummary {
         let _span = tracing::info_span!("solve.sweep", sweep = buf.sweep).entered();
         let cube = &buf.cube;
-        if self.solver.film_index().is_none() {
+        // The film index where unknown, and in every case the noise level
+        // and the image-wide level the fits are judged against (a known
+        // film still needs them: without, no pixel would be judged).
+        if self
+            .solver
+            .film_index()
+            .is_none_or(|i| !i.noise_sigma.is_finite())
+        {
             let _s = tracing::info_span!("solve.index").entered();
             match self.solver.estimate_film_index(cube) {
                 Ok(est) => {

@@ -16,13 +16,13 @@ mod node;
 
 use super::fastmath::{sin_cos, sin_cos_bounded};
 use crate::optics::airy;
-use node::NodeCoef;
-use std::sync::atomic::{AtomicU64, Ordering};
 use crate::optics::band::Band;
 use crate::optics::dispersion::Dispersion;
 use crate::optics::{Complex64, Media, Polarization};
 use multiversion::multiversion;
+use node::NodeCoef;
 use std::f64::consts::PI;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 /// Angle step of the finite differences of the Fresnel coefficients, rad.
 const THETA_STEP: f64 = 1e-6;
@@ -425,9 +425,11 @@ impl FilmModel {
         let key = (self.id, theta.to_bits());
         if out.coef_key != key || out.coef.len() != self.nodes.len() {
             out.coef.clear();
-            out.coef.extend(self.nodes.iter().map(|n| {
-                NodeCoef::new([n.n1, n.n2, n.n3], n.w, a.s, a.sh, THETA_STEP)
-            }));
+            out.coef.extend(
+                self.nodes
+                    .iter()
+                    .map(|n| NodeCoef::new([n.n1, n.n2, n.n3], n.w, a.s, a.sh, THETA_STEP)),
+            );
             out.coef_key = key;
         }
         let ws = self.s_weight;

@@ -75,7 +75,12 @@ pub(super) struct NodeCoef {
     dk: Complex64,
 }
 
-fn pol_pair(n1: Complex64, n2: Complex64, n3: Complex64, sin_t: f64) -> (PolCoef, PolCoef, Complex64) {
+fn pol_pair(
+    n1: Complex64,
+    n2: Complex64,
+    n3: Complex64,
+    sin_t: f64,
+) -> (PolCoef, PolCoef, Complex64) {
     let kx = n1 * sin_t;
     let q1 = normal_component(n1, kx);
     let q2 = normal_component(n2, kx);
@@ -89,13 +94,7 @@ impl NodeCoef {
     /// Coefficients of media `n1 | n2 | n3` at wavenumber factor `w = 4π/λ`,
     /// at the angle whose sine is `sin_t`, with slopes over the step to the
     /// angle whose sine is `sin_h` (`h` radians further).
-    pub(super) fn new(
-        n: [Complex64; 3],
-        w: f64,
-        sin_t: f64,
-        sin_h: f64,
-        h: f64,
-    ) -> NodeCoef {
+    pub(super) fn new(n: [Complex64; 3], w: f64, sin_t: f64, sin_h: f64, h: f64) -> NodeCoef {
         let (s, p, q2) = pol_pair(n[0], n[1], n[2], sin_t);
         let (sh, ph, q2h) = pol_pair(n[0], n[1], n[2], sin_h);
         NodeCoef {
@@ -171,15 +170,31 @@ mod tests {
     fn matches_complex_airy_for_absorbing_and_tir_stacks() {
         let cases = [
             // Absorbing substrate (silicon-like), lossless film.
-            [Complex64::new(1.0, 0.0), Complex64::new(1.46, 0.0), Complex64::new(4.0, 0.05)],
+            [
+                Complex64::new(1.0, 0.0),
+                Complex64::new(1.46, 0.0),
+                Complex64::new(4.0, 0.05),
+            ],
             // Absorbing film on glass.
-            [Complex64::new(1.0, 0.0), Complex64::new(2.4, 0.08), Complex64::new(1.52, 0.0)],
+            [
+                Complex64::new(1.0, 0.0),
+                Complex64::new(2.4, 0.08),
+                Complex64::new(1.52, 0.0),
+            ],
             // Glass ambient, air gap (beyond the critical angle at 60°).
-            [Complex64::new(1.5, 0.0), Complex64::new(1.0, 0.0), Complex64::new(1.5, 0.0)],
+            [
+                Complex64::new(1.5, 0.0),
+                Complex64::new(1.0, 0.0),
+                Complex64::new(1.5, 0.0),
+            ],
         ];
         let h = 1e-7;
         for n in cases {
-            let m = Media { n1: n[0], n2: n[1], n3: n[2] };
+            let m = Media {
+                n1: n[0],
+                n2: n[1],
+                n3: n[2],
+            };
             for deg in [0.0f64, 25.0, 60.0] {
                 let th = deg.to_radians();
                 for lam in [420.0, 633.0] {
@@ -193,7 +208,10 @@ mod tests {
                         ] {
                             let (r, dd, dth) = c.eval(d, ws, true);
                             let want = airy::reflectance(m, d, th, lam, pol);
-                            assert!((r - want).abs() < 1e-12, "{n:?} {deg} {lam} {d}: {r} vs {want}");
+                            assert!(
+                                (r - want).abs() < 1e-12,
+                                "{n:?} {deg} {lam} {d}: {r} vs {want}"
+                            );
                             let e = 1e-4;
                             let fd = (airy::reflectance(m, d + e, th, lam, pol)
                                 - airy::reflectance(m, (d - e).max(0.0), th, lam, pol))
@@ -203,7 +221,10 @@ mod tests {
                             let ft = (airy::reflectance(m, d, th + te, lam, pol)
                                 - airy::reflectance(m, d, (th - te).max(0.0), lam, pol))
                                 / (th + te - (th - te).max(0.0));
-                            assert!((dth - ft).abs() < 2e-4 * (1.0 + ft.abs()), "dθ {dth} vs {ft}");
+                            assert!(
+                                (dth - ft).abs() < 2e-4 * (1.0 + ft.abs()),
+                                "dθ {dth} vs {ft}"
+                            );
                         }
                     }
                 }

@@ -68,11 +68,11 @@ use crate::optics::band::Band;
 use crate::optics::dispersion::Dispersion;
 use crate::optics::Polarization;
 use crate::scene::{AngleKnowledge, FilmKnowledge, Scene};
-use std::f64::consts::PI;
 use bands::BandTable;
 use closed_form::Slopes;
 use index::SamplePixel;
 use search::FringeBasis;
+use std::f64::consts::PI;
 
 /// The film index used for a fit: estimated once from the image, or known.
 #[derive(Clone, Debug, PartialEq)]
@@ -514,6 +514,7 @@ impl Solver {
                 (a.min(v), b.max(v))
             });
         let tables = self.build_tables(&model);
+        tracing::debug!(bytes = tables.bytes(), "thickness tables built");
         Ok(Prepared {
             tables,
             model,
@@ -536,6 +537,12 @@ impl Solver {
         if self.mode == Mode::Accurate || self.scene.level == LevelMode::Free {
             return table::Tables::default();
         }
+        // The thicknesses a table covers at angle t: what the search covers.
+        let g_hi = 1.05 * self.g_max.0;
+        let range = |t: f64| {
+            let d_hi = self.d_max.min(g_hi / model.q2_mid(t).max(1e-6));
+            (self.d_min, d_hi.max(self.d_min))
+        };
         let angles: Vec<f64> = match &self.scene.angle {
             AngleKnowledge::Uniform(t) => vec![*t],
             AngleKnowledge::Map { deg, .. } => {
@@ -547,7 +554,19 @@ impl Solver {
                 bits.sort_unstable();
                 bits.dedup();
                 if bits.len() > MAX_TABLES {
-                    return table::Tables::default();
+                    // A continuous map: tables on a 0.1° grid give each
+                    // pixel its start, refined at its own angle.
+                    let deg = |b: &u32| f64::from(f32::from_bits(*b)).to_radians();
+                    let (Some(lo), Some(hi)) = (bits.first(), bits.last()) else {
+                        return table::Tables::default();
+                    };
+                    return table::Tables::binned(
+                        model,
+                        (deg(lo), deg(hi)),
+                        0.1f64.to_radians(),
+                        0.5f64.to_radians(),
+                        range,
+                    );
                 }
                 // Exactly as `AngleKnowledge::known_at` converts them.
                 bits.iter()
@@ -560,11 +579,7 @@ impl Solver {
             .into_iter()
             .filter(|t| t.is_finite() && (0.0..PI / 2.0).contains(t))
             .collect();
-        let g_hi = 1.05 * self.g_max.0;
-        table::Tables::build(model, &angles, |t| {
-            let d_hi = self.d_max.min(g_hi / model.q2_mid(t).max(1e-6));
-            (self.d_min, d_hi.max(self.d_min))
-        })
+        table::Tables::build(model, &angles, range)
     }
 
     /// The mode.

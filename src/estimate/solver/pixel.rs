@@ -74,8 +74,12 @@ impl Solver {
         }
         let lam_min = self.table.sorted.first().map_or(400.0, |b| b.1);
         if let Some(t) = theta_known.filter(|_| effort.table && job_start.is_none()) {
-            if let Some(table) = prep.tables.get(t) {
-                return self.solve_table(prep, table, t, n_ok, noise, effort, lam_min, scratch);
+            let found = match prep.tables.get(t) {
+                Some(table) => Some((table, t)),
+                None => prep.tables.nearest(t),
+            };
+            if let Some((table, tt)) = found {
+                return self.solve_table(prep, table, tt, t, n_ok, noise, effort, lam_min, scratch);
             }
         }
         if effort.closed_form && n_ok == nb {
@@ -385,7 +389,11 @@ impl Solver {
                 reason = r;
             }
         }
-        if reason == Reason::Ok && !sig_d.is_finite() {
+        // A σ wider than the whole thickness range determines nothing (e.g.
+        // a gap beyond total internal reflection, where R no longer
+        // depends on d).
+        let span = (self.d_max - self.d_min).max(1.0);
+        if reason == Reason::Ok && (sig_d.is_nan() || sig_d >= span) {
             reason = Reason::NoFringe;
         }
         if reason == Reason::Ok

@@ -16,8 +16,8 @@
 //! wrong one valid.
 
 use super::{Effort, Fit, Prepared, Scratch, Solver};
-use crate::estimate::PixelEstimate;
 use crate::estimate::model::{FilmModel, ModelOut};
+use crate::estimate::PixelEstimate;
 use multiversion::multiversion;
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -108,7 +108,7 @@ impl ThicknessTable {
     }
 
     /// Bytes the table holds.
-    pub fn bytes(&self) -> usize {
+    fn bytes(&self) -> usize {
         (self.r.len() + self.dr.len() + self.rr.len()) * 4
     }
 
@@ -120,7 +120,13 @@ impl ThicknessTable {
     /// The lowest local minima of `Σ w (y − R)²` over the grid, best first
     /// (at most `out.len()`); returns how many. `y` and `w` hold `nb`
     /// values; `sse` is working memory.
-    pub fn minima(&self, y: &[f64], w: &[f64], buf: &mut GridScratch, out: &mut [GridMin]) -> usize {
+    pub fn minima(
+        &self,
+        y: &[f64],
+        w: &[f64],
+        buf: &mut GridScratch,
+        out: &mut [GridMin],
+    ) -> usize {
         let (nb, nbp) = (self.nb, self.nbp);
         buf.y.clear();
         buf.y.extend(y[..nb].iter().map(|&v| v as f32));
@@ -144,11 +150,15 @@ impl ThicknessTable {
         let mut bar = f32::INFINITY;
         for i in 0..mc {
             let cur = sse[i];
-            if !(cur < bar) {
+            if cur.is_nan() || cur >= bar {
                 continue;
             }
             let left = if i > 0 { sse[i - 1] } else { f32::INFINITY };
-            let right = if i + 1 < mc { sse[i + 1] } else { f32::INFINITY };
+            let right = if i + 1 < mc {
+                sse[i + 1]
+            } else {
+                f32::INFINITY
+            };
             if !(cur <= left && cur < right) {
                 continue;
             }
@@ -163,7 +173,10 @@ impl ThicknessTable {
                 *worst = g;
             }
             if n == cap {
-                bar = out[..n].iter().map(|g| g.sse).fold(f32::NEG_INFINITY, f32::max);
+                bar = out[..n]
+                    .iter()
+                    .map(|g| g.sse)
+                    .fold(f32::NEG_INFINITY, f32::max);
             }
         }
         // Polish on the full grid: the best of each coarse minimum's
@@ -214,8 +227,14 @@ impl ThicknessTable {
             3.0 * t2 - 2.0 * t,
         );
         let nbp = self.nbp;
-        let (ra, rb) = (&self.r[j * nbp..j * nbp + nb], &self.r[(j + 1) * nbp..(j + 1) * nbp + nb]);
-        let (da, db) = (&self.dr[j * nb..(j + 1) * nb], &self.dr[(j + 1) * nb..(j + 2) * nb]);
+        let (ra, rb) = (
+            &self.r[j * nbp..j * nbp + nb],
+            &self.r[(j + 1) * nbp..(j + 1) * nbp + nb],
+        );
+        let (da, db) = (
+            &self.dr[j * nb..(j + 1) * nb],
+            &self.dr[(j + 1) * nb..(j + 2) * nb],
+        );
         for k in 0..nb {
             let (a, b, p, q) = (
                 f64::from(ra[k]),
@@ -312,7 +331,11 @@ fn scan_weighted(r: &[f32], y: &[f32], w: &[f32], sse: &mut [f32]) {
     let nbp = y.len();
     for (row, out) in r.chunks_exact(nbp).step_by(SCAN_STRIDE).zip(sse.iter_mut()) {
         let mut acc = [0f32; 8];
-        for ((rv, yv), wv) in row.chunks_exact(8).zip(y.chunks_exact(8)).zip(w.chunks_exact(8)) {
+        for ((rv, yv), wv) in row
+            .chunks_exact(8)
+            .zip(y.chunks_exact(8))
+            .zip(w.chunks_exact(8))
+        {
             for i in 0..8 {
                 let e = yv[i] - rv[i];
                 acc[i] += wv[i] * e * e;
@@ -322,10 +345,21 @@ fn scan_weighted(r: &[f32], y: &[f32], w: &[f32], sse: &mut [f32]) {
     }
 }
 
-/// The tables of a solver, one per known angle (keyed by the angle's bits).
+/// The tables of a solver: one per known angle (keyed by the angle's
+/// bits), or, for an angle map with too many distinct angles, one per bin
+/// of an angle grid.
 #[derive(Clone, Debug, Default)]
 pub struct Tables {
     by_angle: HashMap<u64, Arc<ThicknessTable>>,
+    bins: Option<Bins>,
+}
+
+/// Tables on an angle grid `lo + i·step`.
+#[derive(Clone, Debug)]
+struct Bins {
+    lo: f64,
+    step: f64,
+    tables: Vec<Arc<ThicknessTable>>,
 }
 
 impl Tables {
@@ -356,7 +390,62 @@ impl Tables {
                 (t.to_bits(), Arc::new(ThicknessTable::new(model, t, lo, hi)))
             })
             .collect();
-        Tables { by_angle }
+        Tables {
+            by_angle,
+            bins: None,
+        }
+    }
+
+    /// Tables on a grid of angles covering `[lo, hi]` at `step` (widened
+    /// until they fit [`TABLE_BUDGET_BYTES`], up to `max_step`; beyond
+    /// that, none).
+    pub fn binned(
+        model: &FilmModel,
+        (lo, hi): (f64, f64),
+        step: f64,
+        max_step: f64,
+        range: impl Fn(f64) -> (f64, f64) + Sync,
+    ) -> Tables {
+        use rayon::prelude::*;
+        let nb = model.n_bands();
+        let bytes_at = |t: f64| {
+            let (a, b) = range(t);
+            ThicknessTable::size(model, t, a, b).0 * nb * 8
+        };
+        // The largest table of the span (the most oblique angle has the
+        // shortest optical path but the widest range; take both ends).
+        let per = bytes_at(lo).max(bytes_at(hi)).max(1);
+        let mut step = step;
+        let count = |s: f64| ((hi - lo) / s).ceil() as usize + 1;
+        while count(step) * per > TABLE_BUDGET_BYTES && step <= max_step {
+            step *= 1.5;
+        }
+        if step > max_step || hi.is_nan() || lo.is_nan() || hi < lo {
+            return Tables::default();
+        }
+        let tables = (0..count(step))
+            .into_par_iter()
+            .map(|i| {
+                let t = lo + i as f64 * step;
+                let (a, b) = range(t);
+                Arc::new(ThicknessTable::new(model, t, a, b))
+            })
+            .collect();
+        Tables {
+            by_angle: HashMap::new(),
+            bins: Some(Bins { lo, step, tables }),
+        }
+    }
+
+    /// The binned table nearest to `theta`, with its angle.
+    pub fn nearest(&self, theta: f64) -> Option<(&ThicknessTable, f64)> {
+        let b = self.bins.as_ref()?;
+        let i = ((theta - b.lo) / b.step).round();
+        if !(i >= 0.0 && (i as usize) < b.tables.len()) {
+            return None;
+        }
+        let i = i as usize;
+        Some((&*b.tables[i], b.lo + i as f64 * b.step))
     }
 
     /// The table at exactly this angle, if one was built.
@@ -366,24 +455,32 @@ impl Tables {
 
     /// Whether any table was built.
     pub fn is_empty(&self) -> bool {
-        self.by_angle.is_empty()
+        self.by_angle.is_empty() && self.bins.is_none()
     }
 
     /// Bytes all tables hold.
     pub fn bytes(&self) -> usize {
-        self.by_angle.values().map(|t| t.bytes()).sum()
+        let bins = self
+            .bins
+            .as_ref()
+            .map_or(0, |b| b.tables.iter().map(|t| t.bytes()).sum());
+        self.by_angle.values().map(|t| t.bytes()).sum::<usize>() + bins
     }
 }
 
 impl Solver {
-    /// One pixel against the table at its known angle `theta`: the best
-    /// grid minima (two in `balanced`, to judge the fringe order), each
-    /// refined on the interpolant, then judged as every fit is.
+    /// One pixel against a table: the best grid minima (two in `balanced`,
+    /// to judge the fringe order), each refined, then judged as every fit
+    /// is. At the table's own angle the refinement runs on the interpolant;
+    /// at a nearby one (a binned angle map) the minima are carried to the
+    /// pixel's angle at equal optical thickness and refined with the exact
+    /// model there.
     #[allow(clippy::too_many_arguments)]
     pub(super) fn solve_table(
         &self,
         prep: &Prepared,
         table: &ThicknessTable,
+        table_theta: f64,
         theta: f64,
         n_ok: usize,
         noise: Option<f64>,
@@ -399,33 +496,32 @@ impl Solver {
             &mut scratch.grid,
             &mut mins[..keep],
         );
+        let exact = table_theta.to_bits() == theta.to_bits();
+        let scale = prep.model.q2_mid(table_theta) / prep.model.q2_mid(theta);
         let mut fits = [Fit::default(); 2];
         for (f, g) in fits.iter_mut().zip(&mins[..n]) {
-            let (d, sse, a) = table.fit(
-                &scratch.spectrum,
-                &scratch.weight,
-                g.j,
-                effort.iters,
-                &mut scratch.grid,
-            );
-            *f = Fit {
-                d,
-                theta,
-                sse,
-                jtj: [a, 0.0, 0.0],
-                integrated: false,
-                tabled: true,
+            *f = if exact {
+                let (d, sse, a) = table.fit(
+                    &scratch.spectrum,
+                    &scratch.weight,
+                    g.j,
+                    effort.iters,
+                    &mut scratch.grid,
+                );
+                Fit {
+                    d,
+                    theta,
+                    sse,
+                    jtj: [a, 0.0, 0.0],
+                    integrated: false,
+                    tabled: true,
+                }
+            } else {
+                let d0 = table.d_at(g.j) * scale;
+                self.refine(&prep.model, d0, theta, false, effort.iters, scratch)
             };
         }
-        self.finish(
-            &fits[..n],
-            n_ok,
-            Some(theta),
-            noise,
-            prep,
-            lam_min,
-            scratch,
-        )
+        self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch)
     }
 }
 
@@ -469,8 +565,8 @@ mod tests {
             let d = 0.37 + i as f64 * 1.4993;
             m.eval(d, th, &mut out, true);
             t.interp(d, &mut r, &mut dr);
-            for k in 0..31 {
-                worst = worst.max((r[k] - out.r[k]).abs());
+            for (a, b) in r.iter().zip(&out.r) {
+                worst = worst.max((a - b).abs());
             }
         }
         // Fringe amplitude here is ≤ 0.05: bound 1e-6 plus f32 storage.

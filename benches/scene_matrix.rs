@@ -1,0 +1,121 @@
+//! Speed and accuracy of every mode across the scene classes irid serves,
+//! each against its own Cramér–Rao bound: thin coatings, the paper's
+//! range, thick films at 61 bands, dispersive materials, polarised and
+//! unpolarised light, the angle known (a per-pixel map) and unknown, the
+//! film index known and unknown. Prints a Markdown table and the machine.
+//! Not a test: it asserts nothing.
+//!
+//! `cargo bench --bench scene_matrix` (options after `--`: `--pixels N`
+//! tiles each scene to at least N pixels, default 100 000; `--best-of K`
+//! times each fit K times and keeps the fastest; `--scene NAME` and
+//! `--mode M` and `--angle known|unknown` select rows).
+//!
+//! Columns: pixels/s of the per-pixel solve on all threads (the film index
+//! and the noise and level estimates are timed apart, once per image);
+//! valid fraction; mean and 99th-percentile |Δd| over valid pixels; the
+//! efficient mean |Δd| (0.798 σ_CRB); their ratio; the fraction of valid
+//! pixels within 2σ.
+
+mod common;
+
+use irid::estimate::{Mode, Solver};
+use irid::scene::{AngleKnowledge, Scene};
+use irid::synth::{compare, scene_bands, Renderer};
+use std::path::Path;
+use std::time::Instant;
+
+/// The scene classes: file under `data/scenes`, and what it stands for.
+const SCENES: [(&str, &str); 5] = [
+    ("paper-cylinder", "paper: 420–560 nm, n unknown, s, 31 bands"),
+    ("thin-coating", "thin 60–400 nm SiO2 on PET, u, 31 bands"),
+    ("wide-range", "100–1500 nm, n unknown, s, 31 bands"),
+    ("thick-hardcoat", "1–4 µm Si3N4 on silica, u, 61 bands"),
+    ("dispersive-p61", "150–350 nm TiO2 on PET, p, 61 bands"),
+];
+
+fn arg<T: std::str::FromStr>(args: &[String], name: &str) -> Option<T> {
+    args.iter()
+        .position(|a| a == name)
+        .and_then(|i| args.get(i + 1))
+        .and_then(|v| v.parse().ok())
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let min_pixels: usize = arg(&args, "--pixels").unwrap_or(100_000);
+    let best_of: usize = arg(&args, "--best-of").unwrap_or(1).max(1);
+    let only_scene: Option<String> = arg(&args, "--scene");
+    let only_mode: Option<String> = arg(&args, "--mode");
+    let only_angle: Option<String> = arg(&args, "--angle");
+    println!("machine: {}", common::machine());
+    println!();
+    println!("| scene | angle | mode | pixels/s | valid | mean \\|Δd\\| | p99 \\|Δd\\| | efficient | ratio | \\|Δd\\| ≤ 2σ | index+noise+level |");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/scenes");
+    for (name, label) in SCENES {
+        if only_scene.as_deref().is_some_and(|s| s != name) {
+            continue;
+        }
+        let scene = Scene::load(&dir.join(format!("{name}.toml"))).expect("scene");
+        let bands = scene_bands(&scene).unwrap();
+        let renderer = Renderer::new(&scene).unwrap();
+        let truth = renderer.truth_maps(&bands);
+        let cube = renderer.render_cube(&bands).unwrap();
+        let n0 = cube.width * cube.height;
+        let repeat = (min_pixels as f64 / n0 as f64).sqrt().ceil().max(1.0) as usize;
+        let (cube, truth) = common::tile(&cube, &truth, repeat);
+        let sigma_r = renderer.noise().0;
+        let (crb_unknown, crb_known) = common::crb(&scene, &bands, &truth, sigma_r);
+        for angle_known in [false, true] {
+            let angle = if angle_known { "known" } else { "unknown" };
+            if only_angle.as_deref().is_some_and(|a| a != angle) {
+                continue;
+            }
+            let mut sc = scene.clone();
+            if angle_known {
+                sc.angle = AngleKnowledge::Map {
+                    width: truth.width,
+                    height: truth.height,
+                    deg: truth.theta_deg.clone(),
+                };
+            }
+            let efficient = 0.798 * if angle_known { crb_known } else { crb_unknown };
+            for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
+                if only_mode.as_deref().is_some_and(|m| m != mode.name()) {
+                    continue;
+                }
+                let mut solver = Solver::new(&sc, &bands, mode).unwrap();
+                let t0 = Instant::now();
+                solver.estimate_film_index(&cube).unwrap();
+                let t_index = t0.elapsed().as_secs_f64();
+                let mut t_fit = f64::INFINITY;
+                let mut maps = None;
+                for _ in 0..best_of {
+                    let t1 = Instant::now();
+                    let m = solver.fit_cube(&cube).unwrap();
+                    t_fit = t_fit.min(t1.elapsed().as_secs_f64());
+                    maps = Some(m);
+                }
+                let maps = maps.expect("one fit");
+                let acc = compare(&maps, &truth);
+                let px = (cube.width * cube.height) as f64 / t_fit;
+                println!(
+                    "| {label} | {angle} | `{}` | {} | {:.1} % | {:.3} nm | {:.2} nm | {:.3} nm | {:.2} | {:.1} % | {:.2} s |",
+                    mode.name(),
+                    if px >= 1e6 {
+                        format!("{:.2} M", px / 1e6)
+                    } else {
+                        format!("{:.0} k", px / 1e3)
+                    },
+                    100.0 * acc.valid_fraction,
+                    acc.thickness_mae_nm,
+                    acc.thickness_p99_nm,
+                    efficient,
+                    acc.thickness_mae_nm / efficient,
+                    100.0 * acc.coverage_2sigma,
+                    t_index,
+                );
+            }
+        }
+    }
+}
