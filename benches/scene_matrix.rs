@@ -26,7 +26,10 @@ use std::time::Instant;
 
 /// The scene classes: file under `data/scenes`, and what it stands for.
 const SCENES: [(&str, &str); 5] = [
-    ("paper-cylinder", "paper: 420–560 nm, n unknown, s, 31 bands"),
+    (
+        "paper-cylinder",
+        "paper: 420–560 nm, n unknown, s, 31 bands",
+    ),
     ("thin-coating", "thin 60–400 nm SiO2 on PET, u, 31 bands"),
     ("wide-range", "100–1500 nm, n unknown, s, 31 bands"),
     ("thick-hardcoat", "1–4 µm Si3N4 on silica, u, 61 bands"),

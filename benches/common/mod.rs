@@ -82,7 +82,11 @@ pub fn crb(scene: &Scene, bands: &[Band], truth: &TruthMaps, sigma_r: f64) -> (f
         let unknown = sigma_r * (c / (a * c - b * b)).sqrt();
         // A flat angle direction (θ ≈ 0) leaves d unbounded: cap at the
         // scene's span so one pixel does not swamp the mean.
-        s2 += if unknown.is_finite() { unknown.min(1e4) } else { 1e4 };
+        s2 += if unknown.is_finite() {
+            unknown.min(1e4)
+        } else {
+            1e4
+        };
         s1 += sigma_r / a.sqrt();
         n += 1.0;
     }

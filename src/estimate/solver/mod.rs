@@ -129,6 +129,9 @@ pub struct Scratch {
     trial: ModelOut,
     /// The thickness table's working memory.
     grid: table::GridScratch,
+    /// `fast`: the previous pixel's table (angle bits) and grid point,
+    /// within the current row.
+    hint: Option<(u64, usize)>,
 }
 
 impl Scratch {

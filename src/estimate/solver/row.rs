@@ -32,6 +32,9 @@ impl Solver {
         scratch: &mut Scratch,
         candidates: Option<&CandidatePlanes>,
     ) {
+        // Each row starts afresh: a row's result never depends on which
+        // thread solved which row before it.
+        scratch.hint = None;
         let mut pixel = std::mem::take(&mut scratch.pixel);
         pixel.resize(cube.bands.len(), 0.0);
         let mut done = 0;

@@ -26,9 +26,13 @@ use std::sync::Arc;
 pub const PHASE_STEP: f64 = 0.3;
 
 /// The residual is scanned on every `SCAN_STRIDE`-th grid point (a phase
-/// step of 0.6 rad: a minimum's basin spans ±π), then the best coarse minima
-/// are polished on the full grid.
-const SCAN_STRIDE: usize = 2;
+/// step of at most 0.9 rad: a minimum's basin spans ±π), then the best
+/// coarse minima walk downhill on the full grid.
+const SCAN_STRIDE: usize = 3;
+
+/// Half-width, in grid points, of `fast`'s search around the previous
+/// pixel's fringe order (±1.8 rad of the fastest band's phase).
+const HINT_WINDOW: usize = 6;
 
 /// Memory all of a solver's tables may take, bytes.
 pub const TABLE_BUDGET_BYTES: usize = 256 << 20;
@@ -54,6 +58,8 @@ pub struct ThicknessTable {
 #[derive(Clone, Debug, Default)]
 pub struct GridScratch {
     y: Vec<f32>,
+    yy: f32,
+    complete: bool,
     w: Vec<f32>,
     sse: Vec<f32>,
     r: Vec<f64>,
@@ -112,14 +118,88 @@ impl ThicknessTable {
         (self.r.len() + self.dr.len() + self.rr.len()) * 4
     }
 
+    /// The grid point nearest to thickness `d`.
+    pub fn index_of(&self, d: f64) -> usize {
+        let x = ((d - self.d0) / self.h).round();
+        if x.is_nan() || x < 0.0 {
+            0
+        } else {
+            (x as usize).min(self.m - 1)
+        }
+    }
+
     /// Thickness of grid point `j`.
     pub fn d_at(&self, j: usize) -> f64 {
         self.d0 + j as f64 * self.h
     }
 
+    /// Load a spectrum into the scan's working memory (f32, padded);
+    /// returns whether it is complete (every weight 1).
+    fn load(&self, y: &[f64], w: &[f64], buf: &mut GridScratch) -> bool {
+        let (nb, nbp) = (self.nb, self.nbp);
+        buf.y.clear();
+        buf.y.extend(y[..nb].iter().map(|&v| v as f32));
+        buf.y.resize(nbp, 0.0);
+        buf.complete = w[..nb].iter().all(|&v| v == 1.0);
+        if buf.complete {
+            buf.yy = buf.y.iter().map(|v| v * v).sum();
+        } else {
+            buf.w.clear();
+            buf.w.extend(w[..nb].iter().map(|&v| v as f32));
+            buf.w.resize(nbp, 0.0);
+        }
+        buf.complete
+    }
+
+    /// The residual at grid point `j` of the loaded spectrum.
+    fn sse_at(&self, j: usize, buf: &GridScratch) -> f32 {
+        let nbp = self.nbp;
+        let row = &self.r[j * nbp..(j + 1) * nbp];
+        // Eight independent lanes, as in the scan (a plain f32 sum would
+        // be one serial chain).
+        let mut acc = [0f32; 8];
+        if buf.complete {
+            for (rv, yv) in row.chunks_exact(8).zip(buf.y.chunks_exact(8)) {
+                for i in 0..8 {
+                    acc[i] += rv[i] * yv[i];
+                }
+            }
+            buf.yy - 2.0 * acc.iter().sum::<f32>() + self.rr[j]
+        } else {
+            let lanes = row.chunks_exact(8).zip(buf.y.chunks_exact(8));
+            for ((rv, yv), wv) in lanes.zip(buf.w.chunks_exact(8)) {
+                for i in 0..8 {
+                    let e = yv[i] - rv[i];
+                    acc[i] += wv[i] * e * e;
+                }
+            }
+            acc.iter().sum()
+        }
+    }
+
+    /// Walk downhill on the full grid from `g` to a local minimum.
+    fn descend(&self, mut g: GridMin, buf: &GridScratch) -> GridMin {
+        for _ in 0..self.m {
+            let mut moved = false;
+            for j in [g.j.wrapping_sub(1), g.j + 1] {
+                if j < self.m {
+                    let e = self.sse_at(j, buf);
+                    if e < g.sse {
+                        g = GridMin { j, sse: e };
+                        moved = true;
+                    }
+                }
+            }
+            if !moved {
+                break;
+            }
+        }
+        g
+    }
+
     /// The lowest local minima of `Σ w (y − R)²` over the grid, best first
     /// (at most `out.len()`); returns how many. `y` and `w` hold `nb`
-    /// values; `sse` is working memory.
+    /// values; `buf` is working memory.
     pub fn minima(
         &self,
         y: &[f64],
@@ -127,23 +207,15 @@ impl ThicknessTable {
         buf: &mut GridScratch,
         out: &mut [GridMin],
     ) -> usize {
-        let (nb, nbp) = (self.nb, self.nbp);
-        buf.y.clear();
-        buf.y.extend(y[..nb].iter().map(|&v| v as f32));
-        buf.y.resize(nbp, 0.0);
+        let complete = self.load(y, w, buf);
         let mc = self.m.div_ceil(SCAN_STRIDE);
         buf.sse.resize(mc, 0.0);
-        let sse = &mut buf.sse;
-        let complete = w[..nb].iter().all(|&v| v == 1.0);
         if complete {
-            let yy: f32 = buf.y.iter().map(|v| v * v).sum();
-            scan_complete(&self.r, &self.rr, &buf.y, yy, sse);
+            scan_complete(&self.r, &self.rr, &buf.y, buf.yy, &mut buf.sse);
         } else {
-            buf.w.clear();
-            buf.w.extend(w[..nb].iter().map(|&v| v as f32));
-            buf.w.resize(nbp, 0.0);
-            scan_weighted(&self.r, &buf.y, &buf.w, sse);
+            scan_weighted(&self.r, &buf.y, &buf.w, &mut buf.sse);
         }
+        let sse = &buf.sse;
         let cap = out.len();
         let mut n = 0usize;
         // The worst residual kept so far (any lower one is worth a look).
@@ -179,30 +251,44 @@ impl ThicknessTable {
                     .fold(f32::NEG_INFINITY, f32::max);
             }
         }
-        // Polish on the full grid: the best of each coarse minimum's
-        // neighbours.
+        // Polish on the full grid.
         for g in &mut out[..n] {
-            for j in [g.j.wrapping_sub(1), g.j + 1] {
-                if j < self.m {
-                    let row = &self.r[j * nbp..(j + 1) * nbp];
-                    let e = if complete {
-                        let dot: f32 = row.iter().zip(&buf.y).map(|(a, b)| a * b).sum();
-                        buf.y.iter().map(|v| v * v).sum::<f32>() - 2.0 * dot + self.rr[j]
-                    } else {
-                        row.iter()
-                            .zip(&buf.y)
-                            .zip(&buf.w)
-                            .map(|((a, b), w)| w * (b - a) * (b - a))
-                            .sum()
-                    };
-                    if e < g.sse {
-                        *g = GridMin { j, sse: e };
-                    }
-                }
-            }
+            *g = self.descend(*g, buf);
         }
         out[..n].sort_by(|a, b| a.sse.total_cmp(&b.sse));
+        // Two coarse minima may have led to the same fine one.
+        if n == 2 && out[0].j == out[1].j {
+            n = 1;
+        }
         n
+    }
+
+    /// The residual's minimum within `half` grid points of `j0`, if it lies
+    /// inside that window (not on its edge, which would say the minimum is
+    /// elsewhere).
+    pub fn window_min(
+        &self,
+        y: &[f64],
+        w: &[f64],
+        j0: usize,
+        half: usize,
+        buf: &mut GridScratch,
+    ) -> Option<GridMin> {
+        self.load(y, w, buf);
+        let lo = j0.saturating_sub(half);
+        let hi = (j0 + half).min(self.m - 1);
+        let mut best = GridMin {
+            j: lo,
+            sse: f32::INFINITY,
+        };
+        for j in lo..=hi {
+            let e = self.sse_at(j, buf);
+            if e < best.sse {
+                best = GridMin { j, sse: e };
+            }
+        }
+        let interior = (best.j > lo || lo == 0) && (best.j < hi || hi == self.m - 1);
+        (interior && best.sse.is_finite()).then_some(best)
     }
 
     /// R and dR/dd of every band at `d` (inside the grid) by cubic Hermite
@@ -497,31 +583,57 @@ impl Solver {
             &mut mins[..keep],
         );
         let exact = table_theta.to_bits() == theta.to_bits();
+        // `fast`: the previous pixel's order first, where it explains this
+        // spectrum (the χ² test); the full scan otherwise.
+        let key = theta.to_bits();
+        if exact && effort.closed_form_only {
+            if let Some((_, j0)) = scratch.hint.filter(|h| h.0 == key) {
+                let (y, w) = (&scratch.spectrum, &scratch.weight);
+                if let Some(g) = table.window_min(y, w, j0, HINT_WINDOW, &mut scratch.grid) {
+                    let fit = self.table_fit(table, g, theta, effort, scratch);
+                    let out = self.finish(&[fit], n_ok, Some(theta), noise, prep, lam_min, scratch);
+                    if out.0.is_valid() {
+                        scratch.hint = Some((key, table.index_of(fit.d)));
+                        return out;
+                    }
+                }
+            }
+        }
         let scale = prep.model.q2_mid(table_theta) / prep.model.q2_mid(theta);
         let mut fits = [Fit::default(); 2];
         for (f, g) in fits.iter_mut().zip(&mins[..n]) {
             *f = if exact {
-                let (d, sse, a) = table.fit(
-                    &scratch.spectrum,
-                    &scratch.weight,
-                    g.j,
-                    effort.iters,
-                    &mut scratch.grid,
-                );
-                Fit {
-                    d,
-                    theta,
-                    sse,
-                    jtj: [a, 0.0, 0.0],
-                    integrated: false,
-                    tabled: true,
-                }
+                self.table_fit(table, *g, theta, effort, scratch)
             } else {
                 let d0 = table.d_at(g.j) * scale;
                 self.refine(&prep.model, d0, theta, false, effort.iters, scratch)
             };
         }
-        self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch)
+        let out = self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch);
+        scratch.hint =
+            (exact && out.0.is_valid()).then(|| (key, table.index_of(out.0.thickness_nm)));
+        out
+    }
+
+    /// Refine grid minimum `g` on the interpolant.
+    fn table_fit(
+        &self,
+        table: &ThicknessTable,
+        g: GridMin,
+        theta: f64,
+        effort: Effort,
+        scratch: &mut Scratch,
+    ) -> Fit {
+        let (y, w) = (&scratch.spectrum, &scratch.weight);
+        let (d, sse, a) = table.fit(y, w, g.j, effort.iters, &mut scratch.grid);
+        Fit {
+            d,
+            theta,
+            sse,
+            jtj: [a, 0.0, 0.0],
+            integrated: false,
+            tabled: true,
+        }
     }
 }
 
