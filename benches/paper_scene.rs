@@ -44,7 +44,7 @@ fn main() {
     let bands = scene_bands(&scene).unwrap();
     let renderer = Renderer::new(&scene).unwrap();
     let truth = renderer.truth_maps(&bands);
-    let (cube, truth_t) = common::tile(&renderer.render_cube(&bands).unwrap(), &truth, repeat);
+    let (cube, truth_t, _) = common::render_tiled(&scene, &bands, repeat);
     println!(
         "scene: {} {}x{} px, {} bands, sigma {}",
         scene_arg.map_or("paper cylinder", String::as_str),

@@ -20,7 +20,7 @@ mod common;
 
 use irid::estimate::{Mode, Solver};
 use irid::scene::{AngleKnowledge, Scene};
-use irid::synth::{compare, scene_bands, Renderer};
+use irid::synth::{compare, scene_bands};
 use std::path::Path;
 use std::time::Instant;
 
@@ -61,13 +61,9 @@ fn main() {
         }
         let scene = Scene::load(&dir.join(format!("{name}.toml"))).expect("scene");
         let bands = scene_bands(&scene).unwrap();
-        let renderer = Renderer::new(&scene).unwrap();
-        let truth = renderer.truth_maps(&bands);
-        let cube = renderer.render_cube(&bands).unwrap();
-        let n0 = cube.width * cube.height;
+        let n0 = scene.truth.as_ref().map_or(1, |t| t.width * t.height);
         let repeat = (min_pixels as f64 / n0 as f64).sqrt().ceil().max(1.0) as usize;
-        let (cube, truth) = common::tile(&cube, &truth, repeat);
-        let sigma_r = renderer.noise().0;
+        let (cube, truth, sigma_r) = common::render_tiled(&scene, &bands, repeat);
         let (crb_unknown, crb_known) = common::crb(&scene, &bands, &truth, sigma_r);
         for angle_known in [false, true] {
             let angle = if angle_known { "known" } else { "unknown" };
@@ -91,6 +87,13 @@ fn main() {
                 let t0 = Instant::now();
                 solver.estimate_film_index(&cube).unwrap();
                 let t_index = t0.elapsed().as_secs_f64();
+                let (_, level_mode, level_note) = solver.level();
+                if args.iter().any(|a| a == "--levels") {
+                    eprintln!(
+                        "{name} {angle} {}: level {level_mode:?}: {level_note}",
+                        mode.name()
+                    );
+                }
                 let mut t_fit = f64::INFINITY;
                 let mut maps = None;
                 for _ in 0..best_of {

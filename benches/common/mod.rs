@@ -8,7 +8,7 @@ use irid::estimate::Cube;
 use irid::optics::band::Band;
 use irid::optics::dispersion::Dispersion;
 use irid::scene::{FilmKnowledge, Scene};
-use irid::synth::TruthMaps;
+use irid::synth::{add_noise, Renderer, TruthMaps};
 
 /// The CPU model and the number of threads the solver runs on.
 pub fn machine() -> String {
@@ -23,8 +23,32 @@ pub fn machine() -> String {
     format!("{cpu}, {} threads", rayon::current_num_threads())
 }
 
+/// The scene rendered and tiled `repeat × repeat` times, with noise drawn
+/// afresh for every pixel of the tiled image (tiles that repeated the same
+/// noise would let image-wide estimates — the noise level, the level fit —
+/// count one pixel's noise several times).
+pub fn render_tiled(scene: &Scene, bands: &[Band], repeat: usize) -> (Cube, TruthMaps, f64) {
+    let mut quiet = scene.clone();
+    let (sigma, seed) = match quiet.truth.as_mut() {
+        Some(t) => {
+            let s = (t.noise_sigma, t.seed);
+            t.noise_sigma = 0.0;
+            s
+        }
+        None => (0.0, 0),
+    };
+    let r = Renderer::new(&quiet).expect("the scene renders");
+    let truth = r.truth_maps(bands);
+    let cube = r.render_cube(bands).expect("the scene renders");
+    let (mut cube, truth) = tile(&cube, &truth, repeat);
+    if sigma > 0.0 {
+        add_noise(&mut cube.data, sigma, seed);
+    }
+    (cube, truth, sigma)
+}
+
 /// The cube and its truth tiled `repeat × repeat` times.
-pub fn tile(cube: &Cube, truth: &TruthMaps, repeat: usize) -> (Cube, TruthMaps) {
+fn tile(cube: &Cube, truth: &TruthMaps, repeat: usize) -> (Cube, TruthMaps) {
     if repeat <= 1 {
         return (cube.clone(), truth.clone());
     }

@@ -90,7 +90,83 @@ fn pol_pair(
     (s, p, q2)
 }
 
+/// Cubic Hermite interpolation at `t ∈ [0, 1]` of a value known with its
+/// slope at both ends of an interval `h` wide; the slope is interpolated
+/// linearly (it only steers the fits' steps).
+#[inline(always)]
+fn hermite(va: f64, da: f64, vb: f64, db: f64, t: f64, h: f64) -> (f64, f64) {
+    let (t2, t3) = (t * t, t * t * t);
+    let v = (2.0 * t3 - 3.0 * t2 + 1.0) * va
+        + (t3 - 2.0 * t2 + t) * h * da
+        + (-2.0 * t3 + 3.0 * t2) * vb
+        + (t3 - t2) * h * db;
+    (v, da + t * (db - da))
+}
+
+fn hermite_c(
+    va: Complex64,
+    da: Complex64,
+    vb: Complex64,
+    db: Complex64,
+    t: f64,
+    h: f64,
+) -> (Complex64, Complex64) {
+    let (re, dre) = hermite(va.re, da.re, vb.re, db.re, t, h);
+    let (im, dim) = hermite(va.im, da.im, vb.im, db.im, t, h);
+    (Complex64::new(re, im), Complex64::new(dre, dim))
+}
+
+impl PolCoef {
+    fn hermite(
+        a: (&PolCoef, &PolCoef),
+        b: (&PolCoef, &PolCoef),
+        t: f64,
+        h: f64,
+    ) -> (PolCoef, PolCoef) {
+        let f = |va: f64, da: f64, vb: f64, db: f64| hermite(va, da, vb, db, t, h);
+        let (av, ad) = f(a.0.a, a.1.a, b.0.a, b.1.a);
+        let (bv, bd) = f(a.0.b, a.1.b, b.0.b, b.1.b);
+        let (abv, abd) = f(a.0.ab, a.1.ab, b.0.ab, b.1.ab);
+        let (pv, pd) = hermite_c(a.0.p, a.1.p, b.0.p, b.1.p, t, h);
+        let (uv, ud) = hermite_c(a.0.u, a.1.u, b.0.u, b.1.u, t, h);
+        (
+            PolCoef {
+                a: av,
+                b: bv,
+                ab: abv,
+                p: pv,
+                u: uv,
+            },
+            PolCoef {
+                a: ad,
+                b: bd,
+                ab: abd,
+                p: pd,
+                u: ud,
+            },
+        )
+    }
+}
+
 impl NodeCoef {
+    /// The coefficients at fraction `t` of the way from `a` to `b`, two
+    /// grid angles `h` radians apart: cubic Hermite in the angle with the
+    /// slopes both ends carry (error ~h⁴/384 of the fourth derivative:
+    /// ~1e-12 at a 0.25° grid away from critical angles).
+    pub(super) fn between(a: &NodeCoef, b: &NodeCoef, t: f64, h: f64) -> NodeCoef {
+        let (s, ds) = PolCoef::hermite((&a.s, &a.ds), (&b.s, &b.ds), t, h);
+        let (p, dp) = PolCoef::hermite((&a.p, &a.dp), (&b.p, &b.dp), t, h);
+        let (k, dk) = hermite_c(a.k, a.dk, b.k, b.dk, t, h);
+        NodeCoef {
+            s,
+            p,
+            ds,
+            dp,
+            k,
+            dk,
+        }
+    }
+
     /// Coefficients of media `n1 | n2 | n3` at wavenumber factor `w = 4π/λ`,
     /// at the angle whose sine is `sin_t`, with slopes over the step to the
     /// angle whose sine is `sin_h` (`h` radians further).
