@@ -179,7 +179,7 @@ impl Effort {
                 closed_form: true,
                 closed_form_only: false,
                 n_refine: 2,
-                iters: 8,
+                iters: 25,
                 table: true,
                 verify_order: false,
             },
@@ -194,13 +194,15 @@ impl Effort {
         }
     }
 
-    /// The global index search: the full candidate search (no noise level
-    /// is known yet to judge a closed-form start), two orders refined.
+    /// The global index search and the level fit: the full candidate
+    /// search (no noise level is known yet to judge a closed-form start),
+    /// three orders refined to convergence — a fit left short of its
+    /// minimum would pass its residual off as a calibration error.
     const INDEX_SEARCH: Effort = Effort {
         closed_form: false,
         closed_form_only: false,
-        n_refine: 2,
-        iters: 10,
+        n_refine: 3,
+        iters: 25,
         table: false,
         verify_order: false,
     };
