@@ -171,7 +171,10 @@ impl Effort {
                 closed_form: true,
                 closed_form_only: true,
                 n_refine: 1,
-                iters: 6,
+                // A cap, not a count: converged fits stop early, and one
+                // stopped short in a flat valley (thick films, angle
+                // unknown) must not pass for a minimum.
+                iters: 25,
                 table: true,
                 verify_order: false,
             },
@@ -188,7 +191,7 @@ impl Effort {
                 closed_form_only: false,
                 n_refine: 3,
                 iters: 25,
-                table: false,
+                table: true,
                 verify_order: true,
             },
         }
@@ -533,13 +536,13 @@ impl Solver {
         })
     }
 
-    /// Thickness tables at each known angle, where one unknown is left and
-    /// the mode fits against them (`fast`, `balanced`; not `accurate`, whose
-    /// refinement is exact, nor the free level).
+    /// Thickness tables at each known angle, where one unknown is left (in
+    /// every mode but the free level; `accurate` takes its starts from
+    /// them and refines with the exact model).
     fn build_tables(&self, model: &FilmModel) -> table::Tables {
         /// A map with more distinct angles than this fits pixel by pixel.
         const MAX_TABLES: usize = 4096;
-        if self.mode == Mode::Accurate || self.scene.level == LevelMode::Free {
+        if self.scene.level == LevelMode::Free {
             return table::Tables::default();
         }
         // The thicknesses a table covers at angle t: what the search covers.

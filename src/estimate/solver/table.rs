@@ -574,14 +574,6 @@ impl Solver {
         lam_min: f64,
         scratch: &mut Scratch,
     ) -> (PixelEstimate, f64) {
-        let mut mins = [GridMin { j: 0, sse: 0.0 }; 2];
-        let keep = if effort.closed_form_only { 1 } else { 2 };
-        let n = table.minima(
-            &scratch.spectrum,
-            &scratch.weight,
-            &mut scratch.grid,
-            &mut mins[..keep],
-        );
         let exact = table_theta.to_bits() == theta.to_bits();
         // `fast`: the previous pixel's order first, where it explains this
         // spectrum (the χ² test); the full scan otherwise.
@@ -599,19 +591,70 @@ impl Solver {
                 }
             }
         }
+        // The best minima: one in `fast`, two in `balanced` (the second
+        // judges the fringe order), three in `accurate`.
+        let mut mins = [GridMin { j: 0, sse: 0.0 }; 3];
+        let keep = if effort.closed_form_only {
+            1
+        } else if effort.verify_order {
+            3
+        } else {
+            2
+        };
+        let n = table.minima(
+            &scratch.spectrum,
+            &scratch.weight,
+            &mut scratch.grid,
+            &mut mins[..keep],
+        );
+        // `accurate` refines with the exact model (and the passband
+        // integrated where the band criterion asks for it), as does a
+        // pixel between the angles of a binned map.
+        let interpolated = exact && !effort.verify_order;
         let scale = prep.model.q2_mid(table_theta) / prep.model.q2_mid(theta);
-        let mut fits = [Fit::default(); 2];
-        for (f, g) in fits.iter_mut().zip(&mins[..n]) {
-            *f = if exact {
-                self.table_fit(table, *g, theta, effort, scratch)
+        let mut fits = [Fit::default(); 3];
+        // At the table's own angle every minimum is first fitted on the
+        // interpolant (as good as exact here); `accurate` then refines with
+        // the exact model only those within 25 residual variances of the
+        // best — a clearly worse order cannot become the best or an
+        // ambiguity (4 variances).
+        let mut close = [true; 3];
+        if exact {
+            for (f, g) in fits.iter_mut().zip(&mins[..n]) {
+                *f = self.table_fit(table, *g, theta, effort, scratch);
+            }
+            let best = fits[..n]
+                .iter()
+                .map(|f| f.sse)
+                .fold(f64::INFINITY, f64::min);
+            let var = best / n_ok.saturating_sub(1).max(1) as f64;
+            for (c, f) in close.iter_mut().zip(&fits[..n]) {
+                *c = f.sse <= best + 25.0 * var;
+            }
+        }
+        for ((f, g), &c) in fits.iter_mut().zip(&mins[..n]).zip(&close) {
+            *f = if interpolated || !c {
+                if exact {
+                    *f
+                } else {
+                    self.table_fit(table, *g, theta, effort, scratch)
+                }
             } else {
-                let d0 = table.d_at(g.j) * scale;
-                self.refine(&prep.model, d0, theta, false, effort.iters, scratch)
+                let d0 = if exact { f.d } else { table.d_at(g.j) * scale };
+                let fit = self.refine(&prep.model, d0, theta, false, effort.iters, scratch);
+                let model = self.model_for(prep, &fit);
+                if effort.verify_order && !std::ptr::eq(model, &prep.model) {
+                    let mut f = self.refine(model, fit.d, theta, false, effort.iters, scratch);
+                    f.integrated = true;
+                    f
+                } else {
+                    fit
+                }
             };
         }
         let out = self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch);
         scratch.hint =
-            (exact && out.0.is_valid()).then(|| (key, table.index_of(out.0.thickness_nm)));
+            (interpolated && out.0.is_valid()).then(|| (key, table.index_of(out.0.thickness_nm)));
         out
     }
 
