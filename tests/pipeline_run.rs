@@ -264,3 +264,43 @@ fn rows_are_emitted_in_order_as_they_finish() {
         assert!(sweeps.windows(2).all(|p| p[0] <= p[1]), "{sweeps:?}");
     }
 }
+
+/// With the film index given (known), the live runner still judges every
+/// fit: the noise level and the image-wide level come from the first
+/// sweep, as in `irid fit`. Given the true index, the maps match the truth;
+/// given a wrong one (1.47 for a 1.37 film: the fringes' envelopes no
+/// longer fit), no valid pixel is wrong beyond 3σ (and 2 nm).
+#[test]
+fn a_known_film_is_judged_live() {
+    use irid::optics::dispersion::Dispersion;
+    use irid::scene::FilmKnowledge;
+    for (n, right) in [(1.37, true), (1.47, false)] {
+        let mut r = rig(11, "ascending", false);
+        r.scene.film = FilmKnowledge::Known(Dispersion::constant(n));
+        let mut sink = CollectSink::default();
+        let stop = AtomicBool::new(false);
+        let rep = r.go(false, &config(2, false), &mut sink, &stop).unwrap();
+        assert_eq!(rep.sweeps_completed, 2, "{rep:?}");
+        for m in &sink.maps {
+            let (mut valid, mut wrong) = (0usize, 0usize);
+            for i in 0..m.width * m.height {
+                if m.valid[i] > 0.5 {
+                    valid += 1;
+                    let e = f64::from((m.thickness_nm[i] - r.truth.thickness_nm[i]).abs());
+                    if e > (3.0 * f64::from(m.sigma_thickness_nm[i])).max(2.0) {
+                        wrong += 1;
+                    }
+                }
+            }
+            let total = (m.width * m.height) as f64;
+            eprintln!("n {n}: valid {valid} of {total}, wrong {wrong}");
+            if right {
+                assert!(valid as f64 > 0.9 * total, "n {n}: valid {valid}");
+            }
+            assert!(
+                (wrong as f64) < 0.01 * total,
+                "n {n}: {wrong} valid pixels wrong of {valid} valid"
+            );
+        }
+    }
+}

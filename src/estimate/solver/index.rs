@@ -26,6 +26,10 @@ pub(super) struct SamplePixel {
     pub(super) n_cands: [usize; 2],
 }
 
+/// The most the live runner's residual floor may raise the model-free
+/// noise estimate (a factor on σ).
+const RESIDUAL_FLOOR_MAX: f64 = 1.5;
+
 impl Solver {
     /// Estimate the film index from the cube when the scene leaves it
     /// unknown, and the reflectance noise from the fit residuals (also when
@@ -62,9 +66,13 @@ impl Solver {
                 if res.is_finite() && res > data {
                     // Scaled up as a whole: the bands keep their relative
                     // noise (a lamp's spectrum makes some bands noisier).
+                    // By at most RESIDUAL_FLOOR_MAX: the model-free
+                    // estimate may run low on camera noise, but a residual
+                    // far above it is a misfit every pixel shares (a wrong
+                    // film), which must fail, not raise the bar.
                     let noise = match self.noise.take() {
                         Some(mut n) if data > 0.0 => {
-                            let f = (res / data).powi(2);
+                            let f = (res / data).min(RESIDUAL_FLOOR_MAX).powi(2);
                             n.var0.iter_mut().for_each(|v| *v *= f);
                             n.shot.iter_mut().for_each(|v| *v *= f);
                             n
