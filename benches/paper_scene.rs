@@ -91,15 +91,7 @@ fn main() {
             let t0 = Instant::now();
             let idx = solver.estimate_film_index(&cube).unwrap();
             let t_index = t0.elapsed().as_secs_f64();
-            let mut t_fit = f64::INFINITY;
-            let mut maps = None;
-            for _ in 0..best_of {
-                let t1 = Instant::now();
-                let m = solver.fit_cube(&cube).unwrap();
-                t_fit = t_fit.min(t1.elapsed().as_secs_f64());
-                maps = Some(m);
-            }
-            let maps = maps.expect("at least one fit");
+            let (maps, t_fit) = common::time_fits(&mut solver, &cube, best_of);
             let acc = compare(&maps, &truth_t);
             if args.iter().any(|a| a == "--bins") {
                 // Accuracy per 100 nm of true thickness.

@@ -94,15 +94,7 @@ fn main() {
                         mode.name()
                     );
                 }
-                let mut t_fit = f64::INFINITY;
-                let mut maps = None;
-                for _ in 0..best_of {
-                    let t1 = Instant::now();
-                    let m = solver.fit_cube(&cube).unwrap();
-                    t_fit = t_fit.min(t1.elapsed().as_secs_f64());
-                    maps = Some(m);
-                }
-                let maps = maps.expect("one fit");
+                let (maps, t_fit) = common::time_fits(&mut solver, &cube, best_of);
                 let acc = compare(&maps, &truth);
                 let px = (cube.width * cube.height) as f64 / t_fit;
                 println!(

@@ -4,7 +4,7 @@
 #![allow(dead_code)]
 
 use irid::estimate::model::{FilmModel, ModelOut};
-use irid::estimate::Cube;
+use irid::estimate::{Cube, ParamMaps, Solver};
 use irid::optics::band::Band;
 use irid::optics::dispersion::Dispersion;
 use irid::scene::{FilmKnowledge, Scene};
@@ -115,4 +115,18 @@ pub fn crb(scene: &Scene, bands: &[Band], truth: &TruthMaps, sigma_r: f64) -> (f
         n += 1.0;
     }
     (s2 / n, s1 / n)
+}
+
+/// Fit `cube` `best_of` times (at least once); the last maps and the
+/// fastest time, seconds.
+pub fn time_fits(solver: &mut Solver, cube: &Cube, best_of: usize) -> (ParamMaps, f64) {
+    let mut t_fit = f64::INFINITY;
+    let mut maps = None;
+    for _ in 0..best_of.max(1) {
+        let t = std::time::Instant::now();
+        let m = solver.fit_cube(cube).expect("the cube fits");
+        t_fit = t_fit.min(t.elapsed().as_secs_f64());
+        maps = Some(m);
+    }
+    (maps.expect("at least one fit"), t_fit)
 }

@@ -358,6 +358,8 @@ impl ThicknessTable {
         let hi = self.d_at((j + 1).min(self.m - 1));
         let mut d = self.d_at(j);
         let mut state = (f64::INFINITY, 0.0);
+        // A converged step still gets one pass, for the residual at its end.
+        let mut converged = false;
         for it in 0..=iters {
             self.interp(d, r, dr);
             let (mut e2, mut a, mut g) = (0.0, 0.0, 0.0);
@@ -368,23 +370,12 @@ impl ThicknessTable {
                 g += w[k] * dr[k] * e;
             }
             state = (e2, a);
-            if it == iters || a <= 0.0 {
+            if converged || it == iters || a <= 0.0 {
                 break;
             }
             let nd = (d + g / a).clamp(lo, hi);
-            let done = (nd - d).abs() < 1e-4 * self.h;
+            converged = (nd - d).abs() < 1e-4 * self.h;
             d = nd;
-            if done {
-                self.interp(d, r, dr);
-                let (mut e2, mut a) = (0.0, 0.0);
-                for k in 0..nb {
-                    let e = y[k] - r[k];
-                    e2 += w[k] * e * e;
-                    a += w[k] * dr[k] * dr[k];
-                }
-                state = (e2, a);
-                break;
-            }
         }
         (d, state.0, state.1)
     }
@@ -611,7 +602,6 @@ impl Solver {
         // integrated where the band criterion asks for it), as does a
         // pixel between the angles of a binned map.
         let interpolated = exact && !effort.verify_order;
-        let scale = prep.model.q2_mid(table_theta) / prep.model.q2_mid(theta);
         let mut fits = [Fit::default(); 3];
         // At the table's own angle every minimum is first fitted on the
         // interpolant (as good as exact here); `accurate` then refines with
@@ -640,7 +630,13 @@ impl Solver {
                     self.table_fit(table, *g, theta, effort, scratch)
                 }
             } else {
-                let d0 = if exact { f.d } else { table.d_at(g.j) * scale };
+                // Between a binned map's angles: equal optical thickness.
+                let d0 = if exact {
+                    f.d
+                } else {
+                    let scale = prep.model.q2_mid(table_theta) / prep.model.q2_mid(theta);
+                    table.d_at(g.j) * scale
+                };
                 let fit = self.refine(&prep.model, d0, theta, false, effort.iters, scratch);
                 let model = self.model_for(prep, &fit);
                 if effort.verify_order && !std::ptr::eq(model, &prep.model) {
