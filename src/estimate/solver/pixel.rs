@@ -4,7 +4,7 @@
 //! covariance, validity flags.
 
 use super::closed_form::angle_start;
-use super::refine::sse;
+use super::refine::{sse, MIN_FREE_THETA};
 use super::search::{Candidate, MAX_CANDIDATES};
 use super::{Fit, Job, Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
 use crate::estimate::{PixelEstimate, Reason};
@@ -98,7 +98,13 @@ impl Solver {
                                 return (fe, f64::NAN);
                             }
                             let chi2 = self.chi2_at(&prep.model, d, th, scratch);
-                            if self.fit_passes(chi2, n_ok, n_par)
+                            // A free angle found at normal incidence is not
+                            // taken as it stands: there R is even in θ, the
+                            // closed form's σ misses the angle's share, and
+                            // the refinement decides.
+                            let at_normal = theta_known.is_none() && th < MIN_FREE_THETA;
+                            if !at_normal
+                                && self.fit_passes(chi2, n_ok, n_par)
                                 && self.bound_reason(prep, d, th, theta_known).is_none()
                             {
                                 return (fe, f64::NAN);

@@ -5,6 +5,9 @@
 use super::{Fit, Scratch, Solver};
 use crate::estimate::model::{FilmModel, ModelOut};
 
+/// The smallest angle a free-angle refinement starts from (rad, ~3°).
+pub(super) const MIN_FREE_THETA: f64 = 0.05;
+
 impl Solver {
     /// Levenberg–Marquardt on thickness (and angle when `free_theta`).
     pub(super) fn refine(
@@ -19,6 +22,14 @@ impl Solver {
         let (lo, hi) = self.theta_range;
         let eval = |d: f64, th: f64, out: &mut ModelOut| {
             model.eval(d, th, out, true);
+        };
+        // R is even in θ: at normal incidence dR/dθ vanishes and the angle
+        // could never leave it. A free angle starts a few degrees off (from
+        // there the steps walk back to 0 where the data say so).
+        let theta0 = if free_theta && theta0.abs() < MIN_FREE_THETA {
+            MIN_FREE_THETA.min(hi).max(lo)
+        } else {
+            theta0
         };
         let (mut d, mut th) = (d0.clamp(self.d_min, self.d_max), theta0);
         eval(d, th, &mut s.cur);

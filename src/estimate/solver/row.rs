@@ -2,6 +2,7 @@
 //! (`fast` band-major, 64 pixels at a time), rows in parallel.
 
 use super::closed_form::ExtremaAcc;
+use super::refine::MIN_FREE_THETA;
 use super::{Effort, Scratch, Solver};
 use crate::estimate::detect::{self, CandidatePlanes};
 use crate::estimate::{maps, Cube, EstimateError, Mode, ParamMaps, PixelEstimate, Reason};
@@ -166,8 +167,12 @@ impl Solver {
                     let (d, th) = (e.thickness_nm, e.theta_deg.to_radians());
                     let n_par = if theta_known.is_some() { 1 } else { 2 };
                     let chi2 = self.chi2_at(&prep.model, d, th, scratch);
-                    if !(self.fit_passes(chi2, nb, n_par)
-                        && self.bound_reason(prep, d, th, theta_known).is_none())
+                    // At normal incidence the closed form's σ misses the
+                    // angle's share (R is even in θ): refine instead.
+                    let at_normal = theta_known.is_none() && th < MIN_FREE_THETA;
+                    if at_normal
+                        || !(self.fit_passes(chi2, nb, n_par)
+                            && self.bound_reason(prep, d, th, theta_known).is_none())
                     {
                         est = None;
                         retry_from = Some((d, th));

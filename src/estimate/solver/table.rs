@@ -25,6 +25,10 @@ use std::sync::Arc;
 /// Largest phase change of any band between adjacent grid points, rad.
 pub const PHASE_STEP: f64 = 0.3;
 
+/// The largest interpolation error a table may have against the model
+/// (reflectance): a fiftieth of the lowest noise level irid accepts (1e-4).
+pub const INTERP_TOL: f64 = 2e-6;
+
 /// The residual is scanned on every `SCAN_STRIDE`-th grid point (a phase
 /// step of at most 0.9 rad: a minimum's basin spans ±π), then the best
 /// coarse minima walk downhill on the full grid.
@@ -46,8 +50,13 @@ pub struct ThicknessTable {
     nb: usize,
     /// `nb` rounded up to whole vectors of 8 (the padding is zero).
     nbp: usize,
-    /// `r[j * nbp + k]`: R of band k at `d0 + j h`.
+    /// `r[j * nbp + k]`: R of band k at `d0 + j h`, less `centre[k]`.
     r: Vec<f32>,
+    /// Each band's mean R over the grid: stored and scanned values are
+    /// deviations from it, so f32 resolves residuals far below `nb σ²`
+    /// even where R itself is large (near grazing incidence R ≈ 0.6 and
+    /// the fringes are 1e-3 deep).
+    centre: Vec<f64>,
     /// `Σ_k R²` at each grid point, for the complete-spectrum residual.
     rr: Vec<f32>,
     /// `dr[j * nb + k]`: dR/dd, per nm.
@@ -64,6 +73,20 @@ pub struct GridScratch {
     sse: Vec<f32>,
     r: Vec<f64>,
     dr: Vec<f64>,
+}
+
+/// The most minima [`ThicknessTable::minima`] returns.
+pub const MAX_MINIMA: usize = 4;
+
+/// The lowest value of the parabola through `(−1, l)`, `(0, c)`, `(1, r)`
+/// (`c` itself where it does not curve upwards), never below zero.
+fn parabola_min(l: f32, c: f32, r: f32) -> f32 {
+    let a = 0.5 * (l + r) - c;
+    if !(a > 0.0 && a.is_finite()) {
+        return c;
+    }
+    let b = 0.5 * (r - l);
+    (c - b * b / (4.0 * a)).max(0.0)
 }
 
 /// A local minimum of the residual over the grid.
@@ -83,23 +106,74 @@ impl ThicknessTable {
         (m.max(2), h)
     }
 
-    /// Tabulate `model` at `theta` over `[d_lo, d_hi]`.
+    /// Tabulate `model` at `theta` over `[d_lo, d_hi]`, on a grid fine
+    /// enough that the interpolant stays within [`INTERP_TOL`] of the model
+    /// at the midpoints between grid points: the step is halved (at most
+    /// three times) where the fringes are far from sinusoidal (high finesse,
+    /// e.g. near grazing incidence).
     pub fn new(model: &FilmModel, theta: f64, d_lo: f64, d_hi: f64) -> ThicknessTable {
-        let (m, h) = Self::size(model, theta, d_lo, d_hi);
+        let (_, mut h) = Self::size(model, theta, d_lo, d_hi);
+        let mut t = Self::with_step(model, theta, d_lo, d_hi, h);
+        for _ in 0..3 {
+            if t.midpoint_error(model, theta) <= INTERP_TOL {
+                break;
+            }
+            h *= 0.5;
+            t = Self::with_step(model, theta, d_lo, d_hi, h);
+        }
+        t
+    }
+
+    /// The largest difference between the interpolant and the model at
+    /// the midpoints of (up to about a hundred, evenly spread) grid intervals.
+    fn midpoint_error(&self, model: &FilmModel, theta: f64) -> f64 {
+        let nb = self.nb;
+        let mut out = ModelOut::new(nb);
+        let (mut r, mut dr) = (vec![0.0; nb], vec![0.0; nb]);
+        let stride = (self.m / 97).max(1);
+        let mut worst: f64 = 0.0;
+        for j in (0..self.m.saturating_sub(1)).step_by(stride) {
+            let d = self.d_at(j) + 0.5 * self.h;
+            model.eval(d, theta, &mut out, false);
+            self.interp(d, &mut r, &mut dr);
+            for (a, b) in r.iter().zip(&out.r[..nb]) {
+                worst = worst.max((a - b).abs());
+            }
+        }
+        worst
+    }
+
+    /// Tabulate `model` at `theta` over `[d_lo, d_hi]` with step `h`.
+    fn with_step(model: &FilmModel, theta: f64, d_lo: f64, d_hi: f64, h: f64) -> ThicknessTable {
+        let m = (((d_hi - d_lo).max(0.0) / h).ceil() as usize + 1).max(2);
         let nb = model.n_bands();
         let nbp = nb.div_ceil(8) * 8;
         let mut out = ModelOut::new(nb);
-        let mut r = vec![0f32; m * nbp];
-        let mut rr = Vec::with_capacity(m);
+        let mut full = vec![0f64; m * nb];
         let mut dr = Vec::with_capacity(m * nb);
+        let mut centre = vec![0f64; nb];
         for j in 0..m {
             model.eval(d_lo + j as f64 * h, theta, &mut out, true);
+            full[j * nb..(j + 1) * nb].copy_from_slice(&out.r[..nb]);
+            for (c, &v) in centre.iter_mut().zip(&out.r[..nb]) {
+                *c += v;
+            }
+            dr.extend(out.dr_dd[..nb].iter().map(|&v| v as f32));
+        }
+        for c in &mut centre {
+            *c /= m as f64;
+            if !c.is_finite() {
+                *c = 0.0;
+            }
+        }
+        let mut r = vec![0f32; m * nbp];
+        let mut rr = Vec::with_capacity(m);
+        for j in 0..m {
             let row = &mut r[j * nbp..j * nbp + nb];
-            for (d, &v) in row.iter_mut().zip(&out.r[..nb]) {
-                *d = v as f32;
+            for ((d, &v), &c) in row.iter_mut().zip(&full[j * nb..(j + 1) * nb]).zip(&centre) {
+                *d = (v - c) as f32;
             }
             rr.push(row.iter().map(|v| v * v).sum());
-            dr.extend(out.dr_dd[..nb].iter().map(|&v| v as f32));
         }
         ThicknessTable {
             d0: d_lo,
@@ -108,6 +182,7 @@ impl ThicknessTable {
             nb,
             nbp,
             r,
+            centre,
             rr,
             dr,
         }
@@ -115,7 +190,7 @@ impl ThicknessTable {
 
     /// Bytes the table holds.
     fn bytes(&self) -> usize {
-        (self.r.len() + self.dr.len() + self.rr.len()) * 4
+        (self.r.len() + self.dr.len() + self.rr.len()) * 4 + self.centre.len() * 8
     }
 
     /// The grid point nearest to thickness `d`.
@@ -138,7 +213,12 @@ impl ThicknessTable {
     fn load(&self, y: &[f64], w: &[f64], buf: &mut GridScratch) -> bool {
         let (nb, nbp) = (self.nb, self.nbp);
         buf.y.clear();
-        buf.y.extend(y[..nb].iter().map(|&v| v as f32));
+        buf.y.extend(
+            y[..nb]
+                .iter()
+                .zip(&self.centre)
+                .map(|(&v, &c)| (v - c) as f32),
+        );
         buf.y.resize(nbp, 0.0);
         buf.complete = w[..nb].iter().all(|&v| v == 1.0);
         if buf.complete {
@@ -216,13 +296,17 @@ impl ThicknessTable {
             scan_weighted(&self.r, &buf.y, &buf.w, &mut buf.sse);
         }
         let sse = &buf.sse;
-        let cap = out.len();
+        let cap = out.len().min(MAX_MINIMA);
+        let mut keys = [f32::INFINITY; MAX_MINIMA];
         let mut n = 0usize;
-        // The worst residual kept so far (any lower one is worth a look).
+        // Minima are ranked by the parabola through each and its
+        // neighbours, not by the grid value: a narrow minimum (high
+        // finesse) can sit between grid points far below its samples.
+        // The worst key kept so far (any lower one is worth a look).
         let mut bar = f32::INFINITY;
         for i in 0..mc {
             let cur = sse[i];
-            if cur.is_nan() || cur >= bar {
+            if cur.is_nan() {
                 continue;
             }
             let left = if i > 0 { sse[i - 1] } else { f32::INFINITY };
@@ -234,33 +318,53 @@ impl ThicknessTable {
             if !(cur <= left && cur < right) {
                 continue;
             }
+            let key = parabola_min(left, cur, right);
+            if key >= bar {
+                continue;
+            }
             let g = GridMin {
                 j: i * SCAN_STRIDE,
                 sse: cur,
             };
             if n < cap {
                 out[n] = g;
+                keys[n] = key;
                 n += 1;
-            } else if let Some(worst) = out[..n].iter_mut().max_by(|a, b| a.sse.total_cmp(&b.sse)) {
-                *worst = g;
+            } else if let Some(worst) = (0..n).max_by(|&a, &b| keys[a].total_cmp(&keys[b])) {
+                out[worst] = g;
+                keys[worst] = key;
             }
             if n == cap {
-                bar = out[..n]
-                    .iter()
-                    .map(|g| g.sse)
-                    .fold(f32::NEG_INFINITY, f32::max);
+                bar = keys[..n].iter().copied().fold(f32::NEG_INFINITY, f32::max);
             }
         }
-        // Polish on the full grid.
-        for g in &mut out[..n] {
+        // Polish on the full grid, and rank by the fine parabola.
+        for (g, key) in out[..n].iter_mut().zip(&mut keys) {
             *g = self.descend(*g, buf);
+            let at = |j: Option<usize>| {
+                j.filter(|&j| j < self.m)
+                    .map_or(f32::INFINITY, |j| self.sse_at(j, buf))
+            };
+            *key = parabola_min(at(g.j.checked_sub(1)), g.sse, at(Some(g.j + 1)));
         }
-        out[..n].sort_by(|a, b| a.sse.total_cmp(&b.sse));
-        // Two coarse minima may have led to the same fine one.
-        if n == 2 && out[0].j == out[1].j {
-            n = 1;
+        let mut idx: [usize; MAX_MINIMA] = std::array::from_fn(|i| i);
+        idx[..n].sort_by(|&a, &b| {
+            keys[a]
+                .total_cmp(&keys[b])
+                .then(out[a].sse.total_cmp(&out[b].sse))
+        });
+        let sorted: [GridMin; MAX_MINIMA] =
+            std::array::from_fn(|i| if i < n { out[idx[i]] } else { out[0] });
+        out[..n].copy_from_slice(&sorted[..n]);
+        // Coarse minima may have led to the same fine one.
+        let mut kept = 0;
+        for i in 0..n {
+            if !out[..kept].iter().any(|g| g.j == out[i].j) {
+                out[kept] = out[i];
+                kept += 1;
+            }
         }
-        n
+        kept
     }
 
     /// The residual's minimum within `half` grid points of `j0`, if it lies
@@ -328,7 +432,7 @@ impl ThicknessTable {
                 f64::from(da[k]),
                 f64::from(db[k]),
             );
-            r[k] = h00 * a + h10 * p + h01 * b + h11 * q;
+            r[k] = self.centre[k] + h00 * a + h10 * p + h01 * b + h11 * q;
             dr[k] = g00 * a + g10 * p + g01 * b + g11 * q;
         }
     }
@@ -354,8 +458,10 @@ impl ThicknessTable {
         buf.r.resize(nb, 0.0);
         buf.dr.resize(nb, 0.0);
         let (r, dr) = (&mut buf.r[..], &mut buf.dr[..]);
-        let lo = self.d_at(j.saturating_sub(1));
-        let hi = self.d_at((j + 1).min(self.m - 1));
+        // Each step stays within a grid interval of where it starts, but
+        // the walk may cross intervals: the grid point it starts from is
+        // the nearest to a minimum, not always the one holding it.
+        let (d_lo, d_hi) = (self.d0, self.d_at(self.m - 1));
         let mut d = self.d_at(j);
         let mut state = (f64::INFINITY, 0.0);
         // A converged step still gets one pass, for the residual at its end.
@@ -373,7 +479,7 @@ impl ThicknessTable {
             if converged || it == iters || a <= 0.0 {
                 break;
             }
-            let nd = (d + g / a).clamp(lo, hi);
+            let nd = (d + (g / a).clamp(-self.h, self.h)).clamp(d_lo, d_hi);
             converged = (nd - d).abs() < 1e-4 * self.h;
             d = nd;
         }
