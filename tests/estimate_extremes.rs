@@ -1,14 +1,19 @@
-//! Noise-free extremes across the whole physical domain (sweep).
+//! Noise-free extremes across the physical domain: normal to grazing
+//! incidence (0–89.5°), film indices from nearly the ambient's (1.01) to
+//! nearly the substrate's (1.59 on 1.60), films of 0–3000 nm (past what
+//! 10 nm bands resolve), s, p and unpolarised light, the angle known and
+//! unknown, every mode. On data without noise a valid pixel must lie within
+//! max(3σ, 2 nm) of the truth; what the data cannot tell must be flagged.
 
 mod scene_common;
 
 use irid::estimate::{Mode, Solver};
 use irid::scene::Scene;
-use irid::synth::scene_bands;
-use irid::synth::Renderer;
+use irid::synth::{scene_bands, Renderer};
 use scene_common::with_known_angle;
 use std::path::Path;
 
+/// A 31 × 19 image: thickness 0–3000 nm across, angle 0–89.5° down.
 fn scene(n2: f64, pol: &str, known: bool) -> Scene {
     let text = format!(
         r#"
@@ -32,13 +37,9 @@ thickness_nm = {{ linear_x = [0.0, 3000.0] }}
 angle_deg = {{ linear_y = [0.0, 89.5] }}
 noise_sigma = 0.0
 seed = 1
-{}
-"#,
-        std::env::var("LEVEL")
-            .map(|l| format!("[measurement]\nlevel = \"{l}\""))
-            .unwrap_or_default()
+"#
     );
-    let s: Scene = Scene::from_toml(&text, "<t>", Path::new(".")).unwrap();
+    let s = Scene::from_toml(&text, "<extremes>", Path::new(".")).expect("scene parses");
     if known {
         with_known_angle(s)
     } else {
@@ -46,108 +47,81 @@ seed = 1
     }
 }
 
-#[test]
-#[ignore]
-fn sweep() {
-    let mut total = 0;
-    for n2 in [1.01, 1.2, 1.37, 1.59] {
-        for pol in ["s", "p", "u"] {
-            for known in [true, false] {
-                let s = scene(n2, pol, known);
-                let bands = scene_bands(&s).unwrap();
-                let r = Renderer::new(&s).unwrap();
-                let cube = r.render_cube(&bands).unwrap();
-                let truth = r.truth_maps(&bands);
-                for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
-                    let t0 = std::time::Instant::now();
-                    let mut solver = Solver::new(&s, &bands, mode).unwrap();
-                    let maps = solver.fit_cube(&cube).unwrap();
-                    let mut wrong = vec![];
-                    let mut valid = 0;
-                    for i in 0..maps.width * maps.height {
-                        if maps.valid[i] < 0.5 {
-                            continue;
-                        }
-                        valid += 1;
-                        let d = f64::from(truth.thickness_nm[i]);
-                        let err = f64::from(maps.thickness_nm[i]) - d;
-                        let tol = (3.0 * f64::from(maps.sigma_thickness_nm[i])).max(2.0);
-                        if err.abs() > tol {
-                            wrong.push(format!(
-                                "d {d:.0} θ {:.1} est {:.1}±{:.2} θ̂ {:.2}",
-                                truth.theta_deg[i],
-                                maps.thickness_nm[i],
-                                maps.sigma_thickness_nm[i],
-                                maps.theta_deg[i]
-                            ));
-                        }
-                    }
-                    total += wrong.len();
-                    eprintln!(
-                        "n2 {n2} {pol} known {known} {mode:?}: valid {valid}/{} wrong {} ({:.1}s)",
-                        maps.width * maps.height,
-                        wrong.len(),
-                        t0.elapsed().as_secs_f64()
-                    );
-                    for w in wrong.iter().take(6) {
-                        eprintln!("    {w}");
-                    }
-                }
-            }
-        }
-    }
-    assert_eq!(total, 0);
-}
-
-#[test]
-#[ignore]
-fn one() {
-    let n2: f64 = std::env::var("N2").unwrap().parse().unwrap();
-    let pol = std::env::var("POL").unwrap();
-    let known = std::env::var("KNOWN").is_ok();
-    let s = scene(n2, &pol, known);
+/// The valid pixels farther than max(3σ, 2 nm) from the truth, per case and
+/// mode, with how many pixels were valid (printed, so a run shows that the
+/// check is not passed by flagging everything).
+fn wrong_pixels(n2: f64, pol: &str, known: bool, modes: &[Mode]) -> Vec<String> {
+    let s = scene(n2, pol, known);
     let bands = scene_bands(&s).unwrap();
     let r = Renderer::new(&s).unwrap();
     let cube = r.render_cube(&bands).unwrap();
     let truth = r.truth_maps(&bands);
-    let row: usize = std::env::var("ROW").unwrap().parse().unwrap();
-    for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
+    let mut out = vec![];
+    for &mode in modes {
         let mut solver = Solver::new(&s, &bands, mode).unwrap();
         let maps = solver.fit_cube(&cube).unwrap();
-        let (l, m, why) = solver.level();
-        eprintln!(
-            "level {} {why} {l:?} noise {:?}",
-            m.name(),
-            solver.noise().map(|n| n.typical_sigma(0.05))
-        );
-        for x in 0..maps.width {
-            let i = row * maps.width + x;
-            eprintln!(
-                "{mode:?} d {:.0} θ {:.2}: est {:.2}±{:.2} θ̂ {:.3}±{:.3} rms {:.2e} reason {}",
-                truth.thickness_nm[i],
-                truth.theta_deg[i],
-                maps.thickness_nm[i],
-                maps.sigma_thickness_nm[i],
-                maps.theta_deg[i],
-                maps.sigma_theta_deg[i],
-                maps.residual_rms[i],
-                maps.reason[i]
-            );
+        let n = maps.width * maps.height;
+        let mut valid = 0;
+        for i in 0..n {
+            if maps.valid[i] < 0.5 {
+                continue;
+            }
+            valid += 1;
+            let d = f64::from(truth.thickness_nm[i]);
+            let err = f64::from(maps.thickness_nm[i]) - d;
+            let tol = (3.0 * f64::from(maps.sigma_thickness_nm[i])).max(2.0);
+            if err.abs() > tol {
+                out.push(format!(
+                    "n2 {n2} {pol} angle known {known} {mode:?}: d {d:.0} nm θ {:.1}°: {:.1} ± {:.2} nm (θ̂ {:.2}°)",
+                    truth.theta_deg[i],
+                    maps.thickness_nm[i],
+                    maps.sigma_thickness_nm[i],
+                    maps.theta_deg[i]
+                ));
+            }
         }
+        eprintln!("n2 {n2} {pol} angle known {known} {mode:?}: {valid} of {n} valid");
+        // Most of the domain is measurable: flagging everything would pass
+        // the check above. At least half the pixels stay valid.
+        assert!(
+            2 * valid >= n,
+            "n2 {n2} {pol} {known} {mode:?}: {valid} of {n} valid"
+        );
     }
+    out
 }
 
+const ALL: [Mode; 3] = [Mode::Fast, Mode::Balanced, Mode::Accurate];
+
 #[test]
-#[ignore]
-fn dump() {
-    let s = scene(1.59, "p", false);
-    let bands = scene_bands(&s).unwrap();
-    let r = Renderer::new(&s).unwrap();
-    let cube = r.render_cube(&bands).unwrap();
-    let n = cube.plane_len();
-    let i = 10; // row 0, d = 1000
-    let v: Vec<String> = (0..bands.len())
-        .map(|b| format!("{:.6}", cube.data[b * n + i]))
-        .collect();
-    eprintln!("DUMP {}", v.join(" "));
+fn noise_free_extremes_are_never_valid_and_wrong() {
+    let mut wrong = vec![];
+    for n2 in [1.01, 1.2, 1.37, 1.59] {
+        for known in [true, false] {
+            wrong.extend(wrong_pixels(n2, "s", known, &ALL));
+            // Unpolarised with the angle unknown: see the ignored sweep.
+            if known {
+                wrong.extend(wrong_pixels(n2, "u", known, &ALL));
+            }
+        }
+    }
+    for n2 in [1.01, 1.2, 1.37] {
+        wrong.extend(wrong_pixels(n2, "p", true, &ALL));
+    }
+    assert!(wrong.is_empty(), "valid and wrong:\n{}", wrong.join("\n"));
+}
+
+/// The whole sweep, the open cases included.
+#[test]
+#[ignore = "open: p light near Brewster's angle with the angle unknown (7–9 pixels at n2 1.01 and 1.37), a film index-matched to its substrate in p light (n2 1.59: 3 pixels past 2.4 µm at 55° with the angle known; ~110 with it unknown, where the auto level takes the gain–angle trade for a calibration error), unpolarised with the angle unknown in fast mode (1 pixel at 3.5σ)"]
+fn noise_free_extremes_every_case() {
+    let mut wrong = vec![];
+    for n2 in [1.01, 1.2, 1.37, 1.59] {
+        for pol in ["s", "p", "u"] {
+            for known in [true, false] {
+                wrong.extend(wrong_pixels(n2, pol, known, &ALL));
+            }
+        }
+    }
+    assert!(wrong.is_empty(), "valid and wrong:\n{}", wrong.join("\n"));
 }

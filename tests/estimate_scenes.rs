@@ -519,10 +519,9 @@ fn extremes_give_finite_or_flagged_outputs() {
 }
 
 /// The strict half: on noise-free data, a pixel the solver calls valid is
-/// within max(3σ, 2 nm) of the truth. Today it is not (see the `ignore`
-/// reason and `extremes_give_finite_or_flagged_outputs`' output).
+/// within max(3σ, 2 nm) of the truth (`tests/estimate_extremes.rs` sweeps
+/// the whole domain).
 #[test]
-#[ignore = "five noise-free pixels remain valid and wrong: a film of index 1.0001 (136 nm, off by 3.3 σ) and a film in total internal reflection at 60° (off by 15 nm); open work"]
 fn extremes_never_call_a_wrong_pixel_valid() {
     let outcomes = extreme_outcomes();
     let wrong: Vec<String> = outcomes

@@ -12,6 +12,10 @@ use crate::estimate::Reason;
 /// "pinned" there: a fraction of the searched span.
 const BOUND_FRACTION: f64 = 1e-4;
 
+/// The least fringe signal (in noise variances, see
+/// [`Solver::film_invisible`]) a valid thickness needs: 25, a 5σ fringe.
+pub(super) const MIN_VISIBILITY: f64 = 25.0;
+
 impl Solver {
     /// Whether pixels are judged (a noise model is known).
     pub(super) fn judging(&self) -> bool {
@@ -107,6 +111,29 @@ impl Solver {
             }
         }
         None
+    }
+
+    /// Whether the film's fringes at `theta` are too shallow for `n_ok`
+    /// bands at noise variance `var` to place them: the deepest modulation
+    /// any thickness can give (half- against quarter-wave level, peak to
+    /// peak `c`) carries `n_ok·c²/8` of signal energy, and below
+    /// [`MIN_VISIBILITY`] noise variances no fringe order can be told from
+    /// another (a film index close to the ambient's or the substrate's, p
+    /// light near Brewster's angle). The linearised σ then claims a
+    /// precision the data do not have.
+    pub(super) fn film_invisible(
+        &self,
+        prep: &Prepared,
+        theta: f64,
+        n_ok: usize,
+        var: f64,
+    ) -> bool {
+        if !(self.judging() && var > 0.0 && theta.is_finite()) {
+            return false;
+        }
+        let (h, q) = prep.envelopes_at(theta);
+        let c = (h - q).abs();
+        c.is_finite() && n_ok as f64 * c * c / (8.0 * var) < MIN_VISIBILITY
     }
 
     /// Whether a spectrum with this mean lies beyond anything the model can

@@ -399,7 +399,11 @@ impl Solver {
         // a gap beyond total internal reflection, where R no longer
         // depends on d).
         let span = (self.d_max - self.d_min).max(1.0);
-        if reason == Reason::Ok && (sig_d.is_nan() || sig_d >= span) {
+        if reason == Reason::Ok
+            && (sig_d.is_nan()
+                || sig_d >= span
+                || (judging && self.film_invisible(prep, best.theta, n_ok, noise_var)))
+        {
             reason = Reason::NoFringe;
         }
         if reason == Reason::Ok
