@@ -266,3 +266,12 @@ mod tests {
         assert!(e.starts_with("--pol"), "{e}");
     }
 }
+
+/// The overwrite policy of a command's outputs: replace only with `--force`.
+pub fn overwrite(force: bool) -> crate::io::atomic::Overwrite {
+    if force {
+        crate::io::atomic::Overwrite::Replace
+    } else {
+        crate::io::atomic::Overwrite::Refuse
+    }
+}

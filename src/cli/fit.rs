@@ -73,6 +73,10 @@ pub struct FitArgs {
     /// Print a one-line JSON summary on stdout.
     #[arg(long)]
     pub json: bool,
+    /// Replace existing output files (without it, an existing output is an
+    /// error and is left untouched).
+    #[arg(long)]
+    pub force: bool,
 }
 
 /// The `--json` summary line.
@@ -330,6 +334,8 @@ fn read_envi(a: &FitArgs) -> anyhow::Result<Cube> {
 
 /// Run `irid fit`.
 pub fn run(a: &FitArgs) -> anyhow::Result<()> {
+    // Refused before any work; the write itself is atomic (io::atomic).
+    crate::io::atomic::check_new(&a.out, super::common::overwrite(a.force))?;
     let scene = build_scene(a)?;
     let Input { cube, names } = read_input(a)?;
     if let AngleKnowledge::Map { width, height, .. } = &scene.angle {
