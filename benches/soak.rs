@@ -15,7 +15,7 @@ use irid::pipeline::calibration::{
 };
 use irid::pipeline::output::SweepSummary;
 use irid::pipeline::runner::{run, RunConfig, Setup, SweepSink};
-use irid::pipeline::sequencer::{order_for, SeqMode};
+use irid::pipeline::sequencer::{order_for, EmulatedTuner, SeqMode};
 use irid::scene::{Scene, SceneFile};
 use std::sync::atomic::AtomicBool;
 use std::time::{Duration, Instant};
@@ -147,8 +147,15 @@ fn main() {
         ..Default::default()
     };
     let mut cam = SyntheticCamera::new(&scene, &bands, view.clone(), cfg).unwrap();
-    cam.set_realtime(true);
-    let (mut tuner, _emu) = irid::cli::run::emulated_varispec(view, time_scale).unwrap();
+    // Calibrated through the in-process filter on the camera's virtual
+    // clock (as the pipeline tests do); the run then goes through the
+    // firmware emulator in real time.
+    let mut cal_tuner = EmulatedTuner::new(
+        view.clone(),
+        Duration::from_millis(5),
+        Duration::from_micros(400),
+        9,
+    );
     let plan = CapturePlan {
         mode: SeqMode::Stepped,
         bands_nm: &nm,
@@ -157,10 +164,12 @@ fn main() {
         timeout: Duration::from_secs(2),
     };
     cam.set_target(Target::Dark).unwrap();
-    let dark = capture_reference("dark", &mut cam, &mut tuner, &plan).unwrap();
+    let dark = capture_reference("dark", &mut cam, &mut cal_tuner, &plan).unwrap();
     cam.set_target(Target::White(0.99)).unwrap();
-    let white = capture_reference("white", &mut cam, &mut tuner, &plan).unwrap();
+    let white = capture_reference("white", &mut cam, &mut cal_tuner, &plan).unwrap();
     cam.set_target(Target::Scene).unwrap();
+    cam.set_realtime(true);
+    let (mut tuner, _emu) = irid::cli::run::emulated_varispec(view, time_scale).unwrap();
     let info = cam.info();
     let meta = CalMeta {
         version: 1,

@@ -334,10 +334,11 @@ fn read_envi(a: &FitArgs) -> anyhow::Result<Cube> {
 
 /// Run `irid fit`.
 pub fn run(a: &FitArgs) -> anyhow::Result<()> {
-    // Refused before any work; the write itself is atomic (io::atomic).
-    crate::io::atomic::check_new(&a.out, super::common::overwrite(a.force))?;
     let scene = build_scene(a)?;
     let Input { cube, names } = read_input(a)?;
+    // Refused after the arguments and input are checked, before the fit;
+    // the write itself is atomic (io::atomic).
+    crate::io::atomic::check_new(&a.out, super::common::overwrite(a.force))?;
     if let AngleKnowledge::Map { width, height, .. } = &scene.angle {
         if (*width, *height) != (cube.width, cube.height) {
             bail!(
