@@ -206,6 +206,15 @@ impl SceneOverrides {
     }
 }
 
+/// The overwrite policy of a command's outputs: replace only with `--force`.
+pub fn overwrite(force: bool) -> crate::io::atomic::Overwrite {
+    if force {
+        crate::io::atomic::Overwrite::Replace
+    } else {
+        crate::io::atomic::Overwrite::Refuse
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -264,14 +273,5 @@ mod tests {
         };
         let e = o.apply(&mut src.file).unwrap_err().to_string();
         assert!(e.starts_with("--pol"), "{e}");
-    }
-}
-
-/// The overwrite policy of a command's outputs: replace only with `--force`.
-pub fn overwrite(force: bool) -> crate::io::atomic::Overwrite {
-    if force {
-        crate::io::atomic::Overwrite::Replace
-    } else {
-        crate::io::atomic::Overwrite::Refuse
     }
 }
