@@ -75,6 +75,8 @@ fn fit_args<'a>(input: &'a str, out: &'a str, extra: &[&'a str]) -> Vec<&'a str>
         "1.46",
         "--theta-deg",
         "0",
+        // Tests here write `res` more than once.
+        "--force",
     ];
     v.extend_from_slice(extra);
     v

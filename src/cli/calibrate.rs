@@ -28,10 +28,16 @@ pub struct CalibrateArgs {
     /// Demo: image size.
     #[arg(long, value_name = "WxH")]
     pub size: Option<String>,
+    /// Replace existing output files (without it, an existing output is an
+    /// error and is left untouched).
+    #[arg(long)]
+    pub force: bool,
 }
 
 /// Run `irid calibrate`.
 pub fn run(args: &CalibrateArgs) -> anyhow::Result<()> {
+    let overwrite = super::common::overwrite(args.force);
+    crate::io::atomic::check_new(&args.out, overwrite)?;
     let (mut rig, white) = match &args.config {
         Some(p) => {
             let (rig, line) = hardware_rig(p)?;
@@ -48,7 +54,7 @@ pub fn run(args: &CalibrateArgs) -> anyhow::Result<()> {
         anyhow::bail!("--white-reflectance must lie in (0, 1], not {white}");
     }
     let cal = capture_calibration(&mut rig, args.frames.max(1), white)?;
-    cal.save(&args.out)
+    cal.save_with(&args.out, overwrite)
         .with_context(|| format!("saving {}", args.out.display()))?;
     let count = |f: u8| cal.flags.iter().filter(|&&x| x & f != 0).count();
     println!(

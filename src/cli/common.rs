@@ -206,6 +206,15 @@ impl SceneOverrides {
     }
 }
 
+/// The overwrite policy of a command's outputs: replace only with `--force`.
+pub fn overwrite(force: bool) -> crate::io::atomic::Overwrite {
+    if force {
+        crate::io::atomic::Overwrite::Replace
+    } else {
+        crate::io::atomic::Overwrite::Refuse
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -73,6 +73,10 @@ pub struct FitArgs {
     /// Print a one-line JSON summary on stdout.
     #[arg(long)]
     pub json: bool,
+    /// Replace existing output files (without it, an existing output is an
+    /// error and is left untouched).
+    #[arg(long)]
+    pub force: bool,
 }
 
 /// The `--json` summary line.
@@ -332,6 +336,9 @@ fn read_envi(a: &FitArgs) -> anyhow::Result<Cube> {
 pub fn run(a: &FitArgs) -> anyhow::Result<()> {
     let scene = build_scene(a)?;
     let Input { cube, names } = read_input(a)?;
+    // Refused after the arguments and input are checked, before the fit;
+    // the write itself is atomic (io::atomic).
+    crate::io::atomic::check_new(&a.out, super::common::overwrite(a.force))?;
     if let AngleKnowledge::Map { width, height, .. } = &scene.angle {
         if (*width, *height) != (cube.width, cube.height) {
             bail!(

@@ -13,6 +13,7 @@ pub mod common;
 pub mod fit;
 pub mod lctf;
 pub mod model;
+pub mod report;
 pub mod run;
 pub mod synth;
 
@@ -67,7 +68,7 @@ pub fn main() -> ExitCode {
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("irid: error: {e:#}");
+            eprintln!("irid: error: {}", report::error_line(&e));
             ExitCode::FAILURE
         }
     }

@@ -111,6 +111,10 @@ pub struct RunArgs {
     /// Print per-stage latency percentiles and throughput at exit.
     #[arg(long)]
     pub profile: bool,
+    /// With --config: write into an output folder that already holds sweep
+    /// maps, replacing them (the demo always replaces its own).
+    #[arg(long)]
+    pub force: bool,
 }
 
 #[derive(clap::Parser)]
@@ -623,7 +627,16 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             .try_init()
             .context("installing the tracing subscriber")?;
     }
-    if ctrlc::set_handler(|| STOP.store(true, Ordering::Relaxed)).is_err() {
+    // The first Ctrl-C stops cleanly; a second ends the process at once,
+    // even if a stage is stuck (e.g. waiting on the controller).
+    if ctrlc::set_handler(|| {
+        if STOP.swap(true, Ordering::SeqCst) {
+            eprintln!("irid: interrupted twice: exiting without flushing");
+            std::process::exit(130);
+        }
+    })
+    .is_err()
+    {
         tracing::warn!("Ctrl-C handler not installed");
     }
 
@@ -670,6 +683,9 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     } else {
         std::fs::create_dir_all(&args.out)
             .with_context(|| format!("creating {}", args.out.display()))?;
+        if args.config.is_some() && !args.force {
+            crate::pipeline::output::refuse_earlier_maps(&args.out)?;
+        }
         Some(args.out.clone())
     };
     let cfg = RunConfig {

@@ -19,6 +19,11 @@ pub struct SynthArgs {
     /// Output header, e.g. `cube.hdr` (data goes to `cube.img`).
     #[arg(long, value_name = "FILE.hdr")]
     pub out: PathBuf,
+    /// Replace existing output files (without it, an existing output is an
+    /// error and is left untouched).
+    #[arg(long)]
+    pub force: bool,
+
     /// Noise seed (default: the scene's).
     #[arg(long)]
     pub seed: Option<u64>,
@@ -59,6 +64,10 @@ pub fn truth_path(out: &Path) -> PathBuf {
 
 /// Run `irid synth`.
 pub fn run(a: &SynthArgs) -> anyhow::Result<()> {
+    let (hdr, data) = envi::output_paths(&a.out);
+    for p in [&hdr, &data, &truth_path(&a.out)] {
+        crate::io::atomic::check_new(p, super::common::overwrite(a.force))?;
+    }
     let mut src = match &a.scene {
         Some(p) => SceneSource::load(p)?,
         None => SceneSource::paper_cylinder(),

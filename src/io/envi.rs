@@ -21,7 +21,7 @@ use super::IoError;
 use crate::estimate::Cube;
 use crate::optics::band::Band;
 use std::fmt::Write as _;
-use std::io::{Read, Seek, SeekFrom, Write};
+use std::io::{Read, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
 
 /// Largest header irid reads: a bigger "header" is almost surely the data
@@ -737,18 +737,22 @@ pub fn header_bands(header: &EnviHeader, header_path: &Path) -> Result<Vec<Band>
             "missing (irid needs the band centres)",
         )
     })?;
-    Ok(centers
+    // Through `Band::new`, like every other band: a header's bands get the
+    // same checks as a scene's.
+    centers
         .iter()
         .enumerate()
-        .map(|(i, &c)| Band {
-            center_nm: c,
-            fwhm_nm: header
+        .map(|(i, &c)| {
+            let fwhm = header
                 .fwhm_nm
                 .as_ref()
                 .and_then(|f| f.get(i).copied())
-                .unwrap_or(0.0),
+                .unwrap_or(0.0);
+            Band::new(c, fwhm).map_err(|e| {
+                IoError::field(header_path, "wavelength", format!("band {}: {e}", i + 1))
+            })
         })
-        .collect())
+        .collect()
 }
 
 /// Read a reflectance cube: values divided by the `reflectance scale factor`.
@@ -958,10 +962,10 @@ pub fn write_cube(
     Ok((hdr_path, data_path))
 }
 
+/// Data first, then the header, each atomically: a reader never finds a
+/// header whose data file is not complete.
 fn write_file(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
-    let mut f = std::fs::File::create(path).map_err(|e| IoError::os(path, e))?;
-    f.write_all(bytes).map_err(|e| IoError::os(path, e))?;
-    f.flush().map_err(|e| IoError::os(path, e))
+    super::atomic::write_bytes(path, super::atomic::Overwrite::Replace, bytes)
 }
 
 fn encode(v: f64, t: DataType, order: ByteOrder, out: &mut Vec<u8>) {

@@ -139,10 +139,24 @@ pub fn write_channels(path: &Path, data: &Channels) -> Result<(), IoError> {
         line_order: LineOrder::Increasing,
     };
     let layer = Layer::new((w, h), attrs, encoding, AnyChannels::sort(list));
-    Image::from_layer(layer)
-        .write()
-        .to_file(path)
-        .map_err(|e| exr_error(path, e))
+    // Through a temporary file (see `io::atomic`): a crash mid-write never
+    // leaves a truncated map under the final name.
+    let image = Image::from_layer(layer);
+    let mut exr_failure = None;
+    let written = super::atomic::write_atomically(path, super::atomic::Overwrite::Replace, |w| {
+        image.write().to_buffered(w).map_err(|e| match e {
+            exr::error::Error::Io(io) => io,
+            other => {
+                let message = other.to_string();
+                exr_failure = Some(other);
+                std::io::Error::other(message)
+            }
+        })
+    });
+    match (written, exr_failure) {
+        (Err(_), Some(e)) => Err(exr_error(path, e)),
+        (r, _) => r,
+    }
 }
 
 fn exr_error(path: &Path, e: exr::error::Error) -> IoError {

@@ -8,8 +8,9 @@
 //!   single-band EXR or ENVI file.
 //! - [`spectrum_table`]: spectrometer files and single spectra (CSV or
 //!   whitespace-separated text, one column per spectrum) as a one-row cube.
-//! - [`results_csv`]: per-pixel (per-spectrum) results as CSV, written
-//!   atomically.
+//! - [`results_csv`]: per-pixel (per-spectrum) results as CSV.
+//! - [`atomic`]: how every file is written (temporary name, sync, rename;
+//!   an existing output kept unless replacing it was asked for).
 //!
 //! Promise: malformed, inconsistent or truncated files give an [`IoError`]
 //! that names the file and, for headers, the field (for text tables, the
@@ -17,6 +18,7 @@
 //! panics on file contents.
 
 pub mod angle_map;
+pub mod atomic;
 pub mod envi;
 pub mod exr_maps;
 pub mod results_csv;

@@ -17,7 +17,7 @@
 use super::IoError;
 use crate::estimate::{ParamMaps, Reason};
 use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 /// The header line.
 pub const HEADER: &str = "name,x,y,thickness_nm,sigma_thickness_nm,n_film,theta_deg,sigma_theta_deg,residual_rms,valid,reason,reason_name";
@@ -79,48 +79,14 @@ pub fn write_results(
     })
 }
 
-/// The temporary file beside `path`: `path` + `.tmp-<pid>`.
-fn temp_path(path: &Path) -> Result<PathBuf, IoError> {
-    let name = path
-        .file_name()
-        .ok_or_else(|| IoError::format(path, "not a file name"))?;
-    let mut tmp = name.to_os_string();
-    tmp.push(format!(".tmp-{}", std::process::id()));
-    Ok(path.with_file_name(tmp))
-}
-
 /// Write through `body` into a temporary file beside `path`, sync it, and
-/// rename it to `path`; on any failure the temporary file is removed and
-/// `path` is left as it was.
+/// rename it to `path` (see [`super::atomic`]); on any failure `path` is
+/// left as it was.
 pub fn write_atomically(
     path: &Path,
     body: impl FnOnce(&mut dyn Write) -> std::io::Result<()>,
 ) -> Result<(), IoError> {
-    let tmp = temp_path(path)?;
-    let result = (|| {
-        let file = std::fs::File::create(&tmp)?;
-        let mut w = std::io::BufWriter::new(file);
-        body(&mut w)?;
-        let file = w.into_inner().map_err(|e| e.into_error())?;
-        file.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
-    if let Err(e) = result {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(IoError::os(path, e));
-    }
-    // Make the rename itself durable where the platform allows it.
-    if let Some(dir) = path.parent() {
-        let dir = if dir.as_os_str().is_empty() {
-            Path::new(".")
-        } else {
-            dir
-        };
-        if let Ok(d) = std::fs::File::open(dir) {
-            let _ = d.sync_all();
-        }
-    }
-    Ok(())
+    super::atomic::write_atomically(path, super::atomic::Overwrite::Replace, |w| body(w))
 }
 
 #[cfg(test)]

@@ -383,22 +383,30 @@ impl Calibration {
         Ok(())
     }
 
-    /// Write to `path`.
+    /// Write to `path`, atomically (see [`crate::io::atomic`]): a crash or a
+    /// full disk never leaves a damaged calibration under that name.
     pub fn save(&self, path: &Path) -> Result<(), CalibrationError> {
-        let io = |source| CalibrationError::Io {
-            path: path.to_path_buf(),
-            source,
-        };
-        let mut out = std::io::BufWriter::new(std::fs::File::create(path).map_err(io)?);
+        self.save_with(path, crate::io::atomic::Overwrite::Replace)
+    }
+
+    /// [`Calibration::save`], refusing to replace an existing file when
+    /// `overwrite` says so.
+    pub fn save_with(
+        &self,
+        path: &Path,
+        overwrite: crate::io::atomic::Overwrite,
+    ) -> Result<(), CalibrationError> {
         let header = serde_json::to_string(&self.meta).expect("metadata serialises");
-        out.write_all(b"IRIDCAL1 ").map_err(io)?;
-        out.write_all(header.as_bytes()).map_err(io)?;
-        out.write_all(b"\n").map_err(io)?;
-        for v in self.dark.iter().chain(&self.white) {
-            out.write_all(&v.to_le_bytes()).map_err(io)?;
-        }
-        out.write_all(&self.flags).map_err(io)?;
-        out.flush().map_err(io)
+        crate::io::atomic::write_atomically(path, overwrite, |out| {
+            out.write_all(b"IRIDCAL1 ")?;
+            out.write_all(header.as_bytes())?;
+            out.write_all(b"\n")?;
+            for v in self.dark.iter().chain(&self.white) {
+                out.write_all(&v.to_le_bytes())?;
+            }
+            out.write_all(&self.flags)
+        })
+        .map_err(CalibrationError::Envi)
     }
 
     /// Read from `path`; a damaged file is an error naming what is wrong.

@@ -9,6 +9,7 @@
 //! - [`tracker`]: per-sweep, per-pixel incremental state (planes, extrema).
 //! - [`runner`]: threads, the lock-free frame ring, bounded channels, the
 //!   overflow policy, the single-threaded deterministic mode.
+//! - [`stage`]: the stages by name, and how a failing one stops the run.
 //! - [`output`]: per-sweep EXR maps and summary lines.
 //! - [`profile`]: a tracing layer that records stage latencies.
 //!
@@ -20,4 +21,5 @@ pub mod output;
 pub mod profile;
 pub mod runner;
 pub mod sequencer;
+pub mod stage;
 pub mod tracker;

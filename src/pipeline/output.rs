@@ -124,7 +124,37 @@ impl SweepSummary {
     }
 }
 
-/// The path of sweep `sweep`'s map under `dir`.
+/// Refuse an output folder that already holds sweep maps (of an earlier
+/// run, which this one would overwrite), naming the first found.
+pub fn refuse_earlier_maps(dir: &Path) -> Result<(), OutputError> {
+    let entries = std::fs::read_dir(dir).map_err(|e| OutputError::Write {
+        path: dir.to_path_buf(),
+        message: e.to_string(),
+    })?;
+    let mut earlier: Vec<PathBuf> = entries
+        .filter_map(Result::ok)
+        .map(|e| e.path())
+        .filter(|p| {
+            p.file_name()
+                .and_then(|n| n.to_str())
+                .is_some_and(|n| n.starts_with("sweep-") && n.ends_with(".exr"))
+        })
+        .collect();
+    earlier.sort();
+    match earlier.first() {
+        None => Ok(()),
+        Some(p) => Err(OutputError::Write {
+            path: p.clone(),
+            message: format!(
+                "the output folder holds {} map(s) of an earlier run; give --force to replace them, or another --out",
+                earlier.len()
+            ),
+        }),
+    }
+}
+
+/// The path of sweep `sweep`'s map under `dir`: a name made of the
+/// number alone, so a map is never written outside `dir`.
 pub fn sweep_path(dir: &Path, sweep: u64) -> PathBuf {
     dir.join(format!("sweep-{sweep:06}.exr"))
 }

@@ -17,6 +17,13 @@
 //! - Ingest fills a sweep buffer taken from a bounded pool of sweep buffers;
 //!   if none is free when a sweep begins (the solver is behind), that whole
 //!   sweep is skipped and counted.
+//! - It does block on the filter controller: in stepped mode the sequencer
+//!   commands each band over serial I/O from the capture thread and waits
+//!   for the reply (with retries, up to the controller's timeout). Frames
+//!   the camera exposes meanwhile were taken while the filter moved and are
+//!   of no use; those the camera or its driver lost during such a call (a
+//!   gap in its frame counter right after a tune) are counted apart, in
+//!   [`RunReport::frames_lost_tuning`], not as faults.
 //! - The solver solves a completed sweep's rows in parallel (rayon) and the
 //!   map is complete before the next sweep's: sweeps are solved in order,
 //!   one at a time.
@@ -28,10 +35,18 @@
 //! Stopping (Ctrl-C sets the stop flag): capture ends, the sweep in progress
 //! is abandoned, every completed sweep is solved and written, and the run
 //! returns normally.
+//!
+//! Failing (see [`super::stage`]): a stage that panics or returns an error
+//! raises a halt flag every other stage checks, so nothing waits on a dead
+//! stage; sweeps already solved are still written, and the run returns the
+//! error, naming the stage ([`RunError::Panicked`] for a panic).
 
 use super::calibration::Calibrator;
 use super::output::SweepSummary;
-use super::sequencer::{BandTuner, Discard, SeqMode, Sequencer, SequencerError, Verdict};
+use super::sequencer::{
+    BandTuner, Discard, SeqMode, Sequencer, SequencerError, TuneError, Verdict,
+};
+use super::stage::{catch, HaltOnDrop, Stage, StageFault};
 use super::tracker::{SweepBuf, TrackError, Tracker};
 use crate::device::camera::{CameraError, Frame, FrameSource};
 use crate::estimate::solver::Scratch;
@@ -62,6 +77,14 @@ pub enum RunError {
     /// Inconsistent set-up.
     #[error("pipeline: {0}")]
     Config(String),
+    /// A stage panicked (a bug): the run was stopped.
+    #[error("the {stage} stage failed: {message}")]
+    Panicked {
+        /// The stage.
+        stage: Stage,
+        /// The panic's message.
+        message: String,
+    },
 }
 
 /// Where finished maps go.
@@ -141,6 +164,9 @@ pub struct RunConfig {
     /// Rows solved (in parallel) and emitted together; 0: a sixteenth of
     /// the image.
     pub row_block: usize,
+    /// A panic injected into one stage (tests of the failure paths).
+    #[doc(hidden)]
+    pub fault: Option<StageFault>,
 }
 
 impl Default for RunConfig {
@@ -155,6 +181,7 @@ impl Default for RunConfig {
             frame_timeout: Duration::from_secs(2),
             track_extrema: false,
             row_block: 0,
+            fault: None,
         }
     }
 }
@@ -172,6 +199,10 @@ pub struct RunReport {
     pub frames_settling: u64,
     /// Frames read from the camera.
     pub frames_total: u64,
+    /// Frames the camera lost while capture waited on the filter
+    /// controller (stepped mode; taken while the filter moved, so of no
+    /// use, and not counted in `frames_dropped`).
+    pub frames_lost_tuning: u64,
     /// Whether the run was stopped early.
     pub stopped: bool,
 }
@@ -182,6 +213,24 @@ struct Counters {
     sweeps_dropped: AtomicU64,
     frames_settling: AtomicU64,
     frames_total: AtomicU64,
+    frames_lost_tuning: AtomicU64,
+}
+
+/// A tuner that notes whether it was called (capture then knows a gap in
+/// the camera's frame counter fell while it waited on the controller).
+struct NoteTuning<'a> {
+    inner: &'a mut dyn BandTuner,
+    tuned: bool,
+}
+
+impl BandTuner for NoteTuning<'_> {
+    fn tune(&mut self, nm: f64, now_ns: u64) -> Result<u64, TuneError> {
+        self.tuned = true;
+        self.inner.tune(nm, now_ns)
+    }
+    fn describe(&self) -> String {
+        self.inner.describe()
+    }
 }
 
 /// What capture hands ingest.
@@ -212,6 +261,10 @@ struct Capture<'a> {
     counters: Arc<Counters>,
     width: u32,
     height: u32,
+    /// The last frame's handling called the filter controller.
+    after_tune: bool,
+    fault: Option<StageFault>,
+    handled: u64,
 }
 
 enum Step {
@@ -240,6 +293,7 @@ impl Capture<'_> {
         let mut frame = buf
             .unwrap_or_else(|| std::mem::replace(&mut self.spare, Frame::with_size(0, 0, format)));
         let _span = tracing::info_span!("capture.frame").entered();
+        StageFault::check(self.fault, Stage::Capture, &mut self.handled);
         let got = self.source.next_frame(&mut frame, self.timeout);
         self.counters.frames_total.fetch_add(1, Ordering::Relaxed);
         let result = match got {
@@ -248,20 +302,29 @@ impl Capture<'_> {
                 // Gaps in the camera's counter are frames lost before us.
                 if let Some(last) = self.last_seq {
                     if m.seq > last + 1 {
-                        self.counters
-                            .frames_dropped
-                            .fetch_add(m.seq - last - 1, Ordering::Relaxed);
+                        let lost = if self.after_tune {
+                            &self.counters.frames_lost_tuning
+                        } else {
+                            &self.counters.frames_dropped
+                        };
+                        lost.fetch_add(m.seq - last - 1, Ordering::Relaxed);
                     }
                 }
                 self.last_seq = Some(self.last_seq.map_or(m.seq, |l| l.max(m.seq)));
                 let valid =
                     frame.pixels().is_ok() && (m.width, m.height) == (self.width, self.height);
-                let v = self.seq.on_frame(&m, valid, self.tuner, &mut |x| {
+                let mut tuner = NoteTuning {
+                    inner: &mut *self.tuner,
+                    tuned: false,
+                };
+                let v = self.seq.on_frame(&m, valid, &mut tuner, &mut |x| {
                     emit(Packet::Missing {
                         sweep: x.sweep,
                         band: x.band,
                     })
-                })?;
+                });
+                self.after_tune = tuner.tuned;
+                let v = v?;
                 match v {
                     Verdict::Accept { sweep, band } if pooled => {
                         emit(Packet::Frame { sweep, band, frame });
@@ -271,6 +334,7 @@ impl Capture<'_> {
                         // No buffer: processing is behind. Drop the sweep.
                         let now = m.timestamp_ns + u64::from(m.exposure_us) * 1000;
                         let s = self.seq.abandon_sweep(self.tuner, now)?;
+                        self.after_tune = true;
                         tracing::warn!(sweep = s, "frame pool empty: sweep abandoned");
                         self.counters.frames_dropped.fetch_add(1, Ordering::Relaxed);
                         emit(Packet::Abandoned { sweep: s });
@@ -341,6 +405,8 @@ struct Ingest {
     /// Sweeps at or below this are not wanted any more.
     floor: Option<u64>,
     counters: Arc<Counters>,
+    fault: Option<StageFault>,
+    handled: u64,
 }
 
 impl Ingest {
@@ -360,6 +426,7 @@ impl Ingest {
         pool: &mut dyn SweepPool,
         done: &mut dyn FnMut(SweepBuf, Instant),
     ) -> Option<Frame> {
+        StageFault::check(self.fault, Stage::Ingest, &mut self.handled);
         let (sweep, band, frame) = match p {
             Packet::End => {
                 // An incomplete sweep at the end is abandoned.
@@ -446,6 +513,8 @@ struct Solve {
     counters: Arc<Counters>,
     reported_frames: u64,
     reported_sweeps: u64,
+    fault: Option<StageFault>,
+    handled: u64,
 }
 
 impl Solve {
@@ -457,6 +526,7 @@ impl Solve {
         rows: &mut dyn RowSink,
     ) -> SweepSummary {
         let _span = tracing::info_span!("solve.sweep", sweep = buf.sweep).entered();
+        StageFault::check(self.fault, Stage::Solve, &mut self.handled);
         let cube = &buf.cube;
         // The film index where unknown, and in every case the noise level
         // and the image-wide level the fits are judged against (a known
@@ -592,6 +662,9 @@ pub fn run_with_rows(
         counters: counters.clone(),
         width: info.width,
         height: info.height,
+        after_tune: false,
+        fault: cfg.fault,
+        handled: 0,
     };
     let tracker = Tracker::new(w, h, &setup.bands).track_extrema(cfg.track_extrema);
     let n_sweep_bufs = cfg.sweep_buffers.max(1);
@@ -603,6 +676,8 @@ pub fn run_with_rows(
         current: None,
         floor: None,
         counters: counters.clone(),
+        fault: cfg.fault,
+        handled: 0,
     };
     let block = if cfg.row_block > 0 {
         cfg.row_block.min(h.max(1))
@@ -619,6 +694,8 @@ pub fn run_with_rows(
         counters: counters.clone(),
         reported_frames: 0,
         reported_sweeps: 0,
+        fault: cfg.fault,
+        handled: 0,
     };
     let mut stopped = false;
     let mut completed = 0u64;
@@ -629,14 +706,24 @@ pub fn run_with_rows(
         let mut packets: std::collections::VecDeque<Packet> =
             std::collections::VecDeque::with_capacity(64);
         let mut result = Ok(());
+        let mut sink_faults = 0;
         loop {
             if stop.load(Ordering::Relaxed) {
                 stopped = true;
                 packets.push_back(Packet::End);
             } else {
-                match capture.step(pool.pop(), &mut |p| packets.push_back(p), &mut |f| {
-                    pool.push(f)
-                }) {
+                let step = catch(|| {
+                    capture.step(pool.pop(), &mut |p| packets.push_back(p), &mut |f| {
+                        pool.push(f)
+                    })
+                })
+                .unwrap_or_else(|message| {
+                    Err(RunError::Panicked {
+                        stage: Stage::Capture,
+                        message,
+                    })
+                });
+                match step {
                     Ok(Step::Continue) => {}
                     Ok(Step::Done) => packets.push_back(Packet::End),
                     Err(e) => {
@@ -649,15 +736,35 @@ pub fn run_with_rows(
             while let Some(p) = packets.pop_front() {
                 ended |= matches!(p, Packet::End);
                 let mut finished: Option<(SweepBuf, Instant)> = None;
-                let f = ingest.on_packet(p, &mut sweep_bufs, &mut |b, t| finished = Some((b, t)));
+                let f = catch(|| {
+                    ingest.on_packet(p, &mut sweep_bufs, &mut |b, t| finished = Some((b, t)))
+                })
+                .map_err(|message| RunError::Panicked {
+                    stage: Stage::Ingest,
+                    message,
+                })?;
                 if let Some(f) = f {
                     pool.push(f);
                 }
                 if let Some((b, t)) = finished {
-                    let mut s = solve.solve(&b, &mut maps, None, rows);
+                    let mut s =
+                        catch(|| solve.solve(&b, &mut maps, None, rows)).map_err(|message| {
+                            RunError::Panicked {
+                                stage: Stage::Solve,
+                                message,
+                            }
+                        })?;
                     s.latency_ms = t.elapsed().as_secs_f64() * 1e3;
                     let _span = tracing::info_span!("write.sweep", sweep = b.sweep).entered();
-                    sink.on_sweep(&s, &maps).map_err(RunError::Sink)?;
+                    catch(|| {
+                        StageFault::check(cfg.fault, Stage::Sink, &mut sink_faults);
+                        sink.on_sweep(&s, &maps)
+                    })
+                    .map_err(|message| RunError::Panicked {
+                        stage: Stage::Sink,
+                        message,
+                    })?
+                    .map_err(RunError::Sink)?;
                     completed += 1;
                     sweep_bufs.push(b);
                 }
@@ -694,10 +801,14 @@ pub fn run_with_rows(
         for _ in 0..2 {
             let _ = free_maps_tx.send(ParamMaps::new(w, h));
         }
+        // Raised by a failing stage: every loop below checks it, so no
+        // stage waits on one that is gone.
+        let halt = &AtomicBool::new(false);
         let outcome = std::thread::scope(|sc| -> Result<(), RunError> {
             let cap = std::thread::Builder::new()
                 .name("irid-capture".into())
                 .spawn_scoped(sc, move || -> Result<bool, RunError> {
+                    let _guard = HaltOnDrop(halt);
                     let mut stopped = false;
                     let mut result = Ok(());
                     // Frames the capture thread did not pass on, reused first.
@@ -705,6 +816,9 @@ pub fn run_with_rows(
                     loop {
                         if stop.load(Ordering::Relaxed) {
                             stopped = true;
+                            break;
+                        }
+                        if halt.load(Ordering::Relaxed) {
                             break;
                         }
                         let mut overflow = false;
@@ -734,6 +848,7 @@ pub fn run_with_rows(
                             Ok(Step::Continue) => {}
                             Ok(Step::Done) => break,
                             Err(e) => {
+                                halt.store(true, Ordering::SeqCst);
                                 result = Err(e);
                                 break;
                             }
@@ -741,6 +856,10 @@ pub fn run_with_rows(
                     }
                     let mut end = Packet::End;
                     while let Err(p) = pkt_prod.try_push(end) {
+                        if halt.load(Ordering::Relaxed) {
+                            // Ingest is gone: nobody would read the marker.
+                            break;
+                        }
                         end = p;
                         std::thread::sleep(Duration::from_micros(200));
                     }
@@ -755,9 +874,14 @@ pub fn run_with_rows(
             let ing = std::thread::Builder::new()
                 .name("irid-ingest".into())
                 .spawn_scoped(sc, move || {
+                    let _guard = HaltOnDrop(halt);
                     let mut idle = 0u32;
                     loop {
                         let Some(p) = pkt_cons.try_pop() else {
+                            if halt.load(Ordering::Relaxed) {
+                                // Capture died before its end marker.
+                                break;
+                            }
                             // Spin briefly (a frame is often just behind),
                             // then sleep until capture rings the bell: an
                             // idle ingest costs no CPU the solver needs.
@@ -787,15 +911,21 @@ pub fn run_with_rows(
             let sink_thread = std::thread::Builder::new()
                 .name("irid-sink".into())
                 .spawn_scoped(sc, move || -> Result<u64, RunError> {
+                    let _guard = HaltOnDrop(halt);
+                    let mut fault_count = 0;
                     let mut n = 0;
                     let mut err = None;
                     for (s, maps) in maps_rx.iter() {
                         if err.is_none() {
                             let _span =
                                 tracing::info_span!("write.sweep", sweep = s.sweep).entered();
+                            StageFault::check(cfg.fault, Stage::Sink, &mut fault_count);
                             match sink.on_sweep(&s, &maps) {
                                 Ok(()) => n += 1,
-                                Err(e) => err = Some(RunError::Sink(e)),
+                                Err(e) => {
+                                    halt.store(true, Ordering::SeqCst);
+                                    err = Some(RunError::Sink(e));
+                                }
                             }
                         }
                         let _ = free_maps_tx.try_send(maps);
@@ -804,9 +934,28 @@ pub fn run_with_rows(
                 })
                 .map_err(|e| RunError::Config(format!("spawn: {e}")))?;
             // Solve on this thread.
+            let mut solve_result = Ok(());
             for (b, t) in done_rx.iter() {
+                // After a failure the sweep being solved is finished and
+                // written; those still queued are dropped (counted), so the
+                // run ends within one solve.
+                if halt.load(Ordering::Relaxed) {
+                    counters.sweeps_dropped.fetch_add(1, Ordering::Relaxed);
+                    continue;
+                }
                 let mut maps = free_maps_rx.recv().unwrap_or_else(|_| ParamMaps::new(w, h));
-                let mut s = solve.solve(&b, &mut maps, Some(&rayon_pool), rows);
+                let solved = catch(|| solve.solve(&b, &mut maps, Some(&rayon_pool), rows));
+                let mut s = match solved {
+                    Ok(s) => s,
+                    Err(message) => {
+                        halt.store(true, Ordering::SeqCst);
+                        solve_result = Err(RunError::Panicked {
+                            stage: Stage::Solve,
+                            message,
+                        });
+                        break;
+                    }
+                };
                 s.latency_ms = t.elapsed().as_secs_f64() * 1e3;
                 let _ = free_sweep_tx.try_send(b);
                 if maps_tx.send((s, maps)).is_err() {
@@ -814,13 +963,25 @@ pub fn run_with_rows(
                 }
             }
             drop(maps_tx);
-            let _ = ing.join();
+            // Solving stopped early: ingest must not wait on a full queue.
+            drop(done_rx);
+            let panicked = |stage| {
+                move |p: Box<dyn std::any::Any + Send>| RunError::Panicked {
+                    stage,
+                    message: super::stage::panic_message(&*p),
+                }
+            };
+            let ing_result = ing.join().map_err(panicked(Stage::Ingest));
             let cap_result = cap
                 .join()
-                .unwrap_or_else(|_| Err(RunError::Config("capture thread panicked".into())));
+                .unwrap_or_else(|p| Err(panicked(Stage::Capture)(p)));
             let sink_result = sink_thread
                 .join()
-                .unwrap_or_else(|_| Err(RunError::Config("sink thread panicked".into())));
+                .unwrap_or_else(|p| Err(panicked(Stage::Sink)(p)));
+            // The first failure in pipeline order is the cause; later
+            // stages only saw it stop.
+            ing_result?;
+            solve_result?;
             completed = sink_result?;
             stopped = cap_result?;
             Ok(())
@@ -833,6 +994,7 @@ pub fn run_with_rows(
         frames_dropped: counters.frames_dropped.load(Ordering::Relaxed),
         frames_settling: counters.frames_settling.load(Ordering::Relaxed),
         frames_total: counters.frames_total.load(Ordering::Relaxed),
+        frames_lost_tuning: counters.frames_lost_tuning.load(Ordering::Relaxed),
         stopped,
     })
 }

@@ -28,6 +28,9 @@ pub struct FaultConfig {
     pub seed: u64,
     /// Deliver this many frames untouched first.
     pub after: u64,
+    /// Fail (an I/O error, as an unplugged camera) once this many frames
+    /// were delivered.
+    pub fail_after: Option<u64>,
 }
 
 impl FaultConfig {
@@ -52,6 +55,13 @@ impl FaultConfig {
         FaultConfig {
             reorder: p,
             seed,
+            ..Default::default()
+        }
+    }
+    /// A camera that fails after `n` frames.
+    pub fn fails_after(n: u64) -> Self {
+        FaultConfig {
+            fail_after: Some(n),
             ..Default::default()
         }
     }
@@ -134,6 +144,11 @@ impl<S: FrameSource> FrameSource for FaultySource<S> {
     }
 
     fn next_frame(&mut self, out: &mut Frame, timeout: Duration) -> Result<(), CameraError> {
+        if self.cfg.fail_after.is_some_and(|n| self.delivered >= n) {
+            return Err(CameraError::Io(std::io::Error::other(
+                "injected failure: the camera stopped answering",
+            )));
+        }
         if let Some(p) = self.pending.take() {
             let n = p.data.len().min(out.data.len());
             out.meta = p.meta;

@@ -114,6 +114,11 @@ pub const INTEGRATION_TOLERANCE: f64 = 2e-4;
 /// Largest number of bands a pixel may have.
 pub const MAX_BANDS: usize = 512;
 
+/// Band centres the solver accepts, nm: extreme ultraviolet to far
+/// infrared. Outside, a "wavelength" is almost surely in the wrong unit
+/// (0.4–0.7 read as nm), and the grids sized from it would be absurd.
+pub const BAND_RANGE_NM: (f64, f64) = (10.0, 1.0e6);
+
 /// Angle σ above which the angle is reported as not identifiable, degrees.
 pub const ANGLE_SIGMA_LIMIT_DEG: f64 = 0.25;
 
@@ -334,6 +339,16 @@ impl Solver {
                 b.center_nm, b.fwhm_nm
             )));
         }
+        if let Some(b) = bands
+            .iter()
+            .find(|b| !(BAND_RANGE_NM.0..=BAND_RANGE_NM.1).contains(&b.center_nm))
+        {
+            return Err(EstimateError::Bands(format!(
+                "band centre {} nm is outside {}–{} nm, where thin-film optics with these \
+                 media apply: check the wavelength units",
+                b.center_nm, BAND_RANGE_NM.0, BAND_RANGE_NM.1
+            )));
+        }
         let n2_hi = match &scene.film {
             FilmKnowledge::Known(d) => bands
                 .iter()
@@ -376,7 +391,24 @@ impl Solver {
         let d_min = scene.min_thickness_nm.min(0.5 * d_max);
         // The search covers what may be reported, and a little past the
         // resolved range so a film beyond it is found and flagged.
-        let basis = FringeBasis::new(bands, (d_max * n2_hi).min(1.05 * g_max.0));
+        let g_search = (d_max * n2_hi).min(1.05 * g_max.0);
+        // Sized before allocating: wavelengths in the wrong unit (a header
+        // giving 0.001–0.031 "nm") or all bands at one centre would ask for
+        // gigabytes.
+        let need = FringeBasis::bytes_needed(bands, g_search);
+        if need.is_nan() || need > search::BASIS_BUDGET_BYTES as f64 {
+            let (lo, hi) = bands.iter().fold((f64::INFINITY, 0.0f64), |(a, b), x| {
+                (a.min(x.center_nm), b.max(x.center_nm))
+            });
+            return Err(EstimateError::Bands(format!(
+                "band centres {lo}–{hi} nm with films up to {d_max:.0} nm would need a \
+                 fringe-search grid of {:.3e} bytes (at most {} MB): are the centres in nm, \
+                 and distinct?",
+                need,
+                search::BASIS_BUDGET_BYTES >> 20
+            )));
+        }
+        let basis = FringeBasis::new(bands, g_search);
         let mut solver = Solver {
             scene: scene.clone(),
             bands: bands.to_vec(),

@@ -20,9 +20,15 @@ pub(super) struct FringeBasis {
     nb: usize,
 }
 
+/// Bytes the fringe-search basis may take: far above any real band set
+/// (400–700 nm at 1 nm up to 100 µm of film: ~10 MB), far below what a
+/// header with nonsense wavelengths would ask for.
+pub const BASIS_BUDGET_BYTES: usize = 64 << 20;
+
 impl FringeBasis {
-    pub(super) fn new(bands: &[Band], g_max: f64) -> FringeBasis {
-        let nb = bands.len();
+    /// Grid step (nm of optical thickness) and grid points for `bands` up
+    /// to `g_max`, computed in f64 so a nonsense band set cannot overflow.
+    fn grid(bands: &[Band], g_max: f64) -> (f64, f64) {
         let lam_min = bands
             .iter()
             .map(|b| b.center_nm)
@@ -30,7 +36,20 @@ impl FringeBasis {
         // Phase step at the shortest wavelength ≤ 0.35 rad: the residual's
         // minimum is never missed between grid points.
         let step = 0.35 * lam_min / (4.0 * PI);
-        let n = (g_max / step).ceil() as usize + 1;
+        (step, (g_max / step).ceil() + 1.0)
+    }
+
+    /// Bytes the basis for `bands` up to `g_max` would take (f64: may be
+    /// far beyond memory, or NaN for nonsense input).
+    pub(super) fn bytes_needed(bands: &[Band], g_max: f64) -> f64 {
+        let (_, n) = Self::grid(bands, g_max);
+        n * (bands.len() as f64 * 4.0 + 32.0)
+    }
+
+    pub(super) fn new(bands: &[Band], g_max: f64) -> FringeBasis {
+        let nb = bands.len();
+        let (step, n) = Self::grid(bands, g_max);
+        let n = n as usize;
         let mut g = Vec::with_capacity(n);
         let mut basis = Vec::with_capacity(n * nb);
         let mut minv = Vec::with_capacity(n);
