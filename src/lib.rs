@@ -26,6 +26,7 @@ pub mod device;
 pub mod estimate;
 pub mod io;
 pub mod optics;
+pub mod line;
 pub mod pipeline;
 pub mod scene;
 pub mod synth;

@@ -1,0 +1,50 @@
+//! The production line: a moving web mapped row by row at line rate.
+//!
+//! On a coating line the film moves under the camera while the filter steps
+//! through its bands, so each band of a stretch of film is seen at a
+//! different sensor row. This layer follows the film, not the sensor:
+//!
+//! - [`geometry`]: where each frame's rows lie on the web (encoder or
+//!   constant speed), and the highest line speed the optics allow;
+//! - [`accumulate`]: per-web-row state in a ring sized by the field of view;
+//!   a row is solved and emitted, in web order, when it leaves the view —
+//!   complete, or flagged "missing bands";
+//!
+//! The layer sits beside [`crate::pipeline`] and reuses its pieces (the
+//! camera trait, the sequencer, the calibrator, the solver); it reads no
+//! clock: frame timestamps are the time.
+
+pub mod accumulate;
+pub mod geometry;
+
+/// Errors of the line layer.
+#[derive(Debug, thiserror::Error)]
+pub enum LineError {
+    /// A configuration that cannot work.
+    #[error("line: {0}")]
+    Config(String),
+    /// The web is set to move faster than every row can be seen in every band.
+    #[error(
+        "line speed {speed:.2} rows/s is above the highest the optics allow, \
+         {max:.2} rows/s ({rows_in_view} rows in view × {band_rate_hz:.2} bands/s / {n_bands} bands): \
+         some rows would miss a band"
+    )]
+    TooFast {
+        /// Requested speed, rows/s.
+        speed: f64,
+        /// Highest speed, rows/s.
+        max: f64,
+        /// Sensor rows that see the web.
+        rows_in_view: usize,
+        /// Bands per second.
+        band_rate_hz: f64,
+        /// Bands per sweep.
+        n_bands: usize,
+    },
+    /// Encoder registration, but a frame carries no encoder count.
+    #[error("a frame carries no encoder count (the line is registered by encoder)")]
+    NoEncoder,
+    /// The estimator could not be set up.
+    #[error("estimator: {0}")]
+    Estimate(#[from] crate::estimate::EstimateError),
+}
