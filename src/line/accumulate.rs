@@ -243,7 +243,11 @@ impl Accumulator {
         self.advance(first, out);
         let next = self.next.unwrap_or(first);
         let w = self.width;
-        for (y, src) in rows.chunks_exact(w.max(1)).take(self.rows_in_view).enumerate() {
+        for (y, src) in rows
+            .chunks_exact(w.max(1))
+            .take(self.rows_in_view)
+            .enumerate()
+        {
             let wr = first + y as i64;
             if wr < next {
                 self.counts.late += 1;

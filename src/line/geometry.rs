@@ -133,14 +133,18 @@ pub fn stepped_band_rate(frame_period_ns: u64, exposure_ns: u64, settle_max_ns: 
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Registration {
     motion: Motion,
-    origin: Option<(i64, u64)>,
+    origin: Option<u64>,
 }
 
 impl Registration {
-    /// Register frames with `motion`; the first frame is web row 0.
+    /// Register frames with `motion`. By encoder, web rows are absolute
+    /// (count × rows per count); at constant speed, the first frame's
+    /// sensor row 0 is web row 0.
     pub fn new(motion: Motion) -> Result<Registration, LineError> {
         let ok = match motion {
-            Motion::Encoder { rows_per_count } => rows_per_count.is_finite() && rows_per_count > 0.0,
+            Motion::Encoder { rows_per_count } => {
+                rows_per_count.is_finite() && rows_per_count > 0.0
+            }
             Motion::Constant { rows_per_s } => rows_per_s.is_finite() && rows_per_s >= 0.0,
         };
         if !ok {
@@ -159,11 +163,10 @@ impl Registration {
         match self.motion {
             Motion::Encoder { rows_per_count } => {
                 let c = encoder.ok_or(LineError::NoEncoder)?;
-                let (c0, _) = *self.origin.get_or_insert((c, timestamp_ns));
-                Ok((c - c0) as f64 * rows_per_count)
+                Ok(c as f64 * rows_per_count)
             }
             Motion::Constant { rows_per_s } => {
-                let (_, t0) = *self.origin.get_or_insert((0, timestamp_ns));
+                let t0 = *self.origin.get_or_insert(timestamp_ns);
                 Ok(timestamp_ns.saturating_sub(t0) as f64 * 1e-9 * rows_per_s)
             }
         }
@@ -253,8 +256,8 @@ mod tests {
             rows_per_count: 0.25,
         })
         .unwrap();
-        assert_eq!(r.position(Some(100), 0).unwrap(), 0.0);
-        assert_eq!(r.position(Some(140), 5).unwrap(), 10.0);
+        assert_eq!(r.position(Some(100), 0).unwrap(), 25.0);
+        assert_eq!(r.position(Some(140), 5).unwrap(), 35.0);
         assert!(matches!(r.position(None, 9), Err(LineError::NoEncoder)));
         let mut c = Registration::new(Motion::Constant { rows_per_s: 40.0 }).unwrap();
         assert_eq!(c.position(None, 1_000_000_000).unwrap(), 0.0);

@@ -9,6 +9,9 @@
 //! - [`accumulate`]: per-web-row state in a ring sized by the field of view;
 //!   a row is solved and emitted, in web order, when it leaves the view —
 //!   complete, or flagged "missing bands";
+//! - [`solve`]: each finished row solved as a one-row cube;
+//! - [`run`]: the line runner (one thread, deterministic);
+//! - [`rig`]: the synthetic line (moving-web camera, emulated filter);
 //!
 //! The layer sits beside [`crate::pipeline`] and reuses its pieces (the
 //! camera trait, the sequencer, the calibrator, the solver); it reads no
@@ -16,6 +19,9 @@
 
 pub mod accumulate;
 pub mod geometry;
+pub mod rig;
+pub mod run;
+pub mod solve;
 
 /// Errors of the line layer.
 #[derive(Debug, thiserror::Error)]
@@ -44,6 +50,15 @@ pub enum LineError {
     /// Encoder registration, but a frame carries no encoder count.
     #[error("a frame carries no encoder count (the line is registered by encoder)")]
     NoEncoder,
+    /// The camera failed.
+    #[error("camera: {0}")]
+    Camera(#[from] crate::device::camera::CameraError),
+    /// The filter or the sequencing failed.
+    #[error("filter: {0}")]
+    Sequencer(String),
+    /// A row sink failed (writing, publishing).
+    #[error("output: {0}")]
+    Sink(String),
     /// The estimator could not be set up.
     #[error("estimator: {0}")]
     Estimate(#[from] crate::estimate::EstimateError),
