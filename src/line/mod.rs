@@ -19,9 +19,11 @@
 
 pub mod accumulate;
 pub mod geometry;
+pub mod recipe;
 pub mod rig;
 pub mod run;
 pub mod solve;
+pub mod stats;
 
 /// Errors of the line layer.
 #[derive(Debug, thiserror::Error)]
