@@ -12,6 +12,9 @@
 //! - [`solve`]: each finished row solved as a one-row cube;
 //! - [`run`]: the line runner (one thread, deterministic);
 //! - [`rig`]: the synthetic line (moving-web camera, emulated filter);
+//! - [`stats`], [`recipe`], [`output`]: lane statistics, trend, Cp/Cpk,
+//!   alarms, EXR strip segments, JSON messages to publishers;
+//! - [`mqtt`]: the MQTT publisher (bounded queue, delivery after reconnect).
 //!
 //! The layer sits beside [`crate::pipeline`] and reuses its pieces (the
 //! camera trait, the sequencer, the calibrator, the solver); it reads no
@@ -19,6 +22,8 @@
 
 pub mod accumulate;
 pub mod geometry;
+pub mod mqtt;
+pub mod output;
 pub mod recipe;
 pub mod rig;
 pub mod run;

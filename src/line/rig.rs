@@ -8,7 +8,8 @@
 //! `frame_period_ms`, `exposure_ms`), `[filter]` (`settle_ms`,
 //! `settle_jitter_ms`), `[web]` (`speed_fraction` of the highest speed the
 //! optics allow, or `speed_rows_per_s`; `rows_per_count`, `jitter_rows`,
-//! `seed`), `[film]` ([`WebFilm`]) and `[line]` (`segment_rows`, `lanes`).
+//! `seed`), `[film]` ([`WebFilm`]) and `[line]` (`segment_rows`, `lanes`,
+//! `mqtt` = `"host:port"`).
 
 use super::geometry::{stepped_band_rate, LineGeometry, Motion};
 use super::run::LineSetup;
@@ -76,6 +77,9 @@ pub struct LineSpec {
     /// Cross-web lanes.
     #[serde(default = "default_lanes")]
     pub lanes: usize,
+    /// Publish to this MQTT broker, `host:port` (optional).
+    #[serde(default)]
+    pub mqtt: Option<String>,
 }
 
 fn default_segment() -> usize {
@@ -90,6 +94,7 @@ impl Default for LineSpec {
         LineSpec {
             segment_rows: default_segment(),
             lanes: default_lanes(),
+            mqtt: None,
         }
     }
 }
