@@ -1,6 +1,8 @@
 //! The line runner: camera + filter sequencing → calibration → web
 //! registration → per-web-row accumulation → row solving → row sinks, on
-//! one thread (deterministic: the same seed gives the same rows).
+//! one thread (deterministic: the same seed gives the same rows); only the
+//! rows one frame finishes are solved in parallel (rayon), each row by one
+//! thread, so the result does not depend on the thread count.
 //!
 //! Each accepted frame is calibrated, registered to the web (encoder count
 //! or constant speed) and spread over the web rows in view; every row that
@@ -210,12 +212,10 @@ pub fn run_line(
             finished.push(r)
         });
         let was_ready = solver.ready();
-        for r in finished.drain(..) {
-            solver.push(r, &mut |out, buf| {
-                emitted.push(Pending { row: out });
-                acc.recycle(buf);
-            });
-        }
+        solver.push_all(&mut finished, &mut |out, buf| {
+            emitted.push(Pending { row: out });
+            acc.recycle(buf);
+        });
         for p in emitted.drain(..) {
             if sink_err.is_none() {
                 if let Err(e) = sink.on_row(&p.row) {

@@ -107,32 +107,46 @@ impl RowSolver {
     }
 
     fn solve(&mut self, row: &FinishedRow) -> WebRowOut {
-        let (lo, hi) = row
-            .sensor_rows
-            .iter()
-            .filter(|&&s| s != u32::MAX)
-            .fold((u32::MAX, 0), |(lo, hi), &s| (lo.min(s), hi.max(s)));
-        let mut out = WebRowOut {
-            index: row.index,
-            time_ns: row.last_ns,
-            complete: row.complete(),
-            bands_seen: row.bands_seen,
-            sensor_row_spread: hi.saturating_sub(lo),
-            estimates: vec![PixelEstimate::invalid(Reason::MissingBands); self.width],
+        let mut st = RowScratch {
+            scratch: std::mem::take(&mut self.scratch),
+            cube: std::mem::replace(&mut self.cube, Cube::zeros(0, 0, Vec::new())),
+            corrected: std::mem::replace(&mut self.corrected, Cube::zeros(0, 0, Vec::new())),
         };
-        if !out.complete {
-            return out;
-        }
-        self.cube.data.copy_from_slice(&row.spectra);
-        let cube = if self.solver.level().0.is_identity() {
-            &self.cube
-        } else {
-            self.solver.correct_into(&self.cube, &mut self.corrected);
-            &self.corrected
-        };
-        self.solver
-            .solve_row(cube, 0, &mut out.estimates, &mut self.scratch);
+        let out = solve_one(&self.solver, &mut st, self.width, row);
+        (self.scratch, self.cube, self.corrected) = (st.scratch, st.cube, st.corrected);
         out
+    }
+
+    /// Several finished rows, in web order (those one frame finished):
+    /// solved in parallel once the noise level is known (each row by one
+    /// thread, results in order: the same as one by one).
+    pub fn push_all(
+        &mut self,
+        rows: &mut Vec<FinishedRow>,
+        out: &mut dyn FnMut(WebRowOut, FinishedRow),
+    ) {
+        if !self.ready || rows.len() < 2 {
+            for r in rows.drain(..) {
+                self.push(r, out);
+            }
+            return;
+        }
+        use rayon::prelude::*;
+        let (solver, width, bands) = (&self.solver, self.width, &self.cube.bands);
+        let solved: Vec<WebRowOut> = rows
+            .par_iter()
+            .map_init(
+                || RowScratch {
+                    scratch: Scratch::default(),
+                    cube: Cube::zeros(width, 1, bands.clone()),
+                    corrected: Cube::zeros(0, 0, Vec::new()),
+                },
+                |st, r| solve_one(solver, st, width, r),
+            )
+            .collect();
+        for (o, r) in solved.into_iter().zip(rows.drain(..)) {
+            out(o, r);
+        }
     }
 
     /// A finished row, in web order; solved rows go to `out` with their
@@ -159,4 +173,40 @@ impl RowSolver {
             out(r, row);
         }
     }
+}
+
+/// One thread's working buffers.
+struct RowScratch {
+    scratch: Scratch,
+    cube: Cube,
+    corrected: Cube,
+}
+
+/// Solve one finished row (flagged, unsolved, if it missed a band).
+fn solve_one(solver: &Solver, st: &mut RowScratch, width: usize, row: &FinishedRow) -> WebRowOut {
+    let (lo, hi) = row
+        .sensor_rows
+        .iter()
+        .filter(|&&s| s != u32::MAX)
+        .fold((u32::MAX, 0), |(lo, hi), &s| (lo.min(s), hi.max(s)));
+    let mut out = WebRowOut {
+        index: row.index,
+        time_ns: row.last_ns,
+        complete: row.complete(),
+        bands_seen: row.bands_seen,
+        sensor_row_spread: hi.saturating_sub(lo),
+        estimates: vec![PixelEstimate::invalid(Reason::MissingBands); width],
+    };
+    if !out.complete {
+        return out;
+    }
+    st.cube.data.copy_from_slice(&row.spectra);
+    let cube = if solver.level().0.is_identity() {
+        &st.cube
+    } else {
+        solver.correct_into(&st.cube, &mut st.corrected);
+        &st.corrected
+    };
+    solver.solve_row(cube, 0, &mut out.estimates, &mut st.scratch);
+    out
 }
