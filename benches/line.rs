@@ -88,7 +88,7 @@ fn main() {
         rep.rows_emitted as f64 / proc_s
     );
     println!(
-        "line: row latency after its last band: mean {:.2} ms, max {:.2} ms (one thread)",
+        "line: row latency after its last band: mean {:.2} ms, max {:.2} ms",
         rep.latency_ms_mean, rep.latency_ms_max
     );
 }
