@@ -7,18 +7,20 @@
 //! - [`geometry`]: where each frame's rows lie on the web (encoder or
 //!   constant speed), and the highest line speed the optics allow;
 //! - [`accumulate`]: per-web-row state in a ring sized by the field of view;
-//!   a row is solved and emitted, in web order, when it leaves the view —
-//!   complete, or flagged "missing bands";
+//!   a row is finished, in web order, as soon as it holds every band, or
+//!   when it leaves the view without them (flagged "missing bands");
 //! - [`solve`]: each finished row solved as a one-row cube;
-//! - [`run`]: the line runner (one thread, deterministic);
+//! - [`run`]: the line runner (deterministic);
 //! - [`rig`]: the synthetic line (moving-web camera, emulated filter);
 //! - [`stats`], [`recipe`], [`output`]: lane statistics, trend, Cp/Cpk,
 //!   alarms, EXR strip segments, JSON messages to publishers;
 //! - [`mqtt`]: the MQTT publisher (bounded queue, delivery after reconnect).
 //!
 //! The layer sits beside [`crate::pipeline`] and reuses its pieces (the
-//! camera trait, the sequencer, the calibrator, the solver); it reads no
-//! clock: frame timestamps are the time.
+//! camera trait, the sequencer, the calibrator, the solver). Registration
+//! and accumulation read no clock (frame timestamps and encoder counts are
+//! the web's time); only the latency measurement and the MQTT worker read
+//! the wall clock.
 
 pub mod accumulate;
 pub mod geometry;
@@ -59,7 +61,7 @@ pub enum LineError {
     NoEncoder,
     /// The camera failed.
     #[error("camera: {0}")]
-    Camera(#[from] crate::device::camera::CameraError),
+    Camera(crate::device::camera::CameraError),
     /// The filter or the sequencing failed.
     #[error("filter: {0}")]
     Sequencer(String),
@@ -68,5 +70,19 @@ pub enum LineError {
     Sink(String),
     /// The estimator could not be set up.
     #[error("estimator: {0}")]
-    Estimate(#[from] crate::estimate::EstimateError),
+    Estimate(crate::estimate::EstimateError),
+}
+
+// The causes are in the messages, so they are not also `source()`s (an
+// error prints its source once).
+impl From<crate::device::camera::CameraError> for LineError {
+    fn from(e: crate::device::camera::CameraError) -> Self {
+        LineError::Camera(e)
+    }
+}
+
+impl From<crate::estimate::EstimateError> for LineError {
+    fn from(e: crate::estimate::EstimateError) -> Self {
+        LineError::Estimate(e)
+    }
 }
