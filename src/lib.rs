@@ -16,6 +16,9 @@
 //!   synthetic/emulated and a fault-injecting implementation.
 //! - [`pipeline`]: the streaming pipeline: sequencing frames onto bands,
 //!   calibration, incremental per-pixel tracking, sweep solving, back-pressure.
+//! - [`line`]: the production line: a moving web registered row by row
+//!   (encoder or speed), per-web-row accumulation and solving, lane
+//!   statistics, recipe alarms, EXR strip segments, MQTT publishing.
 //! - [`cli`]: the command-line front ends (`irid fit`, `irid run`, …).
 //!
 //! Time is always passed in, never read, below the [`cli`] layer, so tests and
@@ -25,6 +28,7 @@ pub mod cli;
 pub mod device;
 pub mod estimate;
 pub mod io;
+pub mod line;
 pub mod optics;
 pub mod pipeline;
 pub mod scene;

@@ -12,6 +12,7 @@ pub mod calibrate;
 pub mod common;
 pub mod fit;
 pub mod lctf;
+pub mod line;
 pub mod model;
 pub mod report;
 pub mod run;

@@ -47,7 +47,8 @@ pub struct RunArgs {
     /// without it, run the demo.
     #[arg(long, value_name = "line.toml")]
     pub config: Option<PathBuf>,
-    /// Demo scene (default: the paper's cylinder).
+    /// Demo scene (default: the paper's cylinder); `web`: the moving-web
+    /// production-line demo (see README "Production line").
     #[arg(long, value_name = "FILE")]
     pub scene: Option<PathBuf>,
     /// Sweeps to run, then exit (0: until Ctrl-C).
@@ -638,6 +639,9 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     .is_err()
     {
         tracing::warn!("Ctrl-C handler not installed");
+    }
+    if args.config.is_none() && super::line::wants_web(args) {
+        return super::line::run(args, &STOP);
     }
 
     let (mut rig, mode) = match &args.config {

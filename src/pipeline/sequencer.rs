@@ -542,6 +542,7 @@ mod tests {
             width: 1,
             height: 1,
             trigger: None,
+            encoder: None,
         }
     }
 

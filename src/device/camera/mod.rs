@@ -24,6 +24,7 @@ pub mod faults;
 pub mod synthetic;
 #[cfg(feature = "v4l2")]
 pub mod v4l2;
+pub mod web;
 
 use std::time::Duration;
 
@@ -89,6 +90,10 @@ pub struct FrameMeta {
     /// In triggered mode: the trigger count that exposed this frame, if the
     /// source knows it (else the sequencer pairs by `seq`).
     pub trigger: Option<u64>,
+    /// The web encoder's count latched at exposure start, when the camera
+    /// has one (a production line; see [`crate::line`]).
+    #[serde(default)]
+    pub encoder: Option<i64>,
 }
 
 impl FrameMeta {
@@ -127,6 +132,7 @@ impl Frame {
                 width,
                 height,
                 trigger: None,
+                encoder: None,
             },
             data: vec![0; width as usize * height as usize],
         }

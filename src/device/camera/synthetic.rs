@@ -367,6 +367,7 @@ impl FrameSource for SyntheticCamera {
             width: self.width,
             height: self.height,
             trigger,
+            encoder: None,
         };
         Ok(())
     }

@@ -231,6 +231,7 @@ impl FrameSource for V4l2Camera {
             width: self.info.width,
             height: self.info.height,
             trigger: None,
+            encoder: None,
         };
         Ok(())
     }

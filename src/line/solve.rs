@@ -1,0 +1,212 @@
+//! Solving finished web rows: each complete row is a one-row cube for the
+//! estimator; a row that missed a band is flagged, never solved.
+//!
+//! The estimator judges fits against a noise level and an image-wide level
+//! it learns from data ([`Solver::estimate_film_index`]); on a line the
+//! first `warmup_rows` complete rows are that data. Rows finished before
+//! then wait (in web order) and are solved as soon as it is known, so the
+//! first rows of a run come out late once; every later row is solved the
+//! moment it is finished.
+
+use super::accumulate::FinishedRow;
+use super::LineError;
+use crate::estimate::solver::Scratch;
+use crate::estimate::{Cube, Mode, PixelEstimate, Reason, Solver};
+use crate::optics::band::Band;
+use crate::scene::Scene;
+use std::collections::VecDeque;
+
+/// One emitted web row.
+#[derive(Clone, Debug, PartialEq)]
+pub struct WebRowOut {
+    /// Web row index (absolute: encoder count × rows per count).
+    pub index: i64,
+    /// Timestamp of the frame that brought its last band, ns (0: never seen).
+    pub time_ns: u64,
+    /// Whether every band was seen (else every pixel is "missing bands").
+    pub complete: bool,
+    /// Bands seen.
+    pub bands_seen: usize,
+    /// Spread of the sensor rows its bands were seen at (max − min): with
+    /// an angle that depends on the sensor row, the spread of angles.
+    pub sensor_row_spread: u32,
+    /// One estimate per pixel across the web.
+    pub estimates: Vec<PixelEstimate>,
+}
+
+/// Solves finished rows in web order.
+pub struct RowSolver {
+    solver: Solver,
+    scratch: Scratch,
+    cube: Cube,
+    corrected: Cube,
+    warm: VecDeque<FinishedRow>,
+    warmup_rows: usize,
+    ready: bool,
+    width: usize,
+}
+
+impl RowSolver {
+    /// A solver for `width`-pixel rows of `scene` in `bands`; the noise and
+    /// level are learnt from the first `warmup_rows` complete rows.
+    pub fn new(
+        scene: &Scene,
+        bands: &[Band],
+        mode: Mode,
+        width: usize,
+        warmup_rows: usize,
+    ) -> Result<RowSolver, LineError> {
+        let mut solver = Solver::new(scene, bands, mode)?;
+        solver.set_residual_noise_floor(scene.noise_sigma.is_none());
+        Ok(RowSolver {
+            solver,
+            scratch: Scratch::default(),
+            cube: Cube::zeros(width, 1, bands.to_vec()),
+            corrected: Cube::zeros(0, 0, Vec::new()),
+            warm: VecDeque::new(),
+            warmup_rows: warmup_rows.max(1),
+            ready: false,
+            width,
+        })
+    }
+
+    /// The estimator (for map metadata).
+    pub fn solver(&self) -> &Solver {
+        &self.solver
+    }
+
+    /// Whether the noise and level are known (rows are solved at once).
+    pub fn ready(&self) -> bool {
+        self.ready
+    }
+
+    /// Learn the noise and level from the complete rows waiting.
+    fn warm_up(&mut self) {
+        let rows: Vec<&FinishedRow> = self.warm.iter().filter(|r| r.complete()).collect();
+        self.ready = true;
+        if rows.is_empty() {
+            tracing::warn!("no complete web row to learn the noise level from");
+            return;
+        }
+        let (w, h, nb) = (self.width, rows.len(), self.cube.bands.len());
+        let mut cube = Cube::zeros(w, h, self.cube.bands.clone());
+        for (y, r) in rows.iter().enumerate() {
+            for b in 0..nb {
+                cube.data[b * w * h + y * w..b * w * h + (y + 1) * w]
+                    .copy_from_slice(&r.spectra[b * w..(b + 1) * w]);
+            }
+        }
+        match self.solver.estimate_film_index(&cube) {
+            Ok(est) => {
+                if let Err(e) = self.solver.set_film_index(est) {
+                    tracing::warn!(%e, "film index not usable");
+                }
+            }
+            Err(e) => tracing::warn!(%e, "noise level not learnt from the first rows"),
+        }
+    }
+
+    fn solve(&mut self, row: &FinishedRow) -> WebRowOut {
+        let mut st = RowScratch {
+            scratch: std::mem::take(&mut self.scratch),
+            cube: std::mem::replace(&mut self.cube, Cube::zeros(0, 0, Vec::new())),
+            corrected: std::mem::replace(&mut self.corrected, Cube::zeros(0, 0, Vec::new())),
+        };
+        let out = solve_one(&self.solver, &mut st, self.width, row);
+        (self.scratch, self.cube, self.corrected) = (st.scratch, st.cube, st.corrected);
+        out
+    }
+
+    /// Several finished rows, in web order (those one frame finished):
+    /// solved in parallel once the noise level is known (each row by one
+    /// thread, results in order: the same as one by one).
+    pub fn push_all(
+        &mut self,
+        rows: &mut Vec<FinishedRow>,
+        out: &mut dyn FnMut(WebRowOut, FinishedRow),
+    ) {
+        if !self.ready || rows.len() < 2 {
+            for r in rows.drain(..) {
+                self.push(r, out);
+            }
+            return;
+        }
+        use rayon::prelude::*;
+        let (solver, width, bands) = (&self.solver, self.width, &self.cube.bands);
+        let solved: Vec<WebRowOut> = rows
+            .par_iter()
+            .map_init(
+                || RowScratch {
+                    scratch: Scratch::default(),
+                    cube: Cube::zeros(width, 1, bands.clone()),
+                    corrected: Cube::zeros(0, 0, Vec::new()),
+                },
+                |st, r| solve_one(solver, st, width, r),
+            )
+            .collect();
+        for (o, r) in solved.into_iter().zip(rows.drain(..)) {
+            out(o, r);
+        }
+    }
+
+    /// A finished row, in web order; solved rows go to `out` with their
+    /// buffers (to recycle).
+    pub fn push(&mut self, row: FinishedRow, out: &mut dyn FnMut(WebRowOut, FinishedRow)) {
+        if self.ready {
+            let r = self.solve(&row);
+            out(r, row);
+            return;
+        }
+        self.warm.push_back(row);
+        if self.warm.iter().filter(|r| r.complete()).count() >= self.warmup_rows {
+            self.flush(out);
+        }
+    }
+
+    /// Solve every row waiting (end of run, or warm-up reached).
+    pub fn flush(&mut self, out: &mut dyn FnMut(WebRowOut, FinishedRow)) {
+        if !self.ready {
+            self.warm_up();
+        }
+        while let Some(row) = self.warm.pop_front() {
+            let r = self.solve(&row);
+            out(r, row);
+        }
+    }
+}
+
+/// One thread's working buffers.
+struct RowScratch {
+    scratch: Scratch,
+    cube: Cube,
+    corrected: Cube,
+}
+
+/// Solve one finished row (flagged, unsolved, if it missed a band).
+fn solve_one(solver: &Solver, st: &mut RowScratch, width: usize, row: &FinishedRow) -> WebRowOut {
+    let (lo, hi) = row
+        .sensor_rows
+        .iter()
+        .filter(|&&s| s != u32::MAX)
+        .fold((u32::MAX, 0), |(lo, hi), &s| (lo.min(s), hi.max(s)));
+    let mut out = WebRowOut {
+        index: row.index,
+        time_ns: row.last_ns,
+        complete: row.complete(),
+        bands_seen: row.bands_seen,
+        sensor_row_spread: hi.saturating_sub(lo),
+        estimates: vec![PixelEstimate::invalid(Reason::MissingBands); width],
+    };
+    if !out.complete {
+        return out;
+    }
+    st.cube.data.copy_from_slice(&row.spectra);
+    let cube = if solver.level().0.is_identity() {
+        &st.cube
+    } else {
+        solver.correct_into(&st.cube, &mut st.corrected);
+        &st.corrected
+    };
+    solver.solve_row(cube, 0, &mut out.estimates, &mut st.scratch);
+    out
+}
