@@ -16,6 +16,8 @@
 //!   synthetic/emulated and a fault-injecting implementation.
 //! - [`pipeline`]: the streaming pipeline: sequencing frames onto bands,
 //!   calibration, incremental per-pixel tracking, sweep solving, back-pressure.
+//! - [`render`]: pictures: maps as PNG with a colour bar, the film's colour
+//!   (CIE 1931, D65, sRGB), the speed/accuracy chart.
 //! - [`cli`]: the command-line front ends (`irid fit`, `irid run`, …).
 //!
 //! Time is always passed in, never read, below the [`cli`] layer, so tests and
@@ -27,6 +29,7 @@ pub mod estimate;
 pub mod io;
 pub mod optics;
 pub mod pipeline;
+pub mod render;
 pub mod scene;
 pub mod synth;
 
