@@ -187,3 +187,37 @@ fn cli_bad_input_is_an_error() {
     fails_with(&["render", s(&junk), "--out", s(&png)], &["junk.exr"]);
     assert!(!png.exists());
 }
+
+#[test]
+fn fit_png_writes_the_preview_beside_the_map_and_no_progress_bar_when_piped() {
+    let dir = tempfile::tempdir().unwrap();
+    let cube = dir.path().join("cube.hdr");
+    let exr = dir.path().join("maps.exr");
+    let scene = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("data/scenes/paper-cylinder.toml");
+    ok(&["synth", "--out", s(&cube)]);
+    let out = ok(&["fit", s(&cube), "--out", s(&exr), "--scene", s(&scene), "--png"]);
+    // stderr is a pipe here: the summary only, no bar (no carriage
+    // returns or escape sequences).
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains('\r') && !err.contains('\u{1b}'), "{err:?}");
+    let png = dir.path().join("maps.png");
+    let got = decode_png(&std::fs::read(&png).unwrap()).unwrap();
+    // The preview is `irid render`'s thickness picture of that file.
+    let c = irid::io::exr_maps::read_channels(&exr).unwrap();
+    let want = render_map(
+        &c,
+        &MapStyle {
+            channel: "thickness_nm".into(),
+            range: None,
+            title: "film thickness: maps.exr".into(),
+        },
+    )
+    .unwrap();
+    assert_eq!(got, want.image);
+    let csv = dir.path().join("r.csv");
+    fails_with(
+        &["fit", s(&cube), "--out", s(&csv), "--scene", s(&scene), "--png"],
+        &["--png", "OpenEXR"],
+    );
+}

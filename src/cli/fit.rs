@@ -73,6 +73,10 @@ pub struct FitArgs {
     /// Print a one-line JSON summary on stdout.
     #[arg(long)]
     pub json: bool,
+    /// Also write a PNG preview of the thickness map beside the EXR
+    /// (`OUT.png`).
+    #[arg(long)]
+    pub png: bool,
 }
 
 /// The `--json` summary line.
@@ -330,6 +334,9 @@ fn read_envi(a: &FitArgs) -> anyhow::Result<Cube> {
 
 /// Run `irid fit`.
 pub fn run(a: &FitArgs) -> anyhow::Result<()> {
+    if a.png && is_csv(&a.out) {
+        bail!("--png draws a map: give an OpenEXR --out, not CSV");
+    }
     let scene = build_scene(a)?;
     let Input { cube, names } = read_input(a)?;
     if let AngleKnowledge::Map { width, height, .. } = &scene.angle {
@@ -351,7 +358,9 @@ pub fn run(a: &FitArgs) -> anyhow::Result<()> {
     pool.install(|| solver.estimate_film_index(&cube))
         .context("estimating the film index")?;
     let index_s = start.elapsed().as_secs_f64();
-    let result = pool.install(|| solver.fit_cube(&cube));
+    let bar = super::progress::bar(cube.height as u64, "fitting rows");
+    let result = pool.install(|| solver.fit_cube_with_progress(&cube, &|_| bar.inc(1)));
+    bar.finish_and_clear();
     let elapsed = start.elapsed().as_secs_f64();
     let solve_s = elapsed - index_s;
     let maps = result.context("fitting")?;
@@ -359,6 +368,9 @@ pub fn run(a: &FitArgs) -> anyhow::Result<()> {
         results_csv::write_results(&a.out, &maps, names.as_deref())?;
     } else {
         exr_maps::write_maps(&a.out, &maps)?;
+        if a.png {
+            crate::render::map::write_preview(&a.out, &maps)?;
+        }
     }
     let pixels = cube.width * cube.height;
     let summary = Summary {

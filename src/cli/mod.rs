@@ -13,6 +13,7 @@ pub mod common;
 pub mod fit;
 pub mod lctf;
 pub mod model;
+pub mod progress;
 pub mod render;
 pub mod run;
 pub mod synth;

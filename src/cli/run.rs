@@ -62,6 +62,10 @@ pub struct RunArgs {
     /// One JSON object per sweep on stdout.
     #[arg(long)]
     pub json: bool,
+    /// Also write a PNG preview (thickness, colour bar, invalid pixels by
+    /// reason) beside each sweep's map.
+    #[arg(long, conflicts_with = "no_maps")]
+    pub png: bool,
     /// Solver mode.
     #[arg(long, value_enum, default_value_t = Mode::Balanced)]
     pub mode: Mode,
@@ -581,6 +585,7 @@ pub fn capture_calibration(
 struct CliSink {
     out: Option<PathBuf>,
     json: bool,
+    png: bool,
 }
 
 impl SweepSink for CliSink {
@@ -589,6 +594,9 @@ impl SweepSink for CliSink {
         if let Some(dir) = &self.out {
             let p = sweep_path(dir, s.sweep);
             write_map(&p, maps).map_err(|e| e.to_string())?;
+            if self.png {
+                crate::render::map::write_preview(&p, maps).map_err(|e| e.to_string())?;
+            }
             s.path = Some(p.display().to_string());
         }
         if self.json {
@@ -687,6 +695,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let mut sink = CliSink {
         out,
         json: args.json,
+        png: args.png,
     };
     let setup = Setup {
         scene: rig.scene.clone(),

@@ -39,6 +39,14 @@ fn parse(csv: &str, cols: usize) -> Vec<(u32, Vec<f64>)> {
         .collect()
 }
 
+/// The CIE 1931 2° observer as tabulated: `(λ nm, [x̄, ȳ, z̄])`, 1 nm.
+pub fn observer() -> Vec<(f64, [f64; 3])> {
+    parse(CMF_CSV, 3)
+        .into_iter()
+        .map(|(l, v)| (l as f64, [v[0], v[1], v[2]]))
+        .collect()
+}
+
 impl Cie {
     /// The tables (parsed once).
     pub fn get() -> &'static Cie {
