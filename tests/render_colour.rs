@@ -66,7 +66,10 @@ fn the_srgb_primaries_come_back_as_primaries() {
         }
     }
     // Reflecting only beyond 600 nm: red, no green.
-    let rgb = xyz_to_srgb8(Cie::get().xyz_of(|l| if l >= 600.0 { 1.0 } else { 0.0 }), 1.0);
+    let rgb = xyz_to_srgb8(
+        Cie::get().xyz_of(|l| if l >= 600.0 { 1.0 } else { 0.0 }),
+        1.0,
+    );
     assert!(rgb[0] > 200 && rgb[1] < 60, "{rgb:?}");
 }
 
@@ -102,7 +105,10 @@ fn resynthesised_spectra_match_the_measured_cube_to_the_noise() {
         .and_then(|v| v.parse().ok())
         .unwrap_or_else(|| panic!("no RMSE in {text:?}"));
     let want = 0.001 * (28.0f64 / 31.0).sqrt();
-    assert!((rmse / want - 1.0).abs() < 0.03, "RMSE {rmse}, expected {want}");
+    assert!(
+        (rmse / want - 1.0).abs() < 0.03,
+        "RMSE {rmse}, expected {want}"
+    );
 
     // The two panels: the same colours to within what σ = 0.001 moves
     // them. At the picture's ×10 exposure a band's noise moves Y by up to
@@ -134,17 +140,24 @@ fn resynthesised_spectra_match_the_measured_cube_to_the_noise() {
         }
     }
     let mean = total as f64 / n as f64;
-    assert!(mean < 2.0 && worst <= 30, "mean {mean} levels, worst {worst}");
+    assert!(
+        mean < 2.0 && worst <= 30,
+        "mean {mean} levels, worst {worst}"
+    );
 }
 
 #[test]
 fn the_readme_trade_table_parses() {
-    let readme = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("README.md")).unwrap();
+    let readme =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("README.md")).unwrap();
     let rows = parse_table(&readme).unwrap();
     assert_eq!(rows.len(), 30, "5 scenes × 2 angle cases × 3 modes");
     let r = &rows[0];
     assert_eq!((r.mode.as_str(), r.angle_known), ("fast", false));
-    assert_eq!((r.pixels_per_s, r.mean_err_nm, r.efficient_nm), (1.12e6, 0.683, 0.368));
+    assert_eq!(
+        (r.pixels_per_s, r.mean_err_nm, r.efficient_nm),
+        (1.12e6, 0.683, 0.368)
+    );
     assert!(rows.iter().all(|r| r.mean_err_nm >= r.efficient_nm * 0.95));
     let broken = readme.replacen("| 1.12 M |", "| fast-ish |", 1);
     let e = parse_table(&broken).unwrap_err().to_string();

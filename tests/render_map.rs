@@ -193,10 +193,18 @@ fn fit_png_writes_the_preview_beside_the_map_and_no_progress_bar_when_piped() {
     let dir = tempfile::tempdir().unwrap();
     let cube = dir.path().join("cube.hdr");
     let exr = dir.path().join("maps.exr");
-    let scene = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("data/scenes/paper-cylinder.toml");
+    let scene =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/scenes/paper-cylinder.toml");
     ok(&["synth", "--out", s(&cube)]);
-    let out = ok(&["fit", s(&cube), "--out", s(&exr), "--scene", s(&scene), "--png"]);
+    let out = ok(&[
+        "fit",
+        s(&cube),
+        "--out",
+        s(&exr),
+        "--scene",
+        s(&scene),
+        "--png",
+    ]);
     // stderr is a pipe here: the summary only, no bar (no carriage
     // returns or escape sequences).
     let err = String::from_utf8_lossy(&out.stderr);
@@ -217,7 +225,15 @@ fn fit_png_writes_the_preview_beside_the_map_and_no_progress_bar_when_piped() {
     assert_eq!(got, want.image);
     let csv = dir.path().join("r.csv");
     fails_with(
-        &["fit", s(&cube), "--out", s(&csv), "--scene", s(&scene), "--png"],
+        &[
+            "fit",
+            s(&cube),
+            "--out",
+            s(&csv),
+            "--scene",
+            s(&scene),
+            "--png",
+        ],
         &["--png", "OpenEXR"],
     );
 }
