@@ -16,6 +16,7 @@ pub mod model;
 pub mod progress;
 pub mod render;
 pub mod run;
+pub mod serve;
 pub mod synth;
 
 use clap::{Parser, Subcommand};

@@ -66,6 +66,10 @@ pub struct RunArgs {
     /// reason) beside each sweep's map.
     #[arg(long, conflicts_with = "no_maps")]
     pub png: bool,
+    /// Serve a live page (latest map, trend, valid fraction, drops,
+    /// latency) at this address, e.g. 127.0.0.1:8080.
+    #[arg(long, value_name = "ADDR")]
+    pub serve: Option<String>,
     /// Solver mode.
     #[arg(long, value_enum, default_value_t = Mode::Balanced)]
     pub mode: Mode,
@@ -586,6 +590,7 @@ struct CliSink {
     out: Option<PathBuf>,
     json: bool,
     png: bool,
+    live: Option<super::serve::LiveView>,
 }
 
 impl SweepSink for CliSink {
@@ -598,6 +603,9 @@ impl SweepSink for CliSink {
                 crate::render::map::write_preview(&p, maps).map_err(|e| e.to_string())?;
             }
             s.path = Some(p.display().to_string());
+        }
+        if let Some(live) = &self.live {
+            live.offer(&s, maps);
         }
         if self.json {
             println!("{}", s.json());
@@ -696,7 +704,15 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         out,
         json: args.json,
         png: args.png,
+        live: args
+            .serve
+            .as_deref()
+            .map(super::serve::LiveView::start)
+            .transpose()?,
     };
+    if let Some(l) = &sink.live {
+        eprintln!("irid: live view at http://{}/", l.addr);
+    }
     let setup = Setup {
         scene: rig.scene.clone(),
         bands: rig.bands.clone(),
