@@ -206,7 +206,7 @@ mod tests {
         let t = nice_ticks(0.0, 1.0, 5);
         assert_eq!(t.len(), 6);
         assert!((t[1] - 0.2).abs() < 1e-12);
-        let t = nice_ticks(137.0, 1493.0, 5);
+        let t = nice_ticks(137.0, 1493.0, 8); // raw step 169.5 → 200
         assert!(t.iter().all(|v| (137.0..=1493.0).contains(v)));
         assert!(t.windows(2).all(|w| (w[1] - w[0] - 200.0).abs() < 1e-9));
     }
