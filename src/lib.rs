@@ -19,6 +19,8 @@
 //! - [`line`]: the production line: a moving web registered row by row
 //!   (encoder or speed), per-web-row accumulation and solving, lane
 //!   statistics, recipe alarms, EXR strip segments, MQTT publishing.
+//! - [`render`]: pictures: maps as PNG with a colour bar, the film's colour
+//!   (CIE 1931, D65, sRGB), the speed/accuracy chart.
 //! - [`cli`]: the command-line front ends (`irid fit`, `irid run`, …).
 //!
 //! Time is always passed in, never read, below the [`cli`] layer, so tests and
@@ -31,6 +33,7 @@ pub mod io;
 pub mod line;
 pub mod optics;
 pub mod pipeline;
+pub mod render;
 pub mod scene;
 pub mod synth;
 

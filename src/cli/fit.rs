@@ -77,6 +77,10 @@ pub struct FitArgs {
     /// error and is left untouched).
     #[arg(long)]
     pub force: bool,
+    /// Also write a PNG preview of the thickness map beside the EXR
+    /// (`OUT.png`).
+    #[arg(long)]
+    pub png: bool,
 }
 
 /// The `--json` summary line.
@@ -334,6 +338,9 @@ fn read_envi(a: &FitArgs) -> anyhow::Result<Cube> {
 
 /// Run `irid fit`.
 pub fn run(a: &FitArgs) -> anyhow::Result<()> {
+    if a.png && is_csv(&a.out) {
+        bail!("--png draws a map: give an OpenEXR --out, not CSV");
+    }
     let scene = build_scene(a)?;
     let Input { cube, names } = read_input(a)?;
     // Refused after the arguments and input are checked, before the fit;
@@ -358,7 +365,9 @@ pub fn run(a: &FitArgs) -> anyhow::Result<()> {
     pool.install(|| solver.estimate_film_index(&cube))
         .context("estimating the film index")?;
     let index_s = start.elapsed().as_secs_f64();
-    let result = pool.install(|| solver.fit_cube(&cube));
+    let bar = super::progress::bar(cube.height as u64, "fitting rows");
+    let result = pool.install(|| solver.fit_cube_with_progress(&cube, &|_| bar.inc(1)));
+    bar.finish_and_clear();
     let elapsed = start.elapsed().as_secs_f64();
     let solve_s = elapsed - index_s;
     let maps = result.context("fitting")?;
@@ -366,6 +375,9 @@ pub fn run(a: &FitArgs) -> anyhow::Result<()> {
         results_csv::write_results(&a.out, &maps, names.as_deref())?;
     } else {
         exr_maps::write_maps(&a.out, &maps)?;
+        if a.png {
+            crate::render::map::write_preview(&a.out, &maps)?;
+        }
     }
     let pixels = cube.width * cube.height;
     let summary = Summary {

@@ -1,6 +1,6 @@
 //! Command-line front ends: `irid run` (the live pipeline; the default, so
 //! `irid` alone runs the demo), `irid calibrate`, `irid fit`, `irid synth`,
-//! `irid model`, `irid lctf`.
+//! `irid model`, `irid lctf`, `irid render`.
 //!
 //! This layer reads the clock (to report speed), parses arguments, picks
 //! files and thread pools, and turns every error into one line on stderr
@@ -15,7 +15,10 @@ pub mod lctf;
 pub mod line;
 pub mod model;
 pub mod report;
+pub mod progress;
+pub mod render;
 pub mod run;
+pub mod serve;
 pub mod synth;
 
 use clap::{Parser, Subcommand};
@@ -48,6 +51,8 @@ pub enum Command {
     Model(model::ModelArgs),
     /// Talk to the tunable-filter controller (or its emulator).
     Lctf(lctf::LctfArgs),
+    /// Pictures: a map as PNG, the film's colour, the speed/accuracy chart.
+    Render(render::RenderArgs),
 }
 
 /// Run a parsed command line.
@@ -60,6 +65,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Some(Command::Synth(a)) => synth::run(&a),
         Some(Command::Model(a)) => model::run(&a),
         Some(Command::Lctf(a)) => lctf::run(&a),
+        Some(Command::Render(a)) => render::run(&a),
     }
 }
 

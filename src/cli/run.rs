@@ -63,6 +63,14 @@ pub struct RunArgs {
     /// One JSON object per sweep on stdout.
     #[arg(long)]
     pub json: bool,
+    /// Also write a PNG preview (thickness, colour bar, invalid pixels by
+    /// reason) beside each sweep's map.
+    #[arg(long, conflicts_with = "no_maps")]
+    pub png: bool,
+    /// Serve a live page (latest map, trend, valid fraction, drops,
+    /// latency) at this address, e.g. 127.0.0.1:8080.
+    #[arg(long, value_name = "ADDR")]
+    pub serve: Option<String>,
     /// Solver mode.
     #[arg(long, value_enum, default_value_t = Mode::Balanced)]
     pub mode: Mode,
@@ -586,6 +594,8 @@ pub fn capture_calibration(
 struct CliSink {
     out: Option<PathBuf>,
     json: bool,
+    png: bool,
+    live: Option<super::serve::LiveView>,
 }
 
 impl SweepSink for CliSink {
@@ -594,7 +604,13 @@ impl SweepSink for CliSink {
         if let Some(dir) = &self.out {
             let p = sweep_path(dir, s.sweep);
             write_map(&p, maps).map_err(|e| e.to_string())?;
+            if self.png {
+                crate::render::map::write_preview(&p, maps).map_err(|e| e.to_string())?;
+            }
             s.path = Some(p.display().to_string());
+        }
+        if let Some(live) = &self.live {
+            live.offer(&s, maps);
         }
         if self.json {
             println!("{}", s.json());
@@ -707,7 +723,16 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let mut sink = CliSink {
         out,
         json: args.json,
+        png: args.png,
+        live: args
+            .serve
+            .as_deref()
+            .map(super::serve::LiveView::start)
+            .transpose()?,
     };
+    if let Some(l) = &sink.live {
+        eprintln!("irid: live view at http://{}/", l.addr);
+    }
     let setup = Setup {
         scene: rig.scene.clone(),
         bands: rig.bands.clone(),

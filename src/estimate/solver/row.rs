@@ -209,6 +209,17 @@ impl Solver {
     /// Fit a whole cube: the film index first where unknown, then every
     /// pixel, rows in parallel on the current rayon pool.
     pub fn fit_cube(&mut self, cube: &Cube) -> Result<ParamMaps, EstimateError> {
+        self.fit_cube_with_progress(cube, &|_| {})
+    }
+
+    /// [`Solver::fit_cube`], calling `row_done(y)` from the solving thread
+    /// as each row is finished (in no particular order), so a front end can
+    /// show progress.
+    pub fn fit_cube_with_progress(
+        &mut self,
+        cube: &Cube,
+        row_done: &(dyn Fn(usize) + Sync),
+    ) -> Result<ParamMaps, EstimateError> {
         self.check_cube(cube)?;
         if self
             .index
@@ -244,6 +255,7 @@ impl Solver {
                 |(scratch, est), (y, mut row)| {
                     self.solve_row(cube, y, est, scratch);
                     row.set_all(est);
+                    row_done(y);
                 },
             );
         maps.meta = self.map_meta();
