@@ -1,6 +1,6 @@
 //! Command-line front ends: `irid run` (the live pipeline; the default, so
 //! `irid` alone runs the demo), `irid calibrate`, `irid fit`, `irid synth`,
-//! `irid model`, `irid lctf`.
+//! `irid model`, `irid lctf`, and recordings: `irid replay`, `irid inspect`.
 //!
 //! This layer reads the clock (to report speed), parses arguments, picks
 //! files and thread pools, and turns every error into one line on stderr
@@ -13,6 +13,7 @@ pub mod common;
 pub mod fit;
 pub mod lctf;
 pub mod model;
+pub mod record;
 pub mod run;
 pub mod synth;
 
@@ -46,6 +47,12 @@ pub enum Command {
     Model(model::ModelArgs),
     /// Talk to the tunable-filter controller (or its emulator).
     Lctf(lctf::LctfArgs),
+    /// Replay a recording (MCAP) through the pipeline, with its own or
+    /// another mode, scene or calibration.
+    Replay(record::ReplayArgs),
+    /// List a recording's contents: channels, sweeps, bands, gaps, drops,
+    /// damage.
+    Inspect(record::InspectArgs),
 }
 
 /// Run a parsed command line.
@@ -58,6 +65,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Some(Command::Synth(a)) => synth::run(&a),
         Some(Command::Model(a)) => model::run(&a),
         Some(Command::Lctf(a)) => lctf::run(&a),
+        Some(Command::Replay(a)) => record::replay(&a),
+        Some(Command::Inspect(a)) => record::inspect(&a),
     }
 }
 

@@ -111,6 +111,13 @@ pub struct RunArgs {
     /// Print per-stage latency percentiles and throughput at exit.
     #[arg(long)]
     pub profile: bool,
+    /// Record what the line sees (raw frames, pairing, filter events,
+    /// calibration, configuration) to this MCAP file while processing.
+    #[arg(long, value_name = "FILE.mcap")]
+    pub record: Option<PathBuf>,
+    /// Chunk compression of the recording.
+    #[arg(long, value_enum, default_value_t = super::record::RecordCompression::Lz4)]
+    pub record_compression: super::record::RecordCompression,
 }
 
 #[derive(clap::Parser)]
@@ -301,6 +308,13 @@ fn parse_size(s: &str) -> anyhow::Result<(usize, usize)> {
 
 /// The demo rig: synthetic camera + emulated filter.
 pub fn demo_rig(args: &RunArgs) -> anyhow::Result<Rig> {
+    let (file, base) = demo_scene_file(args)?;
+    demo_rig_for(args, &file, &base)
+}
+
+/// The demo's scene file (`--scene` or the embedded cylinder, stretched
+/// to `--size`) and where its relative paths start.
+pub fn demo_scene_file(args: &RunArgs) -> anyhow::Result<(SceneFile, PathBuf)> {
     let (mut file, base): (SceneFile, PathBuf) = match &args.scene {
         Some(p) => {
             let text = std::fs::read_to_string(p)
@@ -335,7 +349,11 @@ pub fn demo_rig(args: &RunArgs) -> anyhow::Result<Rig> {
         t.width = w;
         t.height = h;
     }
-    let scene = Scene::resolve(&file, &base).map_err(|e| anyhow::anyhow!("scene: {e}"))?;
+    Ok((file, base))
+}
+
+fn demo_rig_for(args: &RunArgs, file: &SceneFile, base: &Path) -> anyhow::Result<Rig> {
+    let scene = Scene::resolve(file, base).map_err(|e| anyhow::anyhow!("scene: {e}"))?;
     let bands = scene.bands.clone().context("the scene has no [bands]")?;
     let nm: Vec<f64> = bands.iter().map(|b| b.center_nm).collect();
     let order = order_for(&args.order, bands.len(), &nm).with_context(|| {
@@ -578,9 +596,12 @@ pub fn capture_calibration(
     ))
 }
 
-struct CliSink {
-    out: Option<PathBuf>,
-    json: bool,
+/// Writes each sweep's map and prints its summary line.
+pub(crate) struct CliSink {
+    /// Where maps go (None: not written).
+    pub out: Option<PathBuf>,
+    /// JSON summaries.
+    pub json: bool,
 }
 
 impl SweepSink for CliSink {
@@ -602,14 +623,18 @@ impl SweepSink for CliSink {
 
 static STOP: AtomicBool = AtomicBool::new(false);
 
-/// Run `irid run`.
-pub fn run(args: &RunArgs) -> anyhow::Result<()> {
+/// Install the tracing layers `--trace` and `--profile` ask for: the
+/// profile layer and the Chrome trace's flush guard (keep it until exit).
+pub(crate) fn init_tracing(
+    trace: Option<&PathBuf>,
+    profile: bool,
+) -> anyhow::Result<(Option<ProfileLayer>, Option<tracing_chrome::FlushGuard>)> {
     // Tracing: nothing installed unless asked, so spans cost ~1 ns.
-    let profile = args.profile.then(ProfileLayer::new);
+    let profile = profile.then(ProfileLayer::new);
     let mut _chrome_guard = None;
-    if args.trace.is_some() || profile.is_some() {
+    if trace.is_some() || profile.is_some() {
         use tracing_subscriber::prelude::*;
-        let chrome = args.trace.as_ref().map(|p| {
+        let chrome = trace.map(|p| {
             let (layer, guard) = tracing_chrome::ChromeLayerBuilder::new()
                 .file(p.clone())
                 .include_args(true)
@@ -623,6 +648,12 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             .try_init()
             .context("installing the tracing subscriber")?;
     }
+    Ok((profile, _chrome_guard))
+}
+
+/// Run `irid run`.
+pub fn run(args: &RunArgs) -> anyhow::Result<()> {
+    let (profile, _chrome_guard) = init_tracing(args.trace.as_ref(), args.profile)?;
     if ctrlc::set_handler(|| STOP.store(true, Ordering::Relaxed)).is_err() {
         tracing::warn!("Ctrl-C handler not installed");
     }
@@ -639,7 +670,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         }
         None => (demo_rig(args)?, args.mode),
     };
-    let calibrator = match rig.calibration.clone() {
+    let calibration = match rig.calibration.clone() {
         Some((path, max_age_h, _)) => {
             let cal = Calibration::load(&path)?;
             cal.check(
@@ -651,7 +682,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
                     max_age_s: (max_age_h * 3600.0) as u64,
                 },
             )?;
-            Calibrator::from_calibration(cal)
+            cal
         }
         None => {
             if !args.json {
@@ -662,9 +693,14 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
                     rig.tuner.describe()
                 );
             }
-            Calibrator::from_calibration(capture_calibration(&mut rig, 4, 0.99)?)
+            capture_calibration(&mut rig, 4, 0.99)?
         }
     };
+    let recorder = match &args.record {
+        Some(p) => Some(super::record::start(p, args, &rig, &calibration, mode)?),
+        None => None,
+    };
+    let calibrator = Calibrator::from_calibration(calibration);
     let out = if args.no_maps {
         None
     } else {
@@ -696,14 +732,29 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         calibrator,
     };
     let stop: &'static AtomicBool = &STOP;
-    let report = runner::run(
-        rig.source.as_mut(),
-        rig.tuner.as_mut(),
-        setup,
-        &cfg,
-        &mut sink,
-        stop,
-    )?;
+    let report = match &recorder {
+        Some(r) => runner::run_tapped(
+            rig.source.as_mut(),
+            &mut r.tuner(rig.tuner.as_mut()),
+            setup,
+            &cfg,
+            &mut sink,
+            &mut runner::NoRows,
+            Some(&mut r.tap()),
+            stop,
+        )?,
+        None => runner::run(
+            rig.source.as_mut(),
+            rig.tuner.as_mut(),
+            setup,
+            &cfg,
+            &mut sink,
+            stop,
+        )?,
+    };
+    if let Some(r) = recorder {
+        super::record::finish(r, args.record.as_deref(), args.json)?;
+    }
     if !args.json {
         eprintln!(
             "irid: {} sweeps mapped, {} dropped; {} frames read, {} discarded while settling, {} lost or refused{}",
