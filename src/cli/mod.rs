@@ -50,6 +50,8 @@ pub enum Command {
     /// Replay a recording (MCAP) through the pipeline, with its own or
     /// another mode, scene or calibration.
     Replay(record::ReplayArgs),
+    /// Record what the line sees (MCAP) without solving.
+    Record(record::RecordArgs),
     /// List a recording's contents: channels, sweeps, bands, gaps, drops,
     /// damage.
     Inspect(record::InspectArgs),
@@ -66,6 +68,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Some(Command::Model(a)) => model::run(&a),
         Some(Command::Lctf(a)) => lctf::run(&a),
         Some(Command::Replay(a)) => record::replay(&a),
+        Some(Command::Record(a)) => record::record_only(&a),
         Some(Command::Inspect(a)) => record::inspect(&a),
     }
 }

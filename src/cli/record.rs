@@ -214,8 +214,7 @@ pub fn replay(args: &ReplayArgs) -> anyhow::Result<()> {
         None => Calibration::from_bytes(&rec.calibration)
             .map_err(|e| anyhow::anyhow!("{}: recorded calibration: {e}", args.file.display()))?,
     };
-    if (cal.meta.width, cal.meta.height) != (s.width, s.height) || cal.meta.bands_nm != s.bands_nm
-    {
+    if (cal.meta.width, cal.meta.height) != (s.width, s.height) || cal.meta.bands_nm != s.bands_nm {
         anyhow::bail!(
             "the calibration is for {}×{} with {} bands, the recording has {}×{} with {} bands",
             cal.meta.width,
@@ -293,10 +292,18 @@ pub fn replay(args: &ReplayArgs) -> anyhow::Result<()> {
         );
     }
     if !st.closed {
-        eprintln!("irid: {}: not closed properly (crash or cut)", args.file.display());
+        eprintln!(
+            "irid: {}: not closed properly (crash or cut)",
+            args.file.display()
+        );
     }
     for d in &st.damage {
-        eprintln!("irid: {}: damage at byte {}: {}", args.file.display(), d.offset, d.message);
+        eprintln!(
+            "irid: {}: damage at byte {}: {}",
+            args.file.display(),
+            d.offset,
+            d.message
+        );
     }
     if let Some(p) = profile {
         eprint!("{}", p.report());
@@ -366,7 +373,10 @@ pub fn inventory(path: &Path) -> anyhow::Result<Inventory> {
                     }
                     last_seq = Some(last_seq.map_or(meta.seq, |l| l.max(meta.seq)));
                     let t = meta.timestamp_ns;
-                    inv.time_range_ns = Some(inv.time_range_ns.map_or((t, t), |(a, b)| (a.min(t), b.max(t))));
+                    inv.time_range_ns = Some(
+                        inv.time_range_ns
+                            .map_or((t, t), |(a, b)| (a.min(t), b.max(t))),
+                    );
                 }
             }
             TOPIC_SEQUENCER => match serde_json::from_slice::<SeqEvent>(&m.data) {
@@ -446,13 +456,89 @@ pub fn inspect(args: &InspectArgs) -> anyhow::Result<()> {
     println!(
         "  {} chunks; {}",
         inv.chunks,
-        if inv.closed { "closed properly" } else { "NOT closed (crash or cut)" }
+        if inv.closed {
+            "closed properly"
+        } else {
+            "NOT closed (crash or cut)"
+        }
     );
     if inv.damage.is_empty() {
         println!("  no damage");
     }
     for d in &inv.damage {
         println!("  damage at byte {}: {}", d.offset, d.message);
+    }
+    Ok(())
+}
+
+/// Arguments of `irid record`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct RecordArgs {
+    /// The recording to write.
+    #[arg(value_name = "FILE.mcap")]
+    pub file: PathBuf,
+    /// The line or demo options of `irid run` (`--sweeps`, `--config`,
+    /// `--scene`, `--size`, …; the solver options are ignored).
+    #[command(flatten)]
+    pub run: RunArgs,
+}
+
+/// Run `irid record`: capture and pair frames, record them, solve nothing.
+pub fn record_only(args: &RecordArgs) -> anyhow::Result<()> {
+    use crate::device::camera::{CameraError, Frame};
+    use crate::pipeline::runner::CaptureTap;
+    use crate::pipeline::sequencer::{Sequencer, Verdict};
+    if ctrlc::set_handler(|| STOP.store(true, Ordering::Relaxed)).is_err() {
+        tracing::warn!("Ctrl-C handler not installed");
+    }
+    let run = &args.run;
+    let (mut rig, mode, cal) = super::run::rig_and_calibration(run)?;
+    let recorder = start(&args.file, run, &rig, &cal, mode)?;
+    let info = rig.source.info();
+    let nm: Vec<f64> = rig.bands.iter().map(|b| b.center_nm).collect();
+    let sweeps = (run.sweeps > 0).then_some(run.sweeps);
+    let mut seq = Sequencer::new(rig.seq_mode, nm, rig.order.clone(), sweeps)?;
+    let last_band = rig.order.last().copied().unwrap_or(0);
+    let mut frame = Frame::with_size(info.width, info.height, info.format);
+    let mut tap = recorder.tap();
+    let result = (|| -> anyhow::Result<u64> {
+        let mut tuner = recorder.tuner(rig.tuner.as_mut());
+        let mut done = 0u64;
+        while !seq.finished() && !STOP.load(Ordering::Relaxed) {
+            match rig
+                .source
+                .next_frame(&mut frame, std::time::Duration::from_secs(2))
+            {
+                Ok(()) => {}
+                Err(CameraError::BadFrame { seq, message }) => {
+                    tracing::warn!(seq, %message, "bad frame");
+                    continue;
+                }
+                Err(CameraError::Ended) => break,
+                Err(e) => return Err(e.into()),
+            }
+            let valid = frame.pixels().is_ok()
+                && (frame.meta.width, frame.meta.height) == (info.width, info.height);
+            let v = seq.on_frame(&frame.meta, valid, &mut tuner, &mut |m| {
+                tap.on_missing(m.sweep, m.band)
+            })?;
+            tap.on_frame(&frame, Some(v));
+            if let Verdict::Accept { sweep, band } = v {
+                if band == last_band {
+                    done += 1;
+                    if !run.json {
+                        eprintln!("irid: sweep {sweep} recorded");
+                    }
+                }
+            }
+        }
+        Ok(done)
+    })();
+    drop(tap);
+    finish(recorder, Some(&args.file), run.json)?;
+    let n = result?;
+    if !run.json {
+        eprintln!("irid: {n} sweeps recorded to {}", args.file.display());
     }
     Ok(())
 }

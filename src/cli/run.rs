@@ -651,13 +651,9 @@ pub(crate) fn init_tracing(
     Ok((profile, _chrome_guard))
 }
 
-/// Run `irid run`.
-pub fn run(args: &RunArgs) -> anyhow::Result<()> {
-    let (profile, _chrome_guard) = init_tracing(args.trace.as_ref(), args.profile)?;
-    if ctrlc::set_handler(|| STOP.store(true, Ordering::Relaxed)).is_err() {
-        tracing::warn!("Ctrl-C handler not installed");
-    }
-
+/// The rig of `irid run` (hardware with `--config`, else the demo), its
+/// solver mode and its calibration (loaded and checked, or captured).
+pub(crate) fn rig_and_calibration(args: &RunArgs) -> anyhow::Result<(Rig, Mode, Calibration)> {
     let (mut rig, mode) = match &args.config {
         Some(p) => {
             let (rig, line) = hardware_rig(p)?;
@@ -696,6 +692,17 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             capture_calibration(&mut rig, 4, 0.99)?
         }
     };
+    Ok((rig, mode, calibration))
+}
+
+/// Run `irid run`.
+pub fn run(args: &RunArgs) -> anyhow::Result<()> {
+    let (profile, _chrome_guard) = init_tracing(args.trace.as_ref(), args.profile)?;
+    if ctrlc::set_handler(|| STOP.store(true, Ordering::Relaxed)).is_err() {
+        tracing::warn!("Ctrl-C handler not installed");
+    }
+
+    let (mut rig, mode, calibration) = rig_and_calibration(args)?;
     let recorder = match &args.record {
         Some(p) => Some(super::record::start(p, args, &rig, &calibration, mode)?),
         None => None,

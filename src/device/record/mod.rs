@@ -205,10 +205,7 @@ pub fn decode_frame_meta(data: &[u8]) -> Result<FrameMeta, String> {
 /// Copy a checked frame message's samples into `out` (`decode_frame_meta`
 /// first: it guarantees the length).
 pub fn decode_samples(data: &[u8], out: &mut [u16]) {
-    for (o, c) in out
-        .iter_mut()
-        .zip(data[FRAME_HEADER_LEN..].chunks_exact(2))
-    {
+    for (o, c) in out.iter_mut().zip(data[FRAME_HEADER_LEN..].chunks_exact(2)) {
         *o = u16::from_le_bytes([c[0], c[1]]);
     }
 }

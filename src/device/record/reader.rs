@@ -156,10 +156,8 @@ impl RecordReader {
         let at = self.pos;
         let left = self.len - at;
         if left == 0 {
-            self.note(
-                at,
-                "the file ends without footer: the recording was not closed (crash or cut); read up to its last complete chunk".into(),
-            );
+            // No footer: not closed (a crash), which `closed()` says; not
+            // damage in itself.
             self.done = true;
             return;
         }
@@ -176,7 +174,10 @@ impl RecordReader {
         let known = matches!(op, 0x01..=0x0F) || op >= 0x80;
         if !known || rlen > left - 9 || rlen > MAX_RECORD {
             let why = if known {
-                format!("record (opcode 0x{op:02x}) claims {rlen} bytes, {} left: cut or damaged", left - 9)
+                format!(
+                    "record (opcode 0x{op:02x}) claims {rlen} bytes, {} left: cut or damaged",
+                    left - 9
+                )
             } else {
                 format!("unknown record opcode 0x{op:02x}: garbage")
             };
@@ -218,7 +219,10 @@ impl RecordReader {
                 if left > 8 {
                     self.note(
                         at + 8,
-                        format!("{} bytes after the end of the file: garbage appended", left - 8),
+                        format!(
+                            "{} bytes after the end of the file: garbage appended",
+                            left - 8
+                        ),
                     );
                 }
             }
@@ -271,7 +275,9 @@ impl RecordReader {
         let mut start = from;
         while start + 9 < self.len {
             let n = (WINDOW as u64).min(self.len - start) as usize;
-            let Ok(win) = self.read_at(start, n) else { break };
+            let Ok(win) = self.read_at(start, n) else {
+                break;
+            };
             for i in 0..n {
                 if win[i] != OP_CHUNK {
                     continue;
@@ -315,10 +321,11 @@ impl RecordReader {
 /// Decompress and check one chunk body, all or nothing.
 fn parse_chunk(body: &[u8]) -> Result<Vec<mcap::records::Record<'static>>, String> {
     use mcap::records::Record;
-    let (header, data) = match mcap::read::parse_record(OP_CHUNK, body).map_err(|e| e.to_string())? {
-        Record::Chunk { header, data } => (header, data),
-        _ => return Err("not a chunk".into()),
-    };
+    let (header, data) =
+        match mcap::read::parse_record(OP_CHUNK, body).map_err(|e| e.to_string())? {
+            Record::Chunk { header, data } => (header, data),
+            _ => return Err("not a chunk".into()),
+        };
     if !matches!(header.compression.as_str(), "" | "zstd" | "lz4") {
         return Err(format!("unknown compression {:?}", header.compression));
     }

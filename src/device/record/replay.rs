@@ -96,11 +96,20 @@ impl Recording {
         let mut early = VecDeque::new();
         while session.is_none() || calibration.is_none() {
             let Some(m) = reader.next_message() else {
-                let what = if session.is_none() { "session" } else { "calibration" };
-                let damage: Vec<String> = reader.damage().iter().map(|d| d.message.clone()).collect();
+                let what = if session.is_none() {
+                    "session"
+                } else {
+                    "calibration"
+                };
+                let damage: Vec<String> =
+                    reader.damage().iter().map(|d| d.message.clone()).collect();
                 return Err(fmt(format!(
                     "no {what} message: not an irid recording, or its start is damaged{}",
-                    if damage.is_empty() { String::new() } else { format!(" ({})", damage.join("; ")) }
+                    if damage.is_empty() {
+                        String::new()
+                    } else {
+                        format!(" ({})", damage.join("; "))
+                    }
                 )));
             };
             match m.topic.as_str() {

@@ -12,9 +12,8 @@
 //! sweep in progress.
 
 use super::{
-    encode_frame, json_schema, RecordError, RecorderEvent, SeqEvent, Session, TuneEvent,
-    TOPICS, TOPIC_CALIBRATION, TOPIC_FILTER, TOPIC_FRAME, TOPIC_RECORDER, TOPIC_SEQUENCER,
-    TOPIC_SESSION,
+    encode_frame, json_schema, RecordError, RecorderEvent, SeqEvent, Session, TuneEvent, TOPICS,
+    TOPIC_CALIBRATION, TOPIC_FILTER, TOPIC_FRAME, TOPIC_RECORDER, TOPIC_SEQUENCER, TOPIC_SESSION,
 };
 use crate::device::camera::Frame;
 use crate::pipeline::runner::CaptureTap;
@@ -98,8 +97,13 @@ enum Msg {
     Frame(Frame, Option<Verdict>),
     /// No buffer: metadata and verdict only.
     FrameDropped(crate::device::camera::FrameMeta, Option<Verdict>),
-    Missing { sweep: u64, band: usize },
-    Abandoned { sweep: u64 },
+    Missing {
+        sweep: u64,
+        band: usize,
+    },
+    Abandoned {
+        sweep: u64,
+    },
     Tune(TuneEvent),
     Close,
 }
@@ -114,6 +118,7 @@ struct Shared {
 pub struct Recorder {
     tx: Sender<Msg>,
     free: Receiver<Frame>,
+    give_back: Sender<Frame>,
     shared: Arc<Shared>,
     thread: Option<std::thread::JoinHandle<Result<RecordStats, RecordError>>>,
 }
@@ -122,6 +127,7 @@ pub struct Recorder {
 pub struct RecordTap {
     tx: Sender<Msg>,
     free: Receiver<Frame>,
+    give_back: Sender<Frame>,
     shared: Arc<Shared>,
 }
 
@@ -192,9 +198,20 @@ impl Recorder {
             w.add_channel_with_id(i as u16 + 1, schema, topic, encoding, &BTreeMap::new())
                 .map_err(mcap_err(path))?;
         }
+        let (sync_tx, sync_rx) = crossbeam_channel::bounded::<()>(1);
+        let synced = sync.try_clone().map_err(io)?;
+        std::thread::Builder::new()
+            .name("irid-record-sync".into())
+            .spawn(move || {
+                for () in sync_rx.iter() {
+                    let _ = synced.sync_data();
+                }
+            })
+            .map_err(io)?;
         let mut out = Out {
             w,
             sync,
+            syncer: Some(sync_tx),
             path: path.to_path_buf(),
             sequence: 0,
             stats: RecordStats::default(),
@@ -207,10 +224,12 @@ impl Recorder {
 
         let (w, h) = (session.width as usize, session.height as usize);
         let frame_bytes = (w * h * 2).max(1);
+        // At least two sweeps, else up to 256 MiB (a slow disk or fsync
+        // is ridden out, not dropped), at most 4096 buffers.
         let pool = if opts.frame_pool > 0 {
             opts.frame_pool
         } else {
-            (2 * session.order.len()).clamp(4, ((256usize << 20) / frame_bytes).max(4))
+            ((256usize << 20) / frame_bytes).clamp(2 * session.order.len().max(2), 4096)
         };
         let (free_tx, free) = crossbeam_channel::bounded::<Frame>(pool);
         for _ in 0..pool {
@@ -225,6 +244,7 @@ impl Recorder {
         let shared = Arc::new(Shared::default());
         let last_band = session.order.last().copied().unwrap_or(0);
         let sh = shared.clone();
+        let give_back = free_tx.clone();
         let thread = std::thread::Builder::new()
             .name("irid-record".into())
             .spawn(move || out.run(rx, free_tx, last_band, sh))
@@ -232,6 +252,7 @@ impl Recorder {
         Ok(Recorder {
             tx,
             free,
+            give_back,
             shared,
             thread: Some(thread),
         })
@@ -242,6 +263,7 @@ impl Recorder {
         RecordTap {
             tx: self.tx.clone(),
             free: self.free.clone(),
+            give_back: self.give_back.clone(),
             shared: self.shared.clone(),
         }
     }
@@ -297,8 +319,7 @@ impl CaptureTap for RecordTap {
             }
             (_, Ok(b)) => {
                 // A malformed frame: its metadata only.
-                let _ = self.free.is_empty();
-                drop(b);
+                let _ = self.give_back.try_send(b);
                 None
             }
             (_, Err(_)) => None,
@@ -315,8 +336,9 @@ impl CaptureTap for RecordTap {
         match self.tx.try_send(m) {
             Ok(()) => {}
             Err(TrySendError::Full(m) | TrySendError::Disconnected(m)) => {
-                if matches!(m, Msg::Frame(..)) {
+                if let Msg::Frame(b, _) = m {
                     self.shared.frames_dropped.fetch_add(1, Ordering::Relaxed);
+                    let _ = self.give_back.try_send(b);
                 }
                 self.shared.events_dropped.fetch_add(1, Ordering::Relaxed);
             }
@@ -357,6 +379,8 @@ impl BandTuner for RecordingTuner<'_> {
 struct Out {
     w: mcap::Writer<BufWriter<File>>,
     sync: File,
+    /// Requests to the fsync thread.
+    syncer: Option<Sender<()>>,
     path: std::path::PathBuf,
     sequence: u32,
     stats: RecordStats,
@@ -389,7 +413,11 @@ fn verdict_event(seq: u64, v: Option<Verdict>) -> SeqEvent {
 
 impl Out {
     fn write(&mut self, topic: &str, time_ns: u64, data: &[u8]) -> Result<(), RecordError> {
-        let id = TOPICS.iter().position(|t| *t == topic).expect("known topic") as u16 + 1;
+        let id = TOPICS
+            .iter()
+            .position(|t| *t == topic)
+            .expect("known topic") as u16
+            + 1;
         self.sequence = self.sequence.wrapping_add(1);
         let header = mcap::records::MessageHeader {
             channel_id: id,
@@ -414,13 +442,15 @@ impl Out {
         self.write(topic, time_ns, &data)
     }
 
-    /// Close the chunk and make the file durable.
+    /// Close the chunk and hand it to the OS (what a killed process
+    /// keeps), then ask the sync thread to make it durable (what a power
+    /// cut keeps): a slow fsync never stalls the recorder.
     fn flush(&mut self) -> Result<(), RecordError> {
         self.w.flush().map_err(mcap_err(&self.path))?;
-        self.sync.sync_data().map_err(|source| RecordError::Io {
-            path: self.path.display().to_string(),
-            source,
-        })?;
+        if let Some(s) = &self.syncer {
+            // One request pending is enough: it syncs everything written.
+            let _ = s.try_send(());
+        }
         self.stats.flushes += 1;
         Ok(())
     }
@@ -432,8 +462,7 @@ impl Out {
         last_band: usize,
         free: &Sender<Frame>,
     ) -> Result<bool, RecordError> {
-        let sweep_end =
-            |v: &Option<Verdict>| matches!(v, Some(Verdict::Accept { band, .. }) if *band == last_band);
+        let sweep_end = |v: &Option<Verdict>| matches!(v, Some(Verdict::Accept { band, .. }) if *band == last_band);
         Ok(match m {
             Msg::Frame(f, v) => {
                 let mut buf = std::mem::take(&mut self.buf);
@@ -525,13 +554,15 @@ impl Out {
         };
         self.write_json(TOPIC_RECORDER, 0, &closed)?;
         self.w.finish().map_err(mcap_err(&self.path))?;
-        self.w.flush().ok();
         let path = self.path.clone();
-        drop(self.w);
-        self.sync.sync_all().map_err(|source| RecordError::Io {
+        let io = |source| RecordError::Io {
             path: path.display().to_string(),
             source,
-        })?;
+        };
+        let mut bw = self.w.into_inner();
+        std::io::Write::flush(&mut bw).map_err(io)?;
+        drop(self.syncer);
+        self.sync.sync_all().map_err(io)?;
         busy += t.elapsed();
         self.stats.file_bytes = std::fs::metadata(&path).map_or(0, |m| m.len());
         self.stats.elapsed_s = start.elapsed().as_secs_f64();
