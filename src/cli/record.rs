@@ -368,8 +368,8 @@ pub fn inventory(path: &Path) -> anyhow::Result<Inventory> {
             TOPIC_FRAME => {
                 if let Ok(meta) = crate::device::record::decode_frame_meta(&m.data) {
                     inv.frames += 1;
-                    if last_seq.is_some_and(|l| meta.seq > l + 1) {
-                        inv.seq_gaps += meta.seq - last_seq.unwrap_or(0) - 1;
+                    if let Some(l) = last_seq.filter(|&l| meta.seq > l.saturating_add(1)) {
+                        inv.seq_gaps = inv.seq_gaps.saturating_add(meta.seq - l - 1);
                     }
                     last_seq = Some(last_seq.map_or(meta.seq, |l| l.max(meta.seq)));
                     let t = meta.timestamp_ns;

@@ -189,7 +189,10 @@ pub fn decode_frame_meta(data: &[u8]) -> Result<FrameMeta, String> {
         format,
         trigger: (data[33] != 0).then(|| u64_at(36)),
     };
-    let want = (meta.width as u64) * (meta.height as u64) * 2 + FRAME_HEADER_LEN as u64;
+    let want = (meta.width as u64)
+        .saturating_mul(meta.height as u64)
+        .saturating_mul(2)
+        .saturating_add(FRAME_HEADER_LEN as u64);
     if data.len() as u64 != want {
         return Err(format!(
             "frame {}: {}×{} needs {want} bytes, the message has {}",

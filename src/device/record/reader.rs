@@ -290,7 +290,7 @@ impl RecordReader {
                     // Straddles the window: looked at again in the next.
                     break;
                 };
-                if rlen < 36 || rlen > MAX_RECORD || at + 9 + rlen > self.len {
+                if !(36..=MAX_RECORD).contains(&rlen) || at + 9 + rlen > self.len {
                     continue;
                 }
                 let Ok(body) = self.read_at(at + 9, rlen as usize) else {

@@ -124,6 +124,17 @@ impl Recording {
                 _ => {}
             }
         }
+        let session: Session = session.expect("set above");
+        let px = u64::from(session.width) * u64::from(session.height);
+        if px == 0 || px > 1 << 26 || session.order.len() != session.bands_nm.len() {
+            return Err(fmt(format!(
+                "session: implausible {}×{} frames or {} bands in an order of {}",
+                session.width,
+                session.height,
+                session.bands_nm.len(),
+                session.order.len()
+            )));
+        }
         let mut cursor = Cursor {
             reader,
             frames: VecDeque::new(),
@@ -142,7 +153,7 @@ impl Recording {
             }
         }
         Ok(Recording {
-            session: session.expect("set above"),
+            session,
             calibration: calibration.expect("set above"),
             cursor: Arc::new(Mutex::new(cursor)),
         })
