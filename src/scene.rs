@@ -28,7 +28,7 @@ use crate::optics::band::Band;
 use crate::optics::dispersion::Dispersion;
 use crate::optics::material::MaterialLibrary;
 use crate::optics::Polarization;
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
 /// Errors in a scene description.
@@ -68,7 +68,7 @@ fn invalid(field: &str, message: impl Into<String>) -> SceneError {
 }
 
 /// A medium: constant `n`/`k`, or a named material.
-#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct MediumSpec {
     /// Real part of the index.
@@ -143,7 +143,7 @@ impl MediumSpec {
 }
 
 /// The `[film]` section.
-#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct FilmSpec {
     /// Known index (never re-estimated when given).
@@ -165,7 +165,7 @@ pub struct FilmSpec {
 }
 
 /// The `[measurement]` section: what is known about the instrument.
-#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct MeasurementSpec {
     /// Reflectance noise σ (default: measured by the camera's calibration,
@@ -176,7 +176,7 @@ pub struct MeasurementSpec {
 }
 
 /// The `[angle]` section.
-#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct AngleSpec {
     /// Known uniform incidence angle in degrees.
@@ -188,7 +188,7 @@ pub struct AngleSpec {
 }
 
 /// The `[light]` section.
-#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct LightSpec {
     /// `s`, `p`, `u` or an s weight in \[0, 1\].
@@ -209,7 +209,7 @@ impl Default for LightSpec {
 }
 
 /// The `[bands]` section: either a regular grid or explicit centres.
-#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct BandsSpec {
     /// First centre, nm.
@@ -225,7 +225,7 @@ pub struct BandsSpec {
 }
 
 /// A scalar field over the image, for synthetic truth.
-#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
 #[serde(rename_all = "snake_case", deny_unknown_fields)]
 pub enum Field {
     /// The same value everywhere.
@@ -261,7 +261,7 @@ impl Field {
 }
 
 /// The `[truth]` section: what a synthetic scene really is.
-#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct TruthSpec {
     /// Image width, pixels.
@@ -285,7 +285,7 @@ pub struct TruthSpec {
 }
 
 /// A scene file as written.
-#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct SceneFile {
     /// A label for summaries.

@@ -1,6 +1,7 @@
 //! Command-line front ends: `irid run` (the live pipeline; the default, so
 //! `irid` alone runs the demo), `irid calibrate`, `irid fit`, `irid synth`,
-//! `irid model`, `irid lctf`, `irid render`.
+//! `irid model`, `irid lctf`, `irid render`, and recordings: `irid replay`,
+//! `irid inspect`.
 //!
 //! This layer reads the clock (to report speed), parses arguments, picks
 //! files and thread pools, and turns every error into one line on stderr
@@ -14,9 +15,10 @@ pub mod fit;
 pub mod lctf;
 pub mod line;
 pub mod model;
-pub mod report;
 pub mod progress;
+pub mod record;
 pub mod render;
+pub mod report;
 pub mod run;
 pub mod serve;
 pub mod synth;
@@ -53,6 +55,14 @@ pub enum Command {
     Lctf(lctf::LctfArgs),
     /// Pictures: a map as PNG, the film's colour, the speed/accuracy chart.
     Render(render::RenderArgs),
+    /// Replay a recording (MCAP) through the pipeline, with its own or
+    /// another mode, scene or calibration.
+    Replay(record::ReplayArgs),
+    /// Record what the line sees (MCAP) without solving.
+    Record(record::RecordArgs),
+    /// List a recording's contents: channels, sweeps, bands, gaps, drops,
+    /// damage.
+    Inspect(record::InspectArgs),
 }
 
 /// Run a parsed command line.
@@ -66,6 +76,9 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Some(Command::Model(a)) => model::run(&a),
         Some(Command::Lctf(a)) => lctf::run(&a),
         Some(Command::Render(a)) => render::run(&a),
+        Some(Command::Replay(a)) => record::replay(&a),
+        Some(Command::Record(a)) => record::record_only(&a),
+        Some(Command::Inspect(a)) => record::inspect(&a),
     }
 }
 

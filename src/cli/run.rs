@@ -124,6 +124,13 @@ pub struct RunArgs {
     /// maps, replacing them (the demo always replaces its own).
     #[arg(long)]
     pub force: bool,
+    /// Record what the line sees (raw frames, pairing, filter events,
+    /// calibration, configuration) to this MCAP file while processing.
+    #[arg(long, value_name = "FILE.mcap")]
+    pub record: Option<PathBuf>,
+    /// Chunk compression of the recording.
+    #[arg(long, value_enum, default_value_t = super::record::RecordCompression::Lz4)]
+    pub record_compression: super::record::RecordCompression,
 }
 
 #[derive(clap::Parser)]
@@ -314,6 +321,13 @@ fn parse_size(s: &str) -> anyhow::Result<(usize, usize)> {
 
 /// The demo rig: synthetic camera + emulated filter.
 pub fn demo_rig(args: &RunArgs) -> anyhow::Result<Rig> {
+    let (file, base) = demo_scene_file(args)?;
+    demo_rig_for(args, &file, &base)
+}
+
+/// The demo's scene file (`--scene` or the embedded cylinder, stretched
+/// to `--size`) and where its relative paths start.
+pub fn demo_scene_file(args: &RunArgs) -> anyhow::Result<(SceneFile, PathBuf)> {
     let (mut file, base): (SceneFile, PathBuf) = match &args.scene {
         Some(p) => {
             let text = std::fs::read_to_string(p)
@@ -348,7 +362,11 @@ pub fn demo_rig(args: &RunArgs) -> anyhow::Result<Rig> {
         t.width = w;
         t.height = h;
     }
-    let scene = Scene::resolve(&file, &base).map_err(|e| anyhow::anyhow!("scene: {e}"))?;
+    Ok((file, base))
+}
+
+fn demo_rig_for(args: &RunArgs, file: &SceneFile, base: &Path) -> anyhow::Result<Rig> {
+    let scene = Scene::resolve(file, base).map_err(|e| anyhow::anyhow!("scene: {e}"))?;
     let bands = scene.bands.clone().context("the scene has no [bands]")?;
     let nm: Vec<f64> = bands.iter().map(|b| b.center_nm).collect();
     let order = order_for(&args.order, bands.len(), &nm).with_context(|| {
@@ -591,11 +609,16 @@ pub fn capture_calibration(
     ))
 }
 
-struct CliSink {
-    out: Option<PathBuf>,
-    json: bool,
-    png: bool,
-    live: Option<super::serve::LiveView>,
+/// Writes each sweep's map and prints its summary line.
+pub(crate) struct CliSink {
+    /// Where maps go (None: not written).
+    pub out: Option<PathBuf>,
+    /// JSON summaries.
+    pub json: bool,
+    /// A PNG preview beside each map.
+    pub png: bool,
+    /// The live page, fed the latest finished map.
+    pub live: Option<super::serve::LiveView>,
 }
 
 impl SweepSink for CliSink {
@@ -623,14 +646,18 @@ impl SweepSink for CliSink {
 
 static STOP: AtomicBool = AtomicBool::new(false);
 
-/// Run `irid run`.
-pub fn run(args: &RunArgs) -> anyhow::Result<()> {
+/// Install the tracing layers `--trace` and `--profile` ask for: the
+/// profile layer and the Chrome trace's flush guard (keep it until exit).
+pub(crate) fn init_tracing(
+    trace: Option<&PathBuf>,
+    profile: bool,
+) -> anyhow::Result<(Option<ProfileLayer>, Option<tracing_chrome::FlushGuard>)> {
     // Tracing: nothing installed unless asked, so spans cost ~1 ns.
-    let profile = args.profile.then(ProfileLayer::new);
+    let profile = profile.then(ProfileLayer::new);
     let mut _chrome_guard = None;
-    if args.trace.is_some() || profile.is_some() {
+    if trace.is_some() || profile.is_some() {
         use tracing_subscriber::prelude::*;
-        let chrome = args.trace.as_ref().map(|p| {
+        let chrome = trace.map(|p| {
             let (layer, guard) = tracing_chrome::ChromeLayerBuilder::new()
                 .file(p.clone())
                 .include_args(true)
@@ -644,6 +671,56 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             .try_init()
             .context("installing the tracing subscriber")?;
     }
+    Ok((profile, _chrome_guard))
+}
+
+/// The rig of `irid run` (hardware with `--config`, else the demo), its
+/// solver mode and its calibration (loaded and checked, or captured).
+pub(crate) fn rig_and_calibration(args: &RunArgs) -> anyhow::Result<(Rig, Mode, Calibration)> {
+    let (mut rig, mode) = match &args.config {
+        Some(p) => {
+            let (rig, line) = hardware_rig(p)?;
+            let mode = match (&line.mode, args.mode) {
+                (Some(m), Mode::Balanced) => <Mode as clap::ValueEnum>::from_str(m, true)
+                    .map_err(|e| anyhow::anyhow!("{}: mode: {e}", p.display()))?,
+                _ => args.mode,
+            };
+            (rig, mode)
+        }
+        None => (demo_rig(args)?, args.mode),
+    };
+    let calibration = match rig.calibration.clone() {
+        Some((path, max_age_h, _)) => {
+            let cal = Calibration::load(&path)?;
+            cal.check(
+                &path.display().to_string(),
+                &CalExpect {
+                    camera: rig.source.info(),
+                    bands_nm: rig.bands.iter().map(|b| b.center_nm).collect(),
+                    now_unix_s: now_unix_s(),
+                    max_age_s: (max_age_h * 3600.0) as u64,
+                },
+            )?;
+            cal
+        }
+        None => {
+            if !args.json {
+                eprintln!(
+                    "irid: demo: {} looking at `{}` through {}; calibrating…",
+                    rig.source.info().id,
+                    rig.scene.name,
+                    rig.tuner.describe()
+                );
+            }
+            capture_calibration(&mut rig, 4, 0.99)?
+        }
+    };
+    Ok((rig, mode, calibration))
+}
+
+/// Run `irid run`.
+pub fn run(args: &RunArgs) -> anyhow::Result<()> {
+    let (profile, _chrome_guard) = init_tracing(args.trace.as_ref(), args.profile)?;
     // The first Ctrl-C stops cleanly; a second ends the process at once,
     // even if a stage is stuck (e.g. waiting on the controller).
     if ctrlc::set_handler(|| {
@@ -660,44 +737,12 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         return super::line::run(args, &STOP);
     }
 
-    let (mut rig, mode) = match &args.config {
-        Some(p) => {
-            let (rig, line) = hardware_rig(p)?;
-            let mode = match (&line.mode, args.mode) {
-                (Some(m), Mode::Balanced) => <Mode as clap::ValueEnum>::from_str(m, true)
-                    .map_err(|e| anyhow::anyhow!("{}: mode: {e}", p.display()))?,
-                _ => args.mode,
-            };
-            (rig, mode)
-        }
-        None => (demo_rig(args)?, args.mode),
+    let (mut rig, mode, calibration) = rig_and_calibration(args)?;
+    let recorder = match &args.record {
+        Some(p) => Some(super::record::start(p, args, &rig, &calibration, mode)?),
+        None => None,
     };
-    let calibrator = match rig.calibration.clone() {
-        Some((path, max_age_h, _)) => {
-            let cal = Calibration::load(&path)?;
-            cal.check(
-                &path.display().to_string(),
-                &CalExpect {
-                    camera: rig.source.info(),
-                    bands_nm: rig.bands.iter().map(|b| b.center_nm).collect(),
-                    now_unix_s: now_unix_s(),
-                    max_age_s: (max_age_h * 3600.0) as u64,
-                },
-            )?;
-            Calibrator::from_calibration(cal)
-        }
-        None => {
-            if !args.json {
-                eprintln!(
-                    "irid: demo: {} looking at `{}` through {}; calibrating…",
-                    rig.source.info().id,
-                    rig.scene.name,
-                    rig.tuner.describe()
-                );
-            }
-            Calibrator::from_calibration(capture_calibration(&mut rig, 4, 0.99)?)
-        }
-    };
+    let calibrator = Calibrator::from_calibration(calibration);
     let out = if args.no_maps {
         None
     } else {
@@ -741,14 +786,29 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         calibrator,
     };
     let stop: &'static AtomicBool = &STOP;
-    let report = runner::run(
-        rig.source.as_mut(),
-        rig.tuner.as_mut(),
-        setup,
-        &cfg,
-        &mut sink,
-        stop,
-    )?;
+    let report = match &recorder {
+        Some(r) => runner::run_tapped(
+            rig.source.as_mut(),
+            &mut r.tuner(rig.tuner.as_mut()),
+            setup,
+            &cfg,
+            &mut sink,
+            &mut runner::NoRows,
+            Some(&mut r.tap()),
+            stop,
+        )?,
+        None => runner::run(
+            rig.source.as_mut(),
+            rig.tuner.as_mut(),
+            setup,
+            &cfg,
+            &mut sink,
+            stop,
+        )?,
+    };
+    if let Some(r) = recorder {
+        super::record::finish(r, args.record.as_deref(), args.json)?;
+    }
     if !args.json {
         eprintln!(
             "irid: {} sweeps mapped, {} dropped; {} frames read, {} discarded while settling, {} lost or refused{}",

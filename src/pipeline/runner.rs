@@ -108,6 +108,20 @@ impl RowSink for NoRows {
     fn on_rows(&mut self, _: u64, _: std::ops::Range<usize>, _: &ParamMaps) {}
 }
 
+/// Sees, on the capture thread, every frame capture reads and what the
+/// sequencer made of it (a recorder). It must not block: capture never
+/// waits for it.
+pub trait CaptureTap: Send {
+    /// A frame read from the camera, with the sequencer's verdict, or
+    /// `None` when the frame was paired but its sweep was abandoned because
+    /// processing is behind.
+    fn on_frame(&mut self, frame: &Frame, verdict: Option<Verdict>);
+    /// A band slot given up (triggered mode gap).
+    fn on_missing(&mut self, sweep: u64, band: usize);
+    /// A whole sweep given up because processing fell behind.
+    fn on_abandoned(&mut self, sweep: u64);
+}
+
 /// A sink that keeps everything (tests).
 #[derive(Default)]
 pub struct CollectSink {
@@ -167,6 +181,10 @@ pub struct RunConfig {
     /// A panic injected into one stage (tests of the failure paths).
     #[doc(hidden)]
     pub fault: Option<StageFault>,
+    /// Never drop for back-pressure: capture waits for a free frame buffer
+    /// and ingest for a free sweep buffer (a replay, whose source can
+    /// always wait, must not lose what the live run kept).
+    pub lossless: bool,
 }
 
 impl Default for RunConfig {
@@ -182,6 +200,7 @@ impl Default for RunConfig {
             track_extrema: false,
             row_block: 0,
             fault: None,
+            lossless: false,
         }
     }
 }
@@ -265,6 +284,7 @@ struct Capture<'a> {
     after_tune: bool,
     fault: Option<StageFault>,
     handled: u64,
+    tap: Option<&'a mut dyn CaptureTap>,
 }
 
 enum Step {
@@ -317,7 +337,11 @@ impl Capture<'_> {
                     inner: &mut *self.tuner,
                     tuned: false,
                 };
+                let mut tap = self.tap.as_deref_mut();
                 let v = self.seq.on_frame(&m, valid, &mut tuner, &mut |x| {
+                    if let Some(t) = tap.as_deref_mut() {
+                        t.on_missing(x.sweep, x.band);
+                    }
                     emit(Packet::Missing {
                         sweep: x.sweep,
                         band: x.band,
@@ -325,6 +349,10 @@ impl Capture<'_> {
                 });
                 self.after_tune = tuner.tuned;
                 let v = v?;
+                if let Some(t) = tap {
+                    let paired = pooled || !matches!(v, Verdict::Accept { .. });
+                    t.on_frame(&frame, paired.then_some(v));
+                }
                 match v {
                     Verdict::Accept { sweep, band } if pooled => {
                         emit(Packet::Frame { sweep, band, frame });
@@ -337,6 +365,9 @@ impl Capture<'_> {
                         self.after_tune = true;
                         tracing::warn!(sweep = s, "frame pool empty: sweep abandoned");
                         self.counters.frames_dropped.fetch_add(1, Ordering::Relaxed);
+                        if let Some(t) = self.tap.as_deref_mut() {
+                            t.on_abandoned(s);
+                        }
                         emit(Packet::Abandoned { sweep: s });
                     }
                     Verdict::Discard(Discard::Settling) => {
@@ -356,6 +387,8 @@ impl Capture<'_> {
                 self.counters.frames_dropped.fetch_add(1, Ordering::Relaxed);
                 Ok(Step::Continue)
             }
+            // A recording's end ends the run normally.
+            Err(CameraError::Ended) => Ok(Step::Done),
             Err(e) => Err(RunError::Camera(e)),
         };
         if pooled {
@@ -385,10 +418,16 @@ impl SweepPool for Vec<SweepBuf> {
 struct ChannelPool {
     rx: crossbeam_channel::Receiver<SweepBuf>,
     tx: crossbeam_channel::Sender<SweepBuf>,
+    /// Wait for the solver to free a buffer rather than skip a sweep.
+    wait: bool,
 }
 
 impl SweepPool for ChannelPool {
     fn take(&mut self) -> Option<SweepBuf> {
+        if self.wait {
+            // The solver always hands its buffer back: this ends.
+            return self.rx.recv().ok();
+        }
         self.rx.try_recv().ok()
     }
     fn give(&mut self, b: SweepBuf) {
@@ -639,6 +678,22 @@ pub fn run_with_rows(
     rows: &mut dyn RowSink,
     stop: &AtomicBool,
 ) -> Result<RunReport, RunError> {
+    run_tapped(source, tuner, setup, cfg, sink, rows, None, stop)
+}
+
+/// [`run_with_rows`], also showing `tap` every frame capture reads and
+/// the sequencer's verdict (a recorder).
+#[allow(clippy::too_many_arguments)]
+pub fn run_tapped(
+    source: &mut dyn FrameSource,
+    tuner: &mut dyn BandTuner,
+    setup: Setup,
+    cfg: &RunConfig,
+    sink: &mut dyn SweepSink,
+    rows: &mut dyn RowSink,
+    tap: Option<&mut dyn CaptureTap>,
+    stop: &AtomicBool,
+) -> Result<RunReport, RunError> {
     let info = source.info();
     let (w, h) = (info.width as usize, info.height as usize);
     if setup.calibrator.plane_len() != w * h {
@@ -665,6 +720,11 @@ pub fn run_with_rows(
         after_tune: false,
         fault: cfg.fault,
         handled: 0,
+        // Re-borrowed for the capture stage's lifetime.
+        tap: match tap {
+            Some(t) => Some(t),
+            None => None,
+        },
     };
     let tracker = Tracker::new(w, h, &setup.bands).track_extrema(cfg.track_extrema);
     let n_sweep_bufs = cfg.sweep_buffers.max(1);
@@ -804,6 +864,7 @@ pub fn run_with_rows(
         // Raised by a failing stage: every loop below checks it, so no
         // stage waits on one that is gone.
         let halt = &AtomicBool::new(false);
+        let lossless = cfg.lossless;
         let outcome = std::thread::scope(|sc| -> Result<(), RunError> {
             let cap = std::thread::Builder::new()
                 .name("irid-capture".into())
@@ -822,7 +883,11 @@ pub fn run_with_rows(
                             break;
                         }
                         let mut overflow = false;
-                        let buf = stash.pop().or_else(|| free_cons.try_pop());
+                        let mut buf = stash.pop().or_else(|| free_cons.try_pop());
+                        while lossless && buf.is_none() && !stop.load(Ordering::Relaxed) {
+                            std::thread::sleep(Duration::from_micros(100));
+                            buf = free_cons.try_pop();
+                        }
                         let r = capture.step(
                             buf,
                             &mut |p| {
@@ -870,6 +935,7 @@ pub fn run_with_rows(
             let mut sweep_pool = ChannelPool {
                 rx: free_sweep_rx,
                 tx: free_sweep_tx.clone(),
+                wait: lossless,
             };
             let ing = std::thread::Builder::new()
                 .name("irid-ingest".into())

@@ -1,0 +1,546 @@
+//! Recordings from the command line: `irid run --record FILE.mcap` (the
+//! hook [`start`] / [`finish`]), `irid replay` and `irid inspect`.
+//!
+//! A replay is the recording as a camera and a filter fed through the same
+//! runner as a live run (`lossless`: it waits rather than drops), with the
+//! recorded scene, mode and calibration unless others are given.
+
+use super::run::{demo_scene_file, init_tracing, CliSink, LineConfig, Rig, RunArgs};
+use crate::device::record::reader::RecordReader;
+use crate::device::record::replay::Recording;
+use crate::device::record::writer::{Compression, RecordOptions, RecordStats, Recorder};
+use crate::device::record::{
+    ircal_bytes, RecorderEvent, SeqEvent, Session, TOPIC_FRAME, TOPIC_RECORDER, TOPIC_SEQUENCER,
+    TOPIC_SESSION,
+};
+use crate::estimate::Mode;
+use crate::optics::band::Band;
+use crate::pipeline::calibration::{Calibration, Calibrator};
+use crate::pipeline::runner::{self, RunConfig, Setup};
+use crate::scene::{Scene, SceneFile};
+use anyhow::Context;
+use std::collections::BTreeMap;
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+
+/// Chunk compression of a recording.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum RecordCompression {
+    /// LZ4: fast, keeps up with the camera (see README).
+    Lz4,
+    /// zstd: smaller, slower.
+    Zstd,
+    /// None.
+    None,
+}
+
+fn mode_name(m: Mode) -> String {
+    format!("{m:?}").to_ascii_lowercase()
+}
+
+/// The scene file of a run and where its relative paths start.
+fn scene_file_of(args: &RunArgs) -> anyhow::Result<(SceneFile, PathBuf)> {
+    match &args.config {
+        None => demo_scene_file(args),
+        Some(p) => {
+            let (line, base) = LineConfig::load(p)?;
+            let path = base.join(&line.scene);
+            let text = std::fs::read_to_string(&path)
+                .with_context(|| format!("cannot read scene {}", path.display()))?;
+            let f = toml::from_str(&text)
+                .map_err(|e| anyhow::anyhow!("scene {}: {e}", path.display()))?;
+            Ok((f, path.parent().unwrap_or(Path::new(".")).to_path_buf()))
+        }
+    }
+}
+
+/// Start recording `irid run` to `path` (after calibration).
+pub(crate) fn start(
+    path: &Path,
+    args: &RunArgs,
+    rig: &Rig,
+    cal: &Calibration,
+    mode: Mode,
+) -> anyhow::Result<Recorder> {
+    let (file, base) = scene_file_of(args)?;
+    let base = std::path::absolute(&base).unwrap_or(base);
+    let info = rig.source.info();
+    let session = Session {
+        irid_version: env!("CARGO_PKG_VERSION").into(),
+        started_unix_s: super::run::now_unix_s(),
+        command: "run".into(),
+        scene: serde_json::to_value(&file).context("serialising the scene")?,
+        scene_base: base.display().to_string(),
+        bands_nm: rig.bands.iter().map(|b| b.center_nm).collect(),
+        fwhm_nm: rig.bands.iter().map(|b| b.fwhm_nm).collect(),
+        order: rig.order.clone(),
+        seq_mode: rig.seq_mode,
+        mode: mode_name(mode),
+        camera_id: info.id,
+        width: info.width,
+        height: info.height,
+        format: info.format,
+        exposure_us: info.exposure_us,
+        gain: info.gain,
+        filter: rig.tuner.describe(),
+        sweeps: (args.sweeps > 0).then_some(args.sweeps),
+    };
+    let opts = RecordOptions {
+        compression: match args.record_compression {
+            RecordCompression::Lz4 => Compression::Lz4,
+            RecordCompression::Zstd => Compression::Zstd,
+            RecordCompression::None => Compression::None,
+        },
+        ..Default::default()
+    };
+    Ok(Recorder::create(path, &session, &ircal_bytes(cal), &opts)?)
+}
+
+/// Close the recording and say what it cost.
+pub(crate) fn finish(r: Recorder, path: Option<&Path>, json: bool) -> anyhow::Result<()> {
+    let s: RecordStats = r.finish()?;
+    let name = path.map_or(String::new(), |p| p.display().to_string());
+    let line = format!(
+        "irid: recorded {name}: {} frames, {:.1} MB raw at {:.2} MB/s, file {:.1} MB (ratio {:.2}), recorder busy {:.0} % (takes up to {:.0} MB/s){}",
+        s.frames_written,
+        s.raw_bytes as f64 / 1e6,
+        s.mb_per_s(),
+        s.file_bytes as f64 / 1e6,
+        s.ratio(),
+        100.0 * s.busy_s / s.elapsed_s.max(1e-9),
+        s.capacity_mb_per_s(),
+        if s.frames_dropped > 0 {
+            format!("; the disk could not keep up: {} frames dropped from the recording", s.frames_dropped)
+        } else {
+            String::new()
+        }
+    );
+    if json {
+        println!(
+            "{}",
+            serde_json::json!({
+                "recording": name, "frames": s.frames_written, "frames_dropped": s.frames_dropped,
+                "raw_bytes": s.raw_bytes, "file_bytes": s.file_bytes, "mb_per_s": s.mb_per_s(),
+                "ratio": s.ratio(), "busy_s": s.busy_s, "elapsed_s": s.elapsed_s,
+            })
+        );
+    } else {
+        eprintln!("{line}");
+    }
+    Ok(())
+}
+
+/// Arguments of `irid replay`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct ReplayArgs {
+    /// The recording (`irid run --record`).
+    pub file: PathBuf,
+    /// Output directory of the maps.
+    #[arg(long, default_value = "out")]
+    pub out: PathBuf,
+    /// Do not write maps (summaries only).
+    #[arg(long)]
+    pub no_maps: bool,
+    /// One JSON object per sweep on stdout.
+    #[arg(long)]
+    pub json: bool,
+    /// Solver mode (default: the recorded run's).
+    #[arg(long, value_enum)]
+    pub mode: Option<Mode>,
+    /// Scene (default: the recorded one).
+    #[arg(long, value_name = "FILE")]
+    pub scene: Option<PathBuf>,
+    /// Calibration `.ircal` (default: the recorded one).
+    #[arg(long, value_name = "FILE")]
+    pub calibration: Option<PathBuf>,
+    /// Pace frames by their recorded timestamps (real time).
+    #[arg(long, conflicts_with = "speed")]
+    pub realtime: bool,
+    /// Pace frames at this many times real time.
+    #[arg(long, value_name = "X")]
+    pub speed: Option<f64>,
+    /// Stop after this many sweeps (default: the whole recording).
+    #[arg(long)]
+    pub sweeps: Option<u64>,
+    /// Solver threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Run every stage on one thread.
+    #[arg(long)]
+    pub single_thread: bool,
+    /// Write a Chrome/Perfetto trace (JSON) of every span.
+    #[arg(long, value_name = "FILE")]
+    pub trace: Option<PathBuf>,
+    /// Print per-stage latency percentiles and throughput at exit.
+    #[arg(long)]
+    pub profile: bool,
+}
+
+static STOP: AtomicBool = AtomicBool::new(false);
+
+fn progress_bar(file: &Path) -> crate::device::record::replay::Progress {
+    let name = file.display().to_string();
+    let mut last = std::time::Instant::now();
+    Box::new(move |pos, len| {
+        if last.elapsed().as_millis() >= 200 {
+            last = std::time::Instant::now();
+            let pct = 100.0 * pos as f64 / (len.max(1)) as f64;
+            let bar = "#".repeat((pct / 5.0) as usize);
+            eprint!("\rreplay {name} [{bar:<20}] {pct:5.1} %");
+        }
+    })
+}
+
+/// Run `irid replay`.
+pub fn replay(args: &ReplayArgs) -> anyhow::Result<()> {
+    let (profile, _chrome_guard) = init_tracing(args.trace.as_ref(), args.profile)?;
+    if ctrlc::set_handler(|| STOP.store(true, Ordering::Relaxed)).is_err() {
+        tracing::warn!("Ctrl-C handler not installed");
+    }
+    let rec = Recording::open(&args.file)?;
+    let s = rec.session.clone();
+    let scene = match &args.scene {
+        Some(p) => Scene::load(p)?,
+        None => {
+            let f: SceneFile = serde_json::from_value(s.scene.clone())
+                .with_context(|| format!("{}: recorded scene", args.file.display()))?;
+            Scene::resolve(&f, Path::new(&s.scene_base))
+                .map_err(|e| anyhow::anyhow!("{}: recorded scene: {e}", args.file.display()))?
+        }
+    };
+    let cal = match &args.calibration {
+        Some(p) => Calibration::load(p)?,
+        None => Calibration::from_bytes(&rec.calibration)
+            .map_err(|e| anyhow::anyhow!("{}: recorded calibration: {e}", args.file.display()))?,
+    };
+    if (cal.meta.width, cal.meta.height) != (s.width, s.height) || cal.meta.bands_nm != s.bands_nm {
+        anyhow::bail!(
+            "the calibration is for {}×{} with {} bands, the recording has {}×{} with {} bands",
+            cal.meta.width,
+            cal.meta.height,
+            cal.meta.bands_nm.len(),
+            s.width,
+            s.height,
+            s.bands_nm.len()
+        );
+    }
+    let mode = match args.mode {
+        Some(m) => m,
+        None => <Mode as clap::ValueEnum>::from_str(&s.mode, true)
+            .map_err(|e| anyhow::anyhow!("{}: recorded mode: {e}", args.file.display()))?,
+    };
+    let bands: Vec<Band> = s
+        .bands_nm
+        .iter()
+        .zip(s.fwhm_nm.iter().chain(std::iter::repeat(&0.0)))
+        .map(|(&center_nm, &fwhm_nm)| Band { center_nm, fwhm_nm })
+        .collect();
+    let out = if args.no_maps {
+        None
+    } else {
+        std::fs::create_dir_all(&args.out)
+            .with_context(|| format!("creating {}", args.out.display()))?;
+        Some(args.out.clone())
+    };
+    let cfg = RunConfig {
+        sweeps: args.sweeps,
+        mode,
+        threads: args.threads,
+        single_thread: args.single_thread,
+        lossless: true,
+        ..RunConfig::default()
+    };
+    let setup = Setup {
+        scene,
+        bands,
+        order: s.order.clone(),
+        seq_mode: s.seq_mode,
+        calibrator: Calibrator::from_calibration(cal),
+    };
+    let speed = if args.realtime { Some(1.0) } else { args.speed };
+    let mut source = rec.source(speed);
+    let bar = std::io::stderr().is_terminal() && !args.json;
+    if bar {
+        source = source.with_progress(progress_bar(&args.file));
+    }
+    let mut tuner = rec.tuner();
+    let mut sink = CliSink {
+        out,
+        json: args.json,
+        png: false,
+        live: None,
+    };
+    let started = std::time::Instant::now();
+    let report = runner::run(&mut source, &mut tuner, setup, &cfg, &mut sink, &STOP)?;
+    if bar {
+        eprintln!();
+    }
+    let st = rec.stats();
+    let secs = started.elapsed().as_secs_f64();
+    if !args.json {
+        eprintln!(
+            "irid: replayed {}: {} sweeps mapped, {} dropped; {} frames in {secs:.2} s ({:.0} frames/s){}",
+            args.file.display(),
+            report.sweeps_completed,
+            report.sweeps_dropped,
+            st.frames,
+            st.frames as f64 / secs.max(1e-9),
+            if st.diverged > 0 {
+                format!("; {} filter commands not as recorded (the live run dropped sweeps or the recorder frames)", st.diverged)
+            } else {
+                String::new()
+            }
+        );
+    }
+    if !st.closed {
+        eprintln!(
+            "irid: {}: not closed properly (crash or cut)",
+            args.file.display()
+        );
+    }
+    for d in &st.damage {
+        eprintln!(
+            "irid: {}: damage at byte {}: {}",
+            args.file.display(),
+            d.offset,
+            d.message
+        );
+    }
+    if let Some(p) = profile {
+        eprint!("{}", p.report());
+    }
+    drop(_chrome_guard);
+    Ok(())
+}
+
+/// Arguments of `irid inspect`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct InspectArgs {
+    /// The recording.
+    pub file: PathBuf,
+    /// One JSON object on stdout.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// What `irid inspect` finds.
+#[derive(Debug, Default, serde::Serialize)]
+pub struct Inventory {
+    /// Messages per topic.
+    pub channels: BTreeMap<String, u64>,
+    /// The session, if found.
+    pub session: Option<Session>,
+    /// Frames recorded with pixels.
+    pub frames: u64,
+    /// First and last frame timestamps, ns.
+    pub time_range_ns: Option<(u64, u64)>,
+    /// Gaps in the camera's frame counter (frames lost before capture).
+    pub seq_gaps: u64,
+    /// Sweeps with every band accepted or marked missing.
+    pub complete_sweeps: u64,
+    /// Sweeps begun but not complete (cut, abandoned, damaged).
+    pub incomplete_sweeps: Vec<u64>,
+    /// Band slots marked missing (triggered gaps).
+    pub missing_bands: u64,
+    /// Sweeps abandoned live (processing behind).
+    pub abandoned_sweeps: Vec<u64>,
+    /// Verdicts by kind.
+    pub verdicts: BTreeMap<String, u64>,
+    /// Frames the recorder dropped (disk behind).
+    pub recorder_dropped: u64,
+    /// Whether the file was closed properly.
+    pub closed: bool,
+    /// Sound chunks.
+    pub chunks: u64,
+    /// Damage found.
+    pub damage: Vec<crate::device::record::reader::Damage>,
+}
+
+/// Read a whole recording and list what is in it.
+pub fn inventory(path: &Path) -> anyhow::Result<Inventory> {
+    let mut r = RecordReader::open(path)?;
+    let mut inv = Inventory::default();
+    let mut last_seq: Option<u64> = None;
+    let mut bands: BTreeMap<u64, usize> = BTreeMap::new();
+    while let Some(m) = r.next_message() {
+        *inv.channels.entry(m.topic.clone()).or_default() += 1;
+        match m.topic.as_str() {
+            TOPIC_SESSION => inv.session = serde_json::from_slice(&m.data).ok(),
+            TOPIC_FRAME => {
+                if let Ok(meta) = crate::device::record::decode_frame_meta(&m.data) {
+                    inv.frames += 1;
+                    if let Some(l) = last_seq.filter(|&l| meta.seq > l.saturating_add(1)) {
+                        inv.seq_gaps = inv.seq_gaps.saturating_add(meta.seq - l - 1);
+                    }
+                    last_seq = Some(last_seq.map_or(meta.seq, |l| l.max(meta.seq)));
+                    let t = meta.timestamp_ns;
+                    inv.time_range_ns = Some(
+                        inv.time_range_ns
+                            .map_or((t, t), |(a, b)| (a.min(t), b.max(t))),
+                    );
+                }
+            }
+            TOPIC_SEQUENCER => match serde_json::from_slice::<SeqEvent>(&m.data) {
+                Ok(SeqEvent::Frame { verdict, sweep, .. }) => {
+                    if let (true, Some(s)) = (verdict == "accept", sweep) {
+                        *bands.entry(s).or_default() += 1;
+                    }
+                    *inv.verdicts.entry(verdict).or_default() += 1;
+                }
+                Ok(SeqEvent::Missing { sweep, .. }) => {
+                    inv.missing_bands += 1;
+                    *bands.entry(sweep).or_default() += 1;
+                }
+                Ok(SeqEvent::Abandoned { sweep }) => inv.abandoned_sweeps.push(sweep),
+                Err(_) => {}
+            },
+            TOPIC_RECORDER => {
+                if let Ok(RecorderEvent::Dropped { .. }) = serde_json::from_slice(&m.data) {
+                    inv.recorder_dropped += 1;
+                }
+            }
+            _ => {}
+        }
+    }
+    let n = inv.session.as_ref().map_or(0, |s| s.order.len());
+    for (&s, &k) in &bands {
+        if k >= n && n > 0 {
+            inv.complete_sweeps += 1;
+        } else {
+            inv.incomplete_sweeps.push(s);
+        }
+    }
+    inv.closed = r.closed();
+    inv.chunks = r.chunks();
+    inv.damage = r.damage().to_vec();
+    Ok(inv)
+}
+
+/// Run `irid inspect`.
+pub fn inspect(args: &InspectArgs) -> anyhow::Result<()> {
+    let inv = inventory(&args.file)?;
+    if args.json {
+        println!("{}", serde_json::to_string(&inv)?);
+        return Ok(());
+    }
+    println!("{}", args.file.display());
+    if let Some(s) = &inv.session {
+        println!(
+            "  irid {} `{}`: {}×{} {:?}, {} bands {:.0}–{:.0} nm, {:?} pairing, mode {}, filter: {}",
+            s.irid_version,
+            s.command,
+            s.width,
+            s.height,
+            s.format,
+            s.bands_nm.len(),
+            s.bands_nm.first().copied().unwrap_or(f64::NAN),
+            s.bands_nm.last().copied().unwrap_or(f64::NAN),
+            s.seq_mode,
+            s.mode,
+            s.filter
+        );
+    }
+    println!("  channels:");
+    for (t, k) in &inv.channels {
+        println!("    {t:<20} {k} messages");
+    }
+    let dur = inv.time_range_ns.map_or(0.0, |(a, b)| (b - a) as f64 / 1e9);
+    println!(
+        "  frames: {} over {dur:.2} s; {} lost before capture (counter gaps); {} dropped by the recorder",
+        inv.frames, inv.seq_gaps, inv.recorder_dropped
+    );
+    println!(
+        "  sweeps: {} complete; incomplete: {:?}; abandoned live: {:?}; missing bands: {}",
+        inv.complete_sweeps, inv.incomplete_sweeps, inv.abandoned_sweeps, inv.missing_bands
+    );
+    println!("  verdicts: {:?}", inv.verdicts);
+    println!(
+        "  {} chunks; {}",
+        inv.chunks,
+        if inv.closed {
+            "closed properly"
+        } else {
+            "NOT closed (crash or cut)"
+        }
+    );
+    if inv.damage.is_empty() {
+        println!("  no damage");
+    }
+    for d in &inv.damage {
+        println!("  damage at byte {}: {}", d.offset, d.message);
+    }
+    Ok(())
+}
+
+/// Arguments of `irid record`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct RecordArgs {
+    /// The recording to write.
+    #[arg(value_name = "FILE.mcap")]
+    pub file: PathBuf,
+    /// The line or demo options of `irid run` (`--sweeps`, `--config`,
+    /// `--scene`, `--size`, …; the solver options are ignored).
+    #[command(flatten)]
+    pub run: RunArgs,
+}
+
+/// Run `irid record`: capture and pair frames, record them, solve nothing.
+pub fn record_only(args: &RecordArgs) -> anyhow::Result<()> {
+    use crate::device::camera::{CameraError, Frame};
+    use crate::pipeline::runner::CaptureTap;
+    use crate::pipeline::sequencer::{Sequencer, Verdict};
+    if ctrlc::set_handler(|| STOP.store(true, Ordering::Relaxed)).is_err() {
+        tracing::warn!("Ctrl-C handler not installed");
+    }
+    let run = &args.run;
+    let (mut rig, mode, cal) = super::run::rig_and_calibration(run)?;
+    let recorder = start(&args.file, run, &rig, &cal, mode)?;
+    let info = rig.source.info();
+    let nm: Vec<f64> = rig.bands.iter().map(|b| b.center_nm).collect();
+    let sweeps = (run.sweeps > 0).then_some(run.sweeps);
+    let mut seq = Sequencer::new(rig.seq_mode, nm, rig.order.clone(), sweeps)?;
+    let last_band = rig.order.last().copied().unwrap_or(0);
+    let mut frame = Frame::with_size(info.width, info.height, info.format);
+    let mut tap = recorder.tap();
+    let result = (|| -> anyhow::Result<u64> {
+        let mut tuner = recorder.tuner(rig.tuner.as_mut());
+        let mut done = 0u64;
+        while !seq.finished() && !STOP.load(Ordering::Relaxed) {
+            match rig
+                .source
+                .next_frame(&mut frame, std::time::Duration::from_secs(2))
+            {
+                Ok(()) => {}
+                Err(CameraError::BadFrame { seq, message }) => {
+                    tracing::warn!(seq, %message, "bad frame");
+                    continue;
+                }
+                Err(CameraError::Ended) => break,
+                Err(e) => return Err(e.into()),
+            }
+            let valid = frame.pixels().is_ok()
+                && (frame.meta.width, frame.meta.height) == (info.width, info.height);
+            let v = seq.on_frame(&frame.meta, valid, &mut tuner, &mut |m| {
+                tap.on_missing(m.sweep, m.band)
+            })?;
+            tap.on_frame(&frame, Some(v));
+            if let Verdict::Accept { sweep, band } = v {
+                if band == last_band {
+                    done += 1;
+                    if !run.json {
+                        eprintln!("irid: sweep {sweep} recorded");
+                    }
+                }
+            }
+        }
+        Ok(done)
+    })();
+    drop(tap);
+    finish(recorder, Some(&args.file), run.json)?;
+    let n = result?;
+    if !run.json {
+        eprintln!("irid: {n} sweeps recorded to {}", args.file.display());
+    }
+    Ok(())
+}
