@@ -43,6 +43,11 @@ struct Broker {
 impl Broker {
     fn start(bin: &Path, dir: &Path) -> Broker {
         let port = free_port();
+        // Started as root, mosquitto drops to its own user, which must be
+        // able to save the sessions there (else every restart forgets the
+        // subscriber's session and what was queued for it).
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(dir, std::fs::Permissions::from_mode(0o777)).unwrap();
         let conf = dir.join("mosquitto.conf");
         std::fs::write(
             &conf,
