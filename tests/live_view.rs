@@ -174,7 +174,7 @@ fn browser_check(addr: &str) {
     };
     // A loaded machine may not have drawn the page by the screenshot's
     // deadline: up to four tries each.
-    let mut shoot = || {
+    let shoot = || {
         let mut last = (0, 0, 0);
         for _ in 0..4 {
             let shot = screenshot(addr);
