@@ -132,14 +132,24 @@ pub struct Summary {
 
 /// Build the scene of a fit from `--scene` and the overrides.
 pub fn build_scene(a: &FitArgs) -> anyhow::Result<Scene> {
-    let mut src = match &a.scene {
+    scene_with_overrides(a.scene.as_deref(), &a.overrides)
+}
+
+/// `scene` (else one that knows only an ambient of n = 1) edited by the
+/// command-line overrides, without its synthetic truth; the substrate must
+/// be known.
+pub fn scene_with_overrides(
+    scene: Option<&std::path::Path>,
+    overrides: &SceneOverrides,
+) -> anyhow::Result<Scene> {
+    let mut src = match scene {
         Some(p) => SceneSource::load(p)?,
         None => SceneSource::empty(),
     };
     // The fit needs no synthetic truth, and a truth that an override makes
     // inconsistent must not stop it.
     src.file.truth = None;
-    a.overrides.apply(&mut src.file)?;
+    overrides.apply(&mut src.file)?;
     if !src.file.substrate.is_given() {
         bail!("the substrate is unknown: give --n3 N (or --material3 NAME, or a --scene with [substrate])");
     }

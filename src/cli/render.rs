@@ -10,7 +10,7 @@
 //! - `irid render --trade TABLE.md --out TRADE.svg`: the speed/accuracy
 //!   chart from the scene-matrix benchmark's table.
 
-use super::common::{SceneOverrides, SceneSource};
+use super::common::SceneOverrides;
 use crate::io::{envi, exr_maps};
 use crate::render::map::{self, MapStyle};
 use crate::render::{film_colour, trade};
@@ -103,16 +103,7 @@ pub fn run(a: &RenderArgs) -> anyhow::Result<()> {
 /// The scene for --colour and --chart: `--scene` (else one that knows
 /// only an ambient of n = 1) with the command-line overrides.
 fn scene(a: &RenderArgs) -> anyhow::Result<Scene> {
-    let mut src = match &a.scene {
-        Some(p) => SceneSource::load(p)?,
-        None => SceneSource::empty(),
-    };
-    src.file.truth = None;
-    a.overrides.apply(&mut src.file)?;
-    if !src.file.substrate.is_given() {
-        bail!("the substrate is unknown: give --n3 N (or --material3 NAME, or a --scene with [substrate])");
-    }
-    src.resolve()
+    super::fit::scene_with_overrides(a.scene.as_deref(), &a.overrides)
 }
 
 fn colour(a: &RenderArgs, path: &Path) -> anyhow::Result<()> {

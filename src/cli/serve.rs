@@ -89,16 +89,7 @@ impl LiveView {
 }
 
 fn render_png(maps: &ParamMaps, sweep: u64) -> Option<Vec<u8>> {
-    let c = crate::io::exr_maps::Channels {
-        width: maps.width,
-        height: maps.height,
-        channels: maps
-            .channels()
-            .iter()
-            .map(|(n, v)| (n.to_string(), v.to_vec()))
-            .collect(),
-        attributes: crate::io::exr_maps::map_attributes(&maps.meta),
-    };
+    let c = crate::io::exr_maps::Channels::from_maps(maps);
     let style = MapStyle {
         channel: "thickness_nm".into(),
         range: None,

@@ -47,6 +47,21 @@ pub struct Channels {
 }
 
 impl Channels {
+    /// A solver's maps as channels ([`ParamMaps::channels`], metadata as
+    /// `irid.*` attributes).
+    pub fn from_maps(maps: &ParamMaps) -> Channels {
+        Channels {
+            width: maps.width,
+            height: maps.height,
+            channels: maps
+                .channels()
+                .iter()
+                .map(|(n, v)| (n.to_string(), v.to_vec()))
+                .collect(),
+            attributes: map_attributes(&maps.meta),
+        }
+    }
+
     /// The channel called `name`.
     pub fn channel(&self, name: &str) -> Option<&[f32]> {
         self.channels
@@ -254,16 +269,7 @@ pub fn map_attributes(meta: &MapMeta) -> Vec<(String, String)> {
 /// Write parameter maps to one EXR file (channels named as in
 /// [`ParamMaps::channels`], metadata as `irid.*` attributes).
 pub fn write_maps(path: &Path, maps: &ParamMaps) -> Result<(), IoError> {
-    let data = Channels {
-        width: maps.width,
-        height: maps.height,
-        channels: maps
-            .channels()
-            .iter()
-            .map(|(n, v)| (n.to_string(), v.to_vec()))
-            .collect(),
-        attributes: map_attributes(&maps.meta),
-    };
+    let data = Channels::from_maps(maps);
     write_channels(path, &data)
 }
 

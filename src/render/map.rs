@@ -341,16 +341,7 @@ pub fn write_preview(
     exr_path: &std::path::Path,
     maps: &crate::estimate::ParamMaps,
 ) -> Result<std::path::PathBuf, RenderError> {
-    let c = Channels {
-        width: maps.width,
-        height: maps.height,
-        channels: maps
-            .channels()
-            .iter()
-            .map(|(n, v)| (n.to_string(), v.to_vec()))
-            .collect(),
-        attributes: crate::io::exr_maps::map_attributes(&maps.meta),
-    };
+    let c = Channels::from_maps(maps);
     let name = exr_path
         .file_name()
         .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
