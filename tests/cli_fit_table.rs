@@ -1,7 +1,7 @@
 //! `irid fit` on spectrum tables and with CSV output, as a user runs it:
 //! spectra rendered with irid's own model (films of n = 1.46 on n = 1.52
 //! at normal incidence) written as a table, fitted, and the thicknesses
-//! read back from the CSV; a 1 nm spectrometer file that needs `--bands`;
+//! read back from the CSV; a 1 nm spectrometer file averaged into bands;
 //! cubes to CSV; errors naming the file and line; no partial output.
 
 mod cli_common;
@@ -180,20 +180,24 @@ fn spectrometer_file(dir: &Path) -> std::path::PathBuf {
 }
 
 #[test]
-fn a_fine_spectrometer_file_needs_bands() {
+fn a_fine_spectrometer_file_is_averaged_into_bands() {
     let dir = tempfile::tempdir().unwrap();
     let input = spectrometer_file(dir.path());
     let res = dir.path().join("res.csv");
-    fails_with(
-        &fit_args(s(&input), s(&res), &[]),
-        &[
-            "spectrometer.dat",
-            "951 wavelengths",
-            "at most 512",
-            "--bands LO:HI:STEP",
-            "--bands 250:1200:2",
-        ],
-    );
+    // 951 rows, more than the solver's 512 bands: averaged into 2 nm bins
+    // (476 bands, 250–1200 nm), said on the console, and fitted.
+    let out = ok(&fit_args(s(&input), s(&res), &[]));
+    let err = String::from_utf8_lossy(&out.stderr);
+    for f in [
+        "spectrometer.dat",
+        "951 wavelengths",
+        "476 bands of 2 nm",
+        "--bands LO:HI:STEP",
+    ] {
+        assert!(err.contains(f), "{err:?} lacks {f:?}");
+    }
+    assert_thicknesses(&read_csv(&res), &["a", "b", "c"], 1.0);
+    std::fs::remove_file(&res).unwrap();
     assert!(!res.exists());
     ok(&fit_args(s(&input), s(&res), &["--bands", "400:1000:4"]));
     assert_thicknesses(&read_csv(&res), &["a", "b", "c"], 1.0);

@@ -315,15 +315,25 @@ fn read_table(a: &FitArgs) -> anyhow::Result<SpectrumTable> {
             );
         }
         if table.rows() > MAX_BANDS {
+            // More rows than the fit takes: average them into uniform
+            // bins (each band's passband is its bin), the step the
+            // smallest half-nanometre multiple that fits.
             let (lo, hi) = table.wavelength_range();
-            let step = ((hi - lo) / (MAX_BANDS - 1) as f64).ceil().max(1.0);
-            bail!(
-                "{} has {} wavelengths ({}), but irid fits at most {MAX_BANDS} bands: resample with --bands LO:HI:STEP (e.g. --bands {}:{}:{step}) or keep fewer rows with --wavelength-range LO:HI",
+            let (lo, hi) = (lo.ceil(), hi.floor());
+            let step = ((hi - lo) / (MAX_BANDS - 1) as f64 * 2.0).ceil().max(1.0) / 2.0;
+            let centers: Vec<f64> = (0..)
+                .map(|i| lo + step * f64::from(i))
+                .take_while(|c| *c <= hi)
+                .collect();
+            let rows = table.rows();
+            table = table
+                .resample(&centers, step)
+                .map_err(|m| anyhow::anyhow!("{}: {m}", path.display()))?;
+            table.drop_empty_bands();
+            eprintln!(
+                "irid fit: note: {} has {rows} wavelengths, more than the {MAX_BANDS} bands irid fits: averaged into {} bands of {step} nm ({lo}–{hi} nm; choose with --bands LO:HI:STEP)",
                 path.display(),
-                table.rows(),
-                span(&table),
-                lo.ceil(),
-                hi.floor()
+                table.rows()
             );
         }
     }

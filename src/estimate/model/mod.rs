@@ -412,6 +412,19 @@ impl FilmModel {
             .fold(0.0, f64::max)
     }
 
+    /// Each band's phase rate `x_k = Re(n2 cos θ2)/λ`, passband-weighted,
+    /// per nm: the film's phase `4π d x_k` puts R's extrema in thickness at
+    /// `4 d x_k = m` for whole `m` (the fringe orders).
+    pub fn phase_rates(&self, theta: f64) -> Vec<f64> {
+        let s = sin_cos(theta).0;
+        let mut x = vec![0.0; self.n_bands];
+        for n in &self.nodes {
+            let q = airy::normal_component(n.n2, n.n1 * s).re;
+            x[n.band] += n.weight * q / n.lambda;
+        }
+        x
+    }
+
     /// Whether the fast real path applies at angle `theta`.
     fn real_at(&self, theta: f64) -> bool {
         self.real && sin_cos(theta).0 < self.sin_critical

@@ -14,6 +14,7 @@
 
 #![allow(clippy::needless_range_loop)] // band-indexed numeric loops read clearer with indices
 
+use super::fringes::{self, FringeFit};
 use super::{Prepared, Scratch, Solver};
 use crate::estimate::level::solve_spd;
 use crate::estimate::quality::chi2_upper_quantile;
@@ -31,6 +32,12 @@ const REFINED_MINIMA: usize = 4;
 /// Largest relative σ of a valid thickness: beyond it the fringes no longer
 /// pin the thickness once the level is free ("no fringe in range").
 const MAX_RELATIVE_SIGMA: f64 = 0.033;
+/// Largest relative σ of a thickness read from fringe positions alone
+/// (their scatter, not the noise, sets it).
+const MAX_FRINGE_RELATIVE_SIGMA: f64 = 0.05;
+/// Largest rms distance of the extrema from their orders, in orders: beyond
+/// it the extrema are not one film's fringes.
+const MAX_ORDER_RMS: f64 = 0.25;
 
 impl Solver {
     /// One pixel under the free level (angle and film index known).
@@ -73,12 +80,25 @@ impl Solver {
         let q2 = prep.model.q2_mid(theta);
         let lam_min = self.table.sorted.first().map_or(400.0, |b| b.1);
         let step = lam_min / (4.0 * GRID_PER_QUARTER_FRINGE * 2.0 * q2);
-        let n_grid = (((self.d_max - self.d_min) / step).ceil() as usize + 1).min(200_000);
+        // The fringe positions first: where they stand out, the level
+        // model is only asked about the orders around them.
+        let fringes = self.fringe_positions(prep, theta, scratch);
+        let (d_lo, d_hi) = match &fringes {
+            Some(f) => {
+                let order = 1.0 / (4.0 * f.x_mean);
+                (
+                    (f.fit.d - order).max(self.d_min),
+                    (f.fit.d + order).min(self.d_max),
+                )
+            }
+            None => (self.d_min, self.d_max),
+        };
+        let n_grid = (((d_hi - d_lo) / step).ceil() as usize + 1).min(200_000);
         let mut trial = std::mem::take(&mut scratch.trial);
         // The profile of every degree on the grid.
         let mut prof: Vec<[f64; 3]> = Vec::with_capacity(n_grid);
         for i in 0..n_grid {
-            let d = (self.d_min + step * i as f64).min(self.d_max);
+            let d = (d_lo + step * i as f64).min(d_hi);
             prep.model.eval(d, theta, &mut trial, false);
             prof.push(profile_sse(scratch, &trial.r, &u));
         }
@@ -104,8 +124,8 @@ impl Solver {
                 .iter()
                 .take(REFINED_MINIMA)
                 .map(|&i| {
-                    let lo = (self.d_min + step * i as f64 - step).max(self.d_min);
-                    let hi = (self.d_min + step * i as f64 + step).min(self.d_max);
+                    let lo = (d_lo + step * i as f64 - step).max(d_lo);
+                    let hi = (d_lo + step * i as f64 + step).min(d_hi);
                     golden(lo, hi, |d| sse_at(j, d, &mut trial))
                 })
                 .collect();
@@ -145,6 +165,14 @@ impl Solver {
             f64::INFINITY
         };
         let chi2 = sse / var_noise.max(1e-300);
+        let level_fits = self.judging() && self.fit_passes(chi2, n_ok, n_lin + 1);
+        if let (false, Some(f)) = (level_fits, &fringes) {
+            // The level model misses the spectrum (or nothing judges it):
+            // the fringe positions alone, with their own σ.
+            let rms = (sse_at(deg_j, f.fit.d, &mut trial) / n_ok as f64).sqrt();
+            scratch.trial = trial;
+            return self.fringe_estimate(prep, &f.fit, theta, rms);
+        }
         scratch.trial = trial;
         let mut reason = Reason::Ok;
         // Another fringe order about as good: ambiguous.
@@ -178,8 +206,78 @@ impl Solver {
     }
 }
 
+/// The fringe analysis of a pixel, with the mean phase rate of its bands.
+struct PixelFringes {
+    fit: FringeFit,
+    x_mean: f64,
+}
+
+impl Solver {
+    /// The fringe positions of the spectrum in `scratch` (see
+    /// [`fringes`](super::fringes)), its bands sorted by phase rate, each
+    /// weighted by the noise model's variance — or, with none, by a local
+    /// estimate from the spectrum's second differences.
+    fn fringe_positions(
+        &self,
+        prep: &Prepared,
+        theta: f64,
+        scratch: &Scratch,
+    ) -> Option<PixelFringes> {
+        let rates = prep.model.phase_rates(theta);
+        let mut idx: Vec<usize> = (0..rates.len())
+            .filter(|&k| scratch.weight[k] > 0.0 && rates[k] > 0.0)
+            .collect();
+        idx.sort_by(|&a, &b| rates[b].total_cmp(&rates[a]));
+        let x: Vec<f64> = idx.iter().map(|&k| rates[k]).collect();
+        let y: Vec<f64> = idx.iter().map(|&k| scratch.spectrum[k]).collect();
+        let var: Vec<f64> = match &self.noise {
+            Some(noise) => idx
+                .iter()
+                .map(|&k| noise.var(k, scratch.spectrum[k]))
+                .collect(),
+            None => fringes::local_variance(&y),
+        };
+        let (half, quarter) = prep.model.envelopes(theta);
+        let fit = fringes::fit(&x, &y, &var, quarter > half, (self.d_min, self.d_max))?;
+        let x_mean = x.iter().sum::<f64>() / x.len() as f64;
+        Some(PixelFringes { fit, x_mean })
+    }
+
+    /// A pixel's estimate from its fringe positions alone.
+    fn fringe_estimate(
+        &self,
+        prep: &Prepared,
+        f: &FringeFit,
+        theta: f64,
+        residual_rms: f64,
+    ) -> PixelEstimate {
+        let reason = if f.ambiguous {
+            Reason::AmbiguousOrder
+        } else if f.order_rms > MAX_ORDER_RMS {
+            Reason::PoorFit
+        } else if !(f.sigma.is_finite() && f.sigma <= MAX_FRINGE_RELATIVE_SIGMA * f.d) {
+            Reason::NoFringe
+        } else {
+            self.bound_reason(prep, f.d, theta, Some(theta))
+                .unwrap_or(Reason::Ok)
+        };
+        if !reason.is_valid() {
+            return PixelEstimate::invalid(reason);
+        }
+        PixelEstimate {
+            thickness_nm: f.d,
+            n_film: prep.model.n2_mid(),
+            theta_deg: theta.to_degrees(),
+            sigma_thickness_nm: f.sigma,
+            sigma_theta_deg: 0.0,
+            residual_rms,
+            reason,
+        }
+    }
+}
+
 /// Golden-section minimum of `f` on `[lo, hi]`: `(x, f(x))`.
-fn golden(lo: f64, hi: f64, mut f: impl FnMut(f64) -> f64) -> (f64, f64) {
+pub(super) fn golden(lo: f64, hi: f64, mut f: impl FnMut(f64) -> f64) -> (f64, f64) {
     let g = 0.5 * (5f64.sqrt() - 1.0);
     let (mut a, mut b) = (lo, hi);
     let (mut c, mut e) = (b - g * (b - a), a + g * (b - a));

@@ -48,6 +48,7 @@
 mod bands;
 mod closed_form;
 mod free;
+mod fringes;
 mod index;
 mod judge;
 mod level_fit;
