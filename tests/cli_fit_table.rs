@@ -184,14 +184,14 @@ fn a_fine_spectrometer_file_is_averaged_into_bands() {
     let dir = tempfile::tempdir().unwrap();
     let input = spectrometer_file(dir.path());
     let res = dir.path().join("res.csv");
-    // 951 rows, more than the solver's 512 bands: averaged into 2 nm bins
-    // (476 bands, 250–1200 nm), said on the console, and fitted.
+    // 951 rows, more than the solver's 512 bands: every two averaged (475
+    // bands of 2 nm, 250–1200 nm), said on the console, and fitted.
     let out = ok(&fit_args(s(&input), s(&res), &[]));
     let err = String::from_utf8_lossy(&out.stderr);
     for f in [
         "spectrometer.dat",
         "951 wavelengths",
-        "476 bands of 2 nm",
+        "every 2 averaged, into 475 bands of 2.000 nm",
         "--bands LO:HI:STEP",
     ] {
         assert!(err.contains(f), "{err:?} lacks {f:?}");

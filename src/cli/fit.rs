@@ -315,23 +315,23 @@ fn read_table(a: &FitArgs) -> anyhow::Result<SpectrumTable> {
             );
         }
         if table.rows() > MAX_BANDS {
-            // More rows than the fit takes: average them into uniform
-            // bins (each band's passband is its bin), the step the
-            // smallest half-nanometre multiple that fits.
+            // More rows than the fit takes: average every `k` neighbouring
+            // rows into one band (its passband the bin), `k` the smallest
+            // that fits, so every band averages as many samples and shares
+            // one noise level.
             let (lo, hi) = table.wavelength_range();
-            let (lo, hi) = (lo.ceil(), hi.floor());
-            let step = ((hi - lo) / (MAX_BANDS - 1) as f64 * 2.0).ceil().max(1.0) / 2.0;
-            let centers: Vec<f64> = (0..)
-                .map(|i| lo + step * f64::from(i))
-                .take_while(|c| *c <= hi)
-                .collect();
             let rows = table.rows();
+            let k = rows.div_ceil(MAX_BANDS);
+            let step = (hi - lo) / (rows - 1) as f64 * k as f64;
+            let centers: Vec<f64> = (0..rows / k)
+                .map(|i| lo + step * (i as f64 + 0.5) - step / k as f64 / 2.0)
+                .collect();
             table = table
                 .resample(&centers, step)
                 .map_err(|m| anyhow::anyhow!("{}: {m}", path.display()))?;
             table.drop_empty_bands();
             eprintln!(
-                "irid fit: note: {} has {rows} wavelengths, more than the {MAX_BANDS} bands irid fits: averaged into {} bands of {step} nm ({lo}–{hi} nm; choose with --bands LO:HI:STEP)",
+                "irid fit: note: {} has {rows} wavelengths, more than the {MAX_BANDS} bands irid fits: every {k} averaged, into {} bands of {step:.3} nm ({lo:.1}–{hi:.1} nm; choose with --bands LO:HI:STEP)",
                 path.display(),
                 table.rows()
             );

@@ -150,6 +150,10 @@ pub enum LevelBasis {
     PerBand,
     /// Gain quadratic in wavenumber, one offset (4 parameters).
     Smooth,
+    /// One gain and one offset for every band (2 parameters).
+    GainOffset,
+    /// One gain for every band (1 parameter): a white reference off.
+    Gain,
 }
 
 impl LevelBasis {
@@ -158,6 +162,8 @@ impl LevelBasis {
         match self {
             LevelBasis::PerBand => 2 * nb,
             LevelBasis::Smooth => 4,
+            LevelBasis::GainOffset => 2,
+            LevelBasis::Gain => 1,
         }
     }
 
@@ -175,6 +181,11 @@ impl LevelBasis {
                 2 => (u * u, 0.0),
                 _ => (0.0, 1.0),
             },
+            LevelBasis::GainOffset => match j {
+                0 => (1.0, 0.0),
+                _ => (0.0, 1.0),
+            },
+            LevelBasis::Gain => (1.0, 0.0),
         }
     }
 }
@@ -471,6 +482,16 @@ fn params_of(level: &Level, basis: LevelBasis, u: &[f64]) -> Vec<f64> {
                 .unwrap_or_else(|| vec![0.0; 3]);
             let o = level.offset.iter().sum::<f64>() / level.offset.len().max(1) as f64;
             vec![c[0], c[1], c[2], o]
+        }
+        LevelBasis::GainOffset | LevelBasis::Gain => {
+            let n = level.gain.len().max(1) as f64;
+            let g = level.gain.iter().sum::<f64>() / n - 1.0;
+            let o = level.offset.iter().sum::<f64>() / n;
+            if basis == LevelBasis::Gain {
+                vec![g]
+            } else {
+                vec![g, o]
+            }
         }
     }
 }

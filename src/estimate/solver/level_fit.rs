@@ -142,19 +142,46 @@ impl Solver {
         )?;
         let (mut level, mut basis, mut chi2_scaled) =
             (smooth.clone(), LevelBasis::Smooth, chi2_smooth);
+        // Fewer parameters where they do as well: one gain, or one gain
+        // and one offset, each tested against the smooth level (a white
+        // reference off is one gain; every parameter more trades with the
+        // pixels' angles and the index and costs precision).
+        for small in [LevelBasis::Gain, LevelBasis::GainOffset] {
+            let mut est_small = est_abs.clone();
+            if unknown_index {
+                self.set_film_index(est_abs.clone())?;
+            }
+            let (lv, _, chi2_small) = self.level_gauss_newton(
+                sample,
+                &identity,
+                Some(abs.clone()),
+                small,
+                &mut est_small,
+                &wn,
+                &var,
+            )?;
+            let extra = (LevelBasis::Smooth.n_params(nb) - small.n_params(nb)) as f64;
+            if chi2_small - chi2_smooth <= chi2_upper_quantile(extra, AUTO_PROBABILITY) {
+                (level, basis, chi2_scaled, est) = (lv, small, chi2_small, est_small);
+                break;
+            }
+        }
+        if unknown_index {
+            self.set_film_index(est.clone())?;
+        }
         if self.level_basis(&abs, &noise.typical_sigma(0.05)) == LevelBasis::PerBand {
             let mut est_pb = est.clone();
             let (per_band, _, chi2_pb) = self.level_gauss_newton(
                 sample,
-                &smooth,
+                &level,
                 None,
                 LevelBasis::PerBand,
                 &mut est_pb,
                 &wn,
                 &var,
             )?;
-            let extra = (LevelBasis::PerBand.n_params(nb) - LevelBasis::Smooth.n_params(nb)) as f64;
-            if chi2_smooth - chi2_pb > chi2_upper_quantile(extra, AUTO_PROBABILITY) {
+            let extra = (LevelBasis::PerBand.n_params(nb) - basis.n_params(nb)) as f64;
+            if chi2_scaled - chi2_pb > chi2_upper_quantile(extra, AUTO_PROBABILITY) {
                 (level, basis, chi2_scaled, est) = (per_band, LevelBasis::PerBand, chi2_pb, est_pb);
             } else if unknown_index {
                 self.set_film_index(est.clone())?;
@@ -165,11 +192,16 @@ impl Solver {
                 .trim_start()
                 .to_string();
         }
-        // Against absolute, the smooth level's test decides (a per-band
-        // level was only kept where it beat a smooth one significantly).
-        let threshold =
-            chi2_upper_quantile(LevelBasis::Smooth.n_params(nb) as f64, AUTO_PROBABILITY);
-        let significant = chi2_abs - chi2_smooth > threshold || basis == LevelBasis::PerBand;
+        // Against absolute, the chosen level's test decides (a per-band
+        // level was only kept where it beat a smooth one significantly, so
+        // the smooth one's test stands for it).
+        let tested = if basis == LevelBasis::PerBand {
+            (LevelBasis::Smooth, chi2_smooth)
+        } else {
+            (basis, chi2_scaled)
+        };
+        let threshold = chi2_upper_quantile(tested.0.n_params(nb) as f64, AUTO_PROBABILITY);
+        let significant = chi2_abs - tested.1 > threshold || basis == LevelBasis::PerBand;
         let delta = chi2_abs - chi2_scaled;
         let m = basis.n_params(nb);
         // And it must matter: a level worth modelling moves the sample's
@@ -220,6 +252,8 @@ impl Solver {
                 match basis {
                     LevelBasis::PerBand => "gain and offset per band",
                     LevelBasis::Smooth => "gain quadratic in wavenumber, one offset",
+                    LevelBasis::GainOffset => "one gain, one offset",
+                    LevelBasis::Gain => "one gain",
                 },
                 m,
                 g,

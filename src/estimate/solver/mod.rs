@@ -106,7 +106,7 @@ pub struct IndexEstimate {
 
 /// Pixels sampled (on a jittered grid) for the global film-index search
 /// (half as many in `fast` mode).
-pub const INDEX_SAMPLE_PIXELS: usize = 400;
+pub const INDEX_SAMPLE_PIXELS: usize = 1600;
 
 /// Reflectance error of point sampling above which the accurate mode
 /// integrates the passband (a fifth of the paper's noise level).
