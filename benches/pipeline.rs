@@ -98,6 +98,7 @@ fn calibration(w: u32, h: u32, nm: &[f64], exposure_us: u32) -> Calibration {
             created_unix_s: 0,
             white_reflectance: 0.99,
             frames: 1,
+            noise: None,
         },
         flags: vec![0; dark.len()],
         dark,

@@ -183,6 +183,7 @@ fn main() {
         created_unix_s: 0,
         white_reflectance: 0.99,
         frames: 2,
+        noise: None,
     };
     let policy = CalibrationPolicy::for_format(info.format);
     let cal = Calibration::from_references(meta, &dark, &white, &policy);

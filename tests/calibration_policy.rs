@@ -116,6 +116,7 @@ fn pipeline_path(c: &Counts) -> (Calibrator, Vec<f32>) {
         created_unix_s: 0,
         white_reflectance: f64::from(WHITE_R),
         frames: 1,
+        noise: None,
     };
     let policy = CalibrationPolicy::for_format(PixelFormat::Y16);
     let cal = Calibrator::new(&Calibration::from_references(meta, &dark, &white, &policy));

@@ -321,6 +321,7 @@ fn ircal() -> Vec<u8> {
         created_unix_s: 1_700_000_000,
         white_reflectance: 0.99,
         frames: 4,
+        noise: None,
     };
     let mut b = b"IRIDCAL1 ".to_vec();
     b.extend(serde_json::to_vec(&meta).unwrap());

@@ -600,6 +600,7 @@ pub fn capture_calibration(
         created_unix_s: now_unix_s(),
         white_reflectance,
         frames,
+        noise: None,
     };
     Ok(Calibration::from_references(
         meta,

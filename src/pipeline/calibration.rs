@@ -200,6 +200,34 @@ pub struct CalMeta {
     pub white_reflectance: f64,
     /// Frames averaged per band and reference.
     pub frames: u32,
+    /// The camera's reflectance noise per band, measured on the repeated
+    /// reference frames (none with one frame per band).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub noise: Option<CalNoise>,
+}
+
+/// The camera's reflectance noise per band, `σ_R² = var0 + shot·R`:
+/// read noise from the dark frames' scatter, shot noise from the white
+/// frames' excess over it, both scaled to reflectance by the band's
+/// median white − dark, plus the references' own averaging error.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CalNoise {
+    /// Signal-independent reflectance variance per band.
+    pub var0: Vec<f64>,
+    /// Reflectance variance per unit reflectance per band.
+    pub shot: Vec<f64>,
+}
+
+impl CalNoise {
+    /// As the estimator's noise model.
+    pub fn model(&self) -> crate::estimate::noise::NoiseModel {
+        crate::estimate::noise::NoiseModel {
+            var0: self.var0.clone(),
+            shot: self.shot.clone(),
+            source: crate::estimate::noise::NoiseSource::Camera,
+        }
+    }
 }
 
 /// Dark and white references.
@@ -234,6 +262,7 @@ pub struct CalExpect {
 pub struct Accumulator {
     n: usize,
     sum: Vec<f64>,
+    sum2: Vec<f64>,
     count: Vec<u32>,
     saturated: Vec<bool>,
 }
@@ -244,6 +273,7 @@ impl Accumulator {
         Accumulator {
             n,
             sum: vec![0.0; n * bands],
+            sum2: vec![0.0; n * bands],
             count: vec![0; n * bands],
             saturated: vec![false; n * bands],
         }
@@ -257,8 +287,9 @@ impl Accumulator {
         }
         let policy = CalibrationPolicy::for_format(frame.meta.format);
         let o = band * self.n;
-        let (sum, count, satd) = (
+        let (sum, sum2, count, satd) = (
             &mut self.sum[o..o + self.n],
+            &mut self.sum2[o..o + self.n],
             &mut self.count[o..o + self.n],
             &mut self.saturated[o..o + self.n],
         );
@@ -266,7 +297,9 @@ impl Accumulator {
             if policy.is_saturated(f32::from(px[i])) {
                 satd[i] = true;
             } else {
-                sum[i] += f64::from(px[i]);
+                let v = f64::from(px[i]);
+                sum[i] += v;
+                sum2[i] += v * v;
                 count[i] += 1;
             }
         }
@@ -292,6 +325,70 @@ impl Accumulator {
     }
 }
 
+impl Accumulator {
+    /// Band `band`'s median over pixels of the frame-to-frame variance of
+    /// counts and its median mean, from pixels with at least two valid
+    /// frames; `None` with fewer than 16 such pixels.
+    fn band_scatter(&self, band: usize) -> Option<(f64, f64)> {
+        let o = band * self.n;
+        let mut var = Vec::new();
+        let mut mean = Vec::new();
+        for i in o..o + self.n {
+            let c = f64::from(self.count[i]);
+            if self.count[i] >= 2 && !self.saturated[i] {
+                let m = self.sum[i] / c;
+                var.push(((self.sum2[i] - c * m * m) / (c - 1.0)).max(0.0));
+                mean.push(m);
+            }
+        }
+        if var.len() < 16 {
+            return None;
+        }
+        Some((median(&mut var), median(&mut mean)))
+    }
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    let mid = v.len() / 2;
+    *v.select_nth_unstable_by(mid, f64::total_cmp).1
+}
+
+/// The camera's reflectance noise from the references' frame-to-frame
+/// scatter (see [`CalNoise`]); `None` with one frame per band or too few
+/// usable pixels in any band.
+fn reference_noise(
+    dark: &Accumulator,
+    white: &Accumulator,
+    bands: usize,
+    frames: u32,
+    white_reflectance: f64,
+) -> Option<CalNoise> {
+    if frames < 2 {
+        return None;
+    }
+    let f = f64::from(frames);
+    let mut var0 = Vec::with_capacity(bands);
+    let mut shot = Vec::with_capacity(bands);
+    for k in 0..bands {
+        let (vd, md) = dark.band_scatter(k)?;
+        let (vw, mw) = white.band_scatter(k)?;
+        let span = mw - md;
+        if span.is_nan() || span <= 0.0 {
+            return None;
+        }
+        // Counts: var(c) = vd + b·(c − dark), b from the white's excess.
+        let b = ((vw - vd) / span).max(0.0);
+        // R = (c − d)/(w − d)·R_w: s converts counts to reflectance.
+        let s = white_reflectance / span;
+        // A frame's own noise, then the references' averaging error (the
+        // dark mean's shifts every R alike; the white mean's scales it).
+        var0.push(vd * s * s * (1.0 + 1.0 / f));
+        // The white mean's error adds R²·vw·s²/(F·R_w²) ≤ R·vw·s²/(F·R_w).
+        shot.push(b * s + vw * s * s / (f * white_reflectance));
+    }
+    Some(CalNoise { var0, shot })
+}
+
 impl Calibration {
     /// Build from accumulated dark and white references, flagging pixels by
     /// `policy` (a reference with no valid sample has a NaN mean: dead).
@@ -301,6 +398,16 @@ impl Calibration {
         white: &Accumulator,
         policy: &CalibrationPolicy,
     ) -> Calibration {
+        let mut meta = meta;
+        if meta.noise.is_none() {
+            meta.noise = reference_noise(
+                dark,
+                white,
+                meta.bands_nm.len(),
+                meta.frames,
+                meta.white_reflectance,
+            );
+        }
         let (d, _) = dark.mean();
         let (w, w_sat) = white.mean();
         let flags = d
@@ -848,6 +955,8 @@ pub struct Calibrator {
     offset: Vec<f32>,
     scale: Vec<f32>,
     exposure_us: u32,
+    /// The camera's reflectance noise, where the calibration measured it.
+    noise: Option<CalNoise>,
 }
 
 impl Calibrator {
@@ -867,7 +976,14 @@ impl Calibrator {
             white,
             flags,
         } = cal;
-        Calibrator::from_planes(n, dark, white, &flags, rw, meta.exposure_us)
+        let mut c = Calibrator::from_planes(n, dark, white, &flags, rw, meta.exposure_us);
+        c.noise = meta.noise;
+        c
+    }
+
+    /// The camera's reflectance noise measured with the references.
+    pub fn noise(&self) -> Option<&CalNoise> {
+        self.noise.as_ref()
     }
 
     /// Prepare band-sequential `dark`, `white` and [`flag`] planes of `n`
@@ -933,6 +1049,7 @@ impl Calibrator {
             offset,
             scale,
             exposure_us,
+            noise: None,
         }
     }
 
@@ -957,6 +1074,7 @@ impl Calibrator {
             offset: Vec::new(),
             scale: Vec::new(),
             exposure_us,
+            noise: None,
         }
     }
 
@@ -1187,6 +1305,7 @@ mod tests {
             created_unix_s: 1000,
             white_reflectance: 0.9,
             frames: 1,
+            noise: None,
         }
     }
 
@@ -1194,6 +1313,110 @@ mod tests {
         let mut f = Frame::with_size(2, 2, PixelFormat::Y16);
         f.data.copy_from_slice(&v);
         f
+    }
+
+    /// The camera noise model against a second formulation: frames drawn
+    /// with read noise σ_r and shot noise (variance = signal × g, counts),
+    /// calibrated to reflectance one by one; the model's σ_R at the
+    /// scene's reflectance must match the frames' own scatter about their
+    /// mean, (σ_r² + (c − d)·g)·(R_w/(w − d))², plus the references'
+    /// averaging error, which stays fixed from frame to frame and is
+    /// checked separately.
+    #[test]
+    fn camera_noise_from_repeated_references_matches_the_frames_scatter() {
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, Normal};
+        let (w_px, h_px) = (16u32, 16u32);
+        let n = (w_px * h_px) as usize;
+        let (read, g, dark, white, scene, rw) = (6.0, 0.5, 100.0, 3000.0, 900.0, 0.9);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let z = Normal::new(0.0, 1.0).unwrap();
+        let draw = |level: f64, rng: &mut rand_chacha::ChaCha8Rng| {
+            let mut f = Frame::with_size(w_px, h_px, PixelFormat::Y16);
+            let sd = (read * read + (level - dark) * g).sqrt();
+            for v in f.data.iter_mut() {
+                *v = (level + sd * z.sample(rng)).round().clamp(0.0, 65535.0) as u16;
+            }
+            f
+        };
+        let frames = 16u32;
+        let (mut da, mut wa) = (Accumulator::new(n, 1), Accumulator::new(n, 1));
+        for _ in 0..frames {
+            da.add(0, &draw(dark, &mut rng)).unwrap();
+            wa.add(0, &draw(white, &mut rng)).unwrap();
+        }
+        let m = CalMeta {
+            width: w_px,
+            height: h_px,
+            white_reflectance: rw,
+            frames,
+            ..meta()
+        };
+        let cal = Calibration::from_references(
+            m,
+            &da,
+            &wa,
+            &CalibrationPolicy::for_format(PixelFormat::Y16),
+        );
+        let noise = cal
+            .meta
+            .noise
+            .clone()
+            .expect("measured with 16 frames")
+            .model();
+        // The scene, calibrated frame by frame: each pixel's scatter over
+        // 200 frames about its own mean.
+        let cz = Calibrator::new(&cal);
+        let mut sum = vec![0.0f64; n];
+        let mut sum2 = vec![0.0f64; n];
+        let mut out = vec![0f32; n];
+        let reps = 200;
+        for _ in 0..reps {
+            let f = draw(scene, &mut rng);
+            cz.apply(0, &f.data, u16::MAX, 1000, &mut out);
+            for i in 0..n {
+                let r = f64::from(out[i]);
+                sum[i] += r;
+                sum2[i] += r * r;
+            }
+        }
+        let mut var: Vec<f64> = (0..n)
+            .map(|i| {
+                let m = sum[i] / f64::from(reps);
+                (sum2[i] - f64::from(reps) * m * m) / f64::from(reps - 1)
+            })
+            .collect();
+        var.sort_by(f64::total_cmp);
+        let temporal = var[n / 2];
+        let r = rw * (scene - dark) / (white - dark);
+        let s = rw / (white - dark);
+        let expected = (read * read + (scene - dark) * g) * s * s;
+        // The frames agree with the second formulation (sampling: 200
+        // frames × 256 pixels, the median within a few %).
+        assert!(
+            (temporal / expected - 1.0).abs() < 0.05,
+            "{temporal} vs {expected}"
+        );
+        // The model adds the references' fixed error (1/16 of a frame's
+        // variance from each reference, scaled): above the temporal
+        // scatter by that much, no more.
+        let model = noise.var(0, r);
+        assert!(
+            model >= expected * 0.95 && model <= expected * 1.25,
+            "model {model} vs frames {expected}"
+        );
+        // One frame per band measures nothing.
+        let one = CalMeta {
+            frames: 1,
+            ..meta()
+        };
+        let cal1 = Calibration::from_references(
+            one,
+            &da,
+            &wa,
+            &CalibrationPolicy::for_format(PixelFormat::Y16),
+        );
+        assert!(cal1.meta.noise.is_none());
     }
 
     #[test]

@@ -52,6 +52,13 @@ pub struct SweepSummary {
     pub latency_ms: f64,
     /// The map file, if written.
     pub path: Option<String>,
+    /// The reflectance noise σ every fit was judged against (at R = 0.05).
+    pub noise_sigma: f64,
+    /// Where it came from: `given`, `camera` (measured with the
+    /// calibration's references) or `data`.
+    pub noise_source: String,
+    /// The level in force (`absolute`, `scaled`, …).
+    pub level: String,
 }
 
 impl SweepSummary {
@@ -80,6 +87,13 @@ impl SweepSummary {
             }
         }
         let nan_if = |ok: bool, v: f64| if ok { v } else { f64::NAN };
+        let quality = |key: &str| {
+            maps.meta
+                .quality
+                .iter()
+                .find(|(k, _)| k == key)
+                .map(|(_, v)| v.clone())
+        };
         let mean = sum / cnt.max(1) as f64;
         SweepSummary {
             sweep,
@@ -94,6 +108,11 @@ impl SweepSummary {
             n_film: maps.meta.n_film,
             theta_min_deg: nan_if(tlo.is_finite(), tlo),
             theta_max_deg: nan_if(thi.is_finite(), thi),
+            noise_sigma: quality("noise_sigma")
+                .and_then(|v| v.parse().ok())
+                .unwrap_or(f64::NAN),
+            noise_source: quality("noise_source").unwrap_or_default(),
+            level: quality("level").unwrap_or_default(),
             ..Default::default()
         }
     }

@@ -706,6 +706,12 @@ pub fn run_tapped(
     let seq = Sequencer::new(setup.seq_mode, bands_nm, setup.order.clone(), cfg.sweeps)?;
     let mut solver = Solver::new(&setup.scene, &setup.bands, cfg.mode)?;
     solver.set_residual_noise_floor(setup.scene.noise_sigma.is_none());
+    // The camera's noise measured with the references, where the scene
+    // gives none: every fit is judged against it from the first sweep.
+    if let (None, Some(noise)) = (setup.scene.noise_sigma, setup.calibrator.noise()) {
+        solver.set_noise(noise.model());
+        solver.set_residual_noise_floor(false);
+    }
     let counters = Arc::new(Counters::default());
     let mut capture = Capture {
         source,

@@ -114,6 +114,7 @@ pub fn calibrate(
         created_unix_s: 1_700_000_000,
         white_reflectance: 0.99,
         frames,
+        noise: None,
     };
     Calibration::from_references(
         meta,
