@@ -327,7 +327,8 @@ impl Accumulator {
 
 impl Accumulator {
     /// Band `band`'s median over pixels of the frame-to-frame variance of
-    /// counts and its median mean, from pixels with at least two valid
+    /// counts (unbiased for the median of a χ² of few degrees of freedom)
+    /// and its median mean, from pixels with at least two valid
     /// frames; `None` with fewer than 16 such pixels.
     fn band_scatter(&self, band: usize) -> Option<(f64, f64)> {
         let o = band * self.n;
@@ -337,7 +338,12 @@ impl Accumulator {
             let c = f64::from(self.count[i]);
             if self.count[i] >= 2 && !self.saturated[i] {
                 let m = self.sum[i] / c;
-                var.push(((self.sum2[i] - c * m * m) / (c - 1.0)).max(0.0));
+                // s² has ν = c − 1 degrees of freedom: its median is
+                // σ²·(1 − 2/(9ν))³ (Wilson–Hilferty), 0.47 σ² from two
+                // frames; divided out, the median over pixels is σ².
+                let nu = c - 1.0;
+                let median_factor = (1.0 - 2.0 / (9.0 * nu)).powi(3);
+                var.push(((self.sum2[i] - c * m * m) / nu).max(0.0) / median_factor);
                 mean.push(m);
             }
         }
@@ -1405,6 +1411,31 @@ mod tests {
             model >= expected * 0.95 && model <= expected * 1.25,
             "model {model} vs frames {expected}"
         );
+        // Two frames per band (one degree of freedom per pixel: the
+        // median of s² is 0.45 σ², corrected): the read noise still comes
+        // out right, σ_r²·s²·(1 + 1/2), within the median's sampling error
+        // over 256 pixels.
+        let (mut d2, mut w2) = (Accumulator::new(n, 1), Accumulator::new(n, 1));
+        for _ in 0..2 {
+            d2.add(0, &draw(dark, &mut rng)).unwrap();
+            w2.add(0, &draw(white, &mut rng)).unwrap();
+        }
+        let m2 = CalMeta {
+            width: w_px,
+            height: h_px,
+            white_reflectance: rw,
+            frames: 2,
+            ..meta()
+        };
+        let cal2 = Calibration::from_references(
+            m2,
+            &d2,
+            &w2,
+            &CalibrationPolicy::for_format(PixelFormat::Y16),
+        );
+        let var0 = cal2.meta.noise.expect("two frames measure").var0[0];
+        let want = read * read * s * s * 1.5;
+        assert!((var0 / want - 1.0).abs() < 0.3, "{var0} vs {want}");
         // One frame per band measures nothing.
         let one = CalMeta {
             frames: 1,

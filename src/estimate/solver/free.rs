@@ -4,13 +4,17 @@
 //! intensities, where only the fringes' positions and shapes carry the
 //! thickness.
 //!
-//! Variable projection: for each trial thickness the linear coefficients
-//! are solved by least squares, so the thickness is searched on a grid of
-//! its profile (fine enough that no fringe order is skipped), then refined
-//! by golden section; σ from the profile's curvature. The envelope degree
-//! (0, 2 or 4) is the lowest the data accept: a higher one is taken only
-//! when it lowers χ² by more than its extra parameters explain at
-//! p = 0.001 — modelling only what the spectrum requires.
+//! First the fringe positions ([`fringes`](super::fringes)): fewer than two
+//! extrema standing out of the noise flag the pixel "no fringe" (one broad
+//! hump moves with the envelope). Then, within one fringe order of what
+//! the positions say, variable projection: for each trial thickness the
+//! linear coefficients are solved by least squares, the thickness searched
+//! on a grid of its profile, then refined by golden section; σ from the
+//! profile's curvature. The envelope degree (0, 2 or 4) is the lowest the
+//! data accept: a higher one is taken only when it lowers χ² by more than
+//! its extra parameters explain at p = 0.001 — modelling only what the
+//! spectrum requires. Where even that model fails the χ² test (or no noise
+//! level judges it), the fringe positions' own answer and σ stand.
 
 #![allow(clippy::needless_range_loop)] // band-indexed numeric loops read clearer with indices
 
@@ -82,17 +86,17 @@ impl Solver {
         let step = lam_min / (4.0 * GRID_PER_QUARTER_FRINGE * 2.0 * q2);
         // The fringe positions first: where they stand out, the level
         // model is only asked about the orders around them.
-        let fringes = self.fringe_positions(prep, theta, scratch);
-        let (d_lo, d_hi) = match &fringes {
-            Some(f) => {
-                let order = 1.0 / (4.0 * f.x_mean);
-                (
-                    (f.fit.d - order).max(self.d_min),
-                    (f.fit.d + order).min(self.d_max),
-                )
-            }
-            None => (self.d_min, self.d_max),
+        let Some(fringes) = self.fringe_positions(prep, theta, scratch) else {
+            // Fewer than two fringe extrema stand out: with the level free,
+            // one broad hump's position moves with the envelope, and no
+            // thickness can be read honestly.
+            return PixelEstimate::invalid(Reason::NoFringe);
         };
+        let order = 1.0 / (4.0 * fringes.x_mean);
+        let (d_lo, d_hi) = (
+            (fringes.fit.d - order).max(self.d_min),
+            (fringes.fit.d + order).min(self.d_max),
+        );
         let n_grid = (((d_hi - d_lo) / step).ceil() as usize + 1).min(200_000);
         let mut trial = std::mem::take(&mut scratch.trial);
         // The profile of every degree on the grid.
@@ -166,12 +170,12 @@ impl Solver {
         };
         let chi2 = sse / var_noise.max(1e-300);
         let level_fits = self.judging() && self.fit_passes(chi2, n_ok, n_lin + 1);
-        if let (false, Some(f)) = (level_fits, &fringes) {
+        if !level_fits {
             // The level model misses the spectrum (or nothing judges it):
             // the fringe positions alone, with their own σ.
-            let rms = (sse_at(deg_j, f.fit.d, &mut trial) / n_ok as f64).sqrt();
+            let rms = (sse_at(deg_j, fringes.fit.d, &mut trial) / n_ok as f64).sqrt();
             scratch.trial = trial;
-            return self.fringe_estimate(prep, &f.fit, theta, rms);
+            return self.fringe_estimate(prep, &fringes.fit, theta, rms);
         }
         scratch.trial = trial;
         let mut reason = Reason::Ok;

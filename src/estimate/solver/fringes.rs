@@ -23,7 +23,8 @@
 //!    extrema, `d = Σ m x / (4 Σ x²)`; where the orders do not line up
 //!    within a tenth of a fringe (a chirp the model lacks), or another set
 //!    lines up about as well, the spacing alone: the slope of `x` against
-//!    the extremum count (three extrema or more).
+//!    the extremum count (five extrema or more; with fewer, ambiguous
+//!    orders are flagged).
 //!
 //! σ comes from the scatter of the extrema about the fit, and never falls
 //! below a twentieth of a fringe over the mean order: a shift common to
@@ -33,6 +34,7 @@
 #![allow(clippy::needless_range_loop)] // band-indexed numeric loops read clearer with indices
 
 use crate::estimate::level::solve_spd;
+use crate::estimate::quality::chi2_upper_quantile;
 
 /// Smallest position error credited to one extremum, in fringe orders.
 const MIN_ORDER_ERROR: f64 = 0.05;
@@ -41,6 +43,14 @@ const ORDER_FIT_RMS: f64 = 0.1;
 /// Prominence of a kept extremum over its neighbours, in σ of the smoothed
 /// spectrum.
 const PROMINENCE_SIGMA: f64 = 4.0;
+/// χ² margin of the best whole orders over the next below which they are
+/// ambiguous (three σ).
+const AMBIGUITY_CHI2: f64 = 9.0;
+/// Fewest extrema whose spacing alone gives a thickness.
+const MIN_SPACING_EXTREMA: usize = 5;
+/// False-alarm probability of a fringe detected in pure noise, over all
+/// frequencies tried.
+const DETECTION_PROBABILITY: f64 = 1e-3;
 /// Periodogram grid points per peak width.
 const GRID_PER_PEAK: f64 = 8.0;
 
@@ -80,22 +90,24 @@ pub(super) fn fit(
     let mut run = run_at(x, y, var, period_d);
     // A period the extrema contradict (the periodogram is weak below two
     // fringes): once more at the extrema's own spacing.
-    if run.len() >= 2 {
-        let gap = (x[run[0].0] - x[run[run.len() - 1].0]).abs() / (run.len() - 1) as f64;
+    if run.ext.len() >= 2 {
+        let (first, last) = (run.ext[0].0, run.ext[run.ext.len() - 1].0);
+        let gap = (x[first] - x[last]).abs() / (run.ext.len() - 1) as f64;
         let d1 = 1.0 / (4.0 * gap);
         if (d1 / period_d - 1.0).abs() > 0.2 {
             let again = run_at(x, y, var, d1);
-            if again.len() >= run.len() {
+            if again.ext.len() >= run.ext.len() {
                 run = again;
             }
         }
     }
-    if run.len() < 2 {
+    if run.ext.len() < 2 {
         return None;
     }
-    let xs: Vec<f64> = run.iter().map(|e| x[e.0]).collect();
-    let last_is_max = run[run.len() - 1].1;
-    orders(&xs, last_is_max == max_is_odd, d_range).map(|f| FringeFit { period_d, ..f })
+    let xs: Vec<f64> = run.ext.iter().map(|e| x[e.0]).collect();
+    let last_is_max = run.ext[run.ext.len() - 1].1;
+    orders(&xs, &run.sigma_x, last_is_max == max_is_odd, d_range)
+        .map(|f| FringeFit { period_d, ..f })
 }
 
 /// Noise variance of each sample of a densely sampled spectrum, from the
@@ -122,16 +134,64 @@ pub(super) fn local_variance(y: &[f64]) -> Vec<f64> {
         .collect()
 }
 
+/// A run of fringe extrema: (index, is-maximum) and each one's position
+/// σ in `x`.
+struct Run {
+    ext: Vec<(usize, bool)>,
+    sigma_x: Vec<f64>,
+}
+
 /// The extrema run of a spectrum smoothed for fringes of thickness `d0`.
-fn run_at(x: &[f64], y: &[f64], var: &[f64], d0: f64) -> Vec<(usize, bool)> {
+fn run_at(x: &[f64], y: &[f64], var: &[f64], d0: f64) -> Run {
     let n = x.len();
     // Smoothing half-width: a quarter of a half-period, in samples.
     let dx = (x[0] - x[n - 1]).abs() / (n - 1) as f64;
     let half = 1.0 / (4.0 * d0) / dx.max(1e-300);
     let h = ((half / 4.0) as usize).clamp(2, (n / 8).max(2));
-    let (ys, var_s) = smooth(y, var, h);
+    let (ys, var_s, var_eff) = smooth(y, var, h);
     let ext = extrema(&ys, &var_s, h);
-    spaced_run(x, &ext, d0)
+    let ext = spaced_run(x, &ext, d0);
+    let sigma_x = ext
+        .iter()
+        .map(|&(i, _)| {
+            let slope = (x[(i + 1).min(n - 1)] - x[i.saturating_sub(1)]).abs()
+                / ((i + 1).min(n - 1) - i.saturating_sub(1)) as f64;
+            vertex_sigma(y, var_eff[i], i, 2 * h) * slope
+        })
+        .collect();
+    Run { ext, sigma_x }
+}
+
+/// σ, in samples, of the vertex of the quadratic fitted to `y` over
+/// `i ± w` (noise variance `var`): `σ_b / (2|c|)` for `y ≈ a + b t + c t²`
+/// with `t = k − i` (the vertex sits near `t = 0`). Infinite where the
+/// curve has no curvature to place a vertex by.
+fn vertex_sigma(y: &[f64], var: f64, i: usize, w: usize) -> f64 {
+    let n = y.len();
+    let (a, b) = (i.saturating_sub(w), (i + w + 1).min(n));
+    let mut m = [0.0f64; 5];
+    let mut r = [0.0f64; 3];
+    for k in a..b {
+        let t = k as f64 - i as f64;
+        let mut p = 1.0;
+        for mj in m.iter_mut() {
+            *mj += p;
+            p *= t;
+        }
+        r[0] += y[k];
+        r[1] += t * y[k];
+        r[2] += t * t * y[k];
+    }
+    let ata = [m[0], m[1], m[2], m[1], m[2], m[3], m[2], m[3], m[4]];
+    let (Some(coef), Some(e1)) = (solve_spd(&ata, 3, &r), solve_spd(&ata, 3, &[0.0, 1.0, 0.0]))
+    else {
+        return f64::INFINITY;
+    };
+    let c = coef[2];
+    if c == 0.0 {
+        return f64::INFINITY;
+    }
+    (var * e1[1]).max(0.0).sqrt() / (2.0 * c.abs())
 }
 
 /// Thickness at the periodogram's peak (free phase, slow envelope).
@@ -187,13 +247,39 @@ fn period(x: &[f64], y: &[f64], var: &[f64], (d_min, d_max): (f64, f64)) -> Opti
     if !best.0.is_finite() {
         return None;
     }
+    // A fringe at all? The sinusoid's four parameters must lower χ² by
+    // more than noise would at any of the independent frequencies tried
+    // (the look-elsewhere effect: p = 1e-3 over all of them).
+    let baseline = {
+        const P: usize = 3;
+        let mut ata = [0.0; P * P];
+        let mut aty = [0.0; P];
+        let mut yy = 0.0;
+        for k in 0..n {
+            let f = [1.0, u[k], u[k] * u[k]];
+            yy += w[k] * y[k] * y[k];
+            for i in 0..P {
+                aty[i] += w[k] * f[i] * y[k];
+                for j in 0..P {
+                    ata[i * P + j] += w[k] * f[i] * f[j];
+                }
+            }
+        }
+        solve_spd(&ata, P, &aty).map_or(f64::INFINITY, |c| {
+            yy - c.iter().zip(&aty).map(|(c, b)| c * b).sum::<f64>()
+        })
+    };
+    let n_freq = ((hi - lo) * 2.0 * span).max(1.0);
+    if baseline - best.0 < chi2_upper_quantile(4.0, DETECTION_PROBABILITY / n_freq) {
+        return None;
+    }
     let (a, b) = ((best.1 - step).max(lo), (best.1 + step).min(hi));
     Some(super::free::golden(a, b, sse).0)
 }
 
 /// Local quadratic smoothing with half-width `h` (samples): the smoothed
-/// values and their variances.
-fn smooth(y: &[f64], var: &[f64], h: usize) -> (Vec<f64>, Vec<f64>) {
+/// values, their variances, and the noise variance of each sample.
+fn smooth(y: &[f64], var: &[f64], h: usize) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
     let n = y.len();
     let mut ys = vec![0.0; n];
     let mut vs = vec![0.0; n];
@@ -232,7 +318,24 @@ fn smooth(y: &[f64], var: &[f64], h: usize) -> (Vec<f64>, Vec<f64>) {
             }
         }
     }
-    (ys, vs)
+    // The noise the extrema must stand out of: the given variance, or the
+    // scatter about the smoothed curve where that is larger (noise that
+    // grows towards a weak lamp's end, which a single noise level
+    // misses). The local quadratic follows the fringes, so the scatter is
+    // noise; a sample's residual variance is σ²·(1 − g₀).
+    let half_w = h.max(15);
+    let resid: Vec<f64> = (0..n).map(|i| (y[i] - ys[i]).powi(2)).collect();
+    let mut var_eff = vec![0.0; n];
+    for i in 0..n {
+        let (a, b) = (i.saturating_sub(half_w), (i + half_w + 1).min(n));
+        let mean_r = resid[a..b].iter().sum::<f64>() / (b - a) as f64;
+        let mean_v = var[a..b].iter().sum::<f64>() / (b - a) as f64;
+        let g0 = if mean_v > 0.0 { vs[i] / mean_v } else { 0.0 };
+        let local = mean_r / (1.0 - g0).max(0.5);
+        var_eff[i] = mean_v.max(local);
+        vs[i] = var_eff[i] * g0;
+    }
+    (ys, vs, var_eff)
 }
 
 /// Alternating extrema of `ys` (index, is-maximum), each standing out
@@ -332,49 +435,70 @@ fn spaced_run(x: &[f64], ext: &[(usize, bool)], d0: f64) -> Vec<(usize, bool)> {
     ext[best.0..best.1].to_vec()
 }
 
-/// Whole orders through the extrema at `xs` (descending), the last of odd
-/// order iff `last_odd`; the spacing alone where they do not line up.
-fn orders(xs: &[f64], last_odd: bool, (d_min, d_max): (f64, f64)) -> Option<FringeFit> {
+/// Whole orders through the extrema at `xs` (descending, position σ
+/// `sigma_x`), the last of odd order iff `last_odd`; the spacing alone
+/// where they do not line up.
+fn orders(
+    xs: &[f64],
+    sigma_x: &[f64],
+    last_odd: bool,
+    (d_min, d_max): (f64, f64),
+) -> Option<FringeFit> {
     let n = xs.len();
     let sxx: f64 = xs.iter().map(|x| x * x).sum();
     let m_cap = (4.0 * d_max * xs[n - 1]).ceil() as i64 + 2;
-    let mut first = (f64::INFINITY, 0.0, 0.0);
+    // Per candidate: (χ² against the positions' σ, rms misfit, d, mean
+    // order, relative σ of d).
+    let mut first = (f64::INFINITY, f64::INFINITY, f64::NAN, 0.0, f64::INFINITY);
     let mut second = f64::INFINITY;
     let mut m_last = if last_odd { 1 } else { 2 };
     while m_last <= m_cap.max(1) {
         let ms = |j: usize| (m_last + (n - 1 - j) as i64) as f64;
         let d = (0..n).map(|j| ms(j) * xs[j]).sum::<f64>() / (4.0 * sxx);
+        // Each extremum's position error in orders, never below the floor.
+        let sm = |j: usize| (4.0 * d * sigma_x[j]).max(MIN_ORDER_ERROR);
+        let chi2: f64 = (0..n)
+            .map(|j| ((4.0 * d * xs[j] - ms(j)) / sm(j)).powi(2))
+            .sum();
         let rms = ((0..n)
             .map(|j| (4.0 * d * xs[j] - ms(j)).powi(2))
             .sum::<f64>()
             / n as f64)
             .sqrt();
         let mean_m = (0..n).map(ms).sum::<f64>() / n as f64;
+        // δd/d from the positions: 1/√Σ(m/σ_m)².
+        let rel = 1.0 / (0..n).map(|j| (ms(j) / sm(j)).powi(2)).sum::<f64>().sqrt();
         if (d_min..=d_max).contains(&d) {
-            if rms < first.0 {
+            if chi2 < first.0 {
                 second = first.0;
-                first = (rms, d, mean_m);
-            } else if rms < second {
-                second = rms;
+                first = (chi2, rms, d, mean_m, rel);
+            } else if chi2 < second {
+                second = chi2;
             }
         }
         m_last += 2;
     }
-    let (rms, d_int, mean_m) = first;
+    let (chi2, rms, d_int, mean_m, rel) = first;
     if !d_int.is_finite() || d_int <= 0.0 {
         return None;
     }
-    let ambiguous = second <= rms + 0.1 || second <= 2.0 * rms;
-    // Whole orders where they line up unambiguously (or nothing else can
-    // be said: two extrema carry no spacing to fit).
-    if n == 2 || (!ambiguous && (n == 3 || rms <= ORDER_FIT_RMS)) {
+    // Another set of orders within AMBIGUITY_CHI2 of the best is as
+    // plausible, given how well the extrema are placed.
+    let ambiguous = second - chi2 < AMBIGUITY_CHI2;
+    // Whole orders where they line up unambiguously, and wherever there
+    // are too few extrema for their spacing to tell more (the spacing of
+    // three or four extrema is a difference of positions the envelope
+    // pulls: the orders' ambiguity is then the answer, a flag).
+    if n < MIN_SPACING_EXTREMA || (!ambiguous && rms <= ORDER_FIT_RMS) {
         // Random position errors average down over the extrema; a shift
         // common to them all (the envelope's pull, the index table's
         // error) does not: σ never below MIN_ORDER_ERROR of the mean order.
-        let err = (rms / (n as f64).sqrt()).max(MIN_ORDER_ERROR);
+        let rel = rel
+            .max(rms / (mean_m * (n as f64).sqrt()))
+            .max(MIN_ORDER_ERROR / mean_m);
         return Some(FringeFit {
             d: d_int,
-            sigma: d_int * err / mean_m,
+            sigma: d_int * rel,
             n_extrema: n,
             order_rms: rms,
             ambiguous,
