@@ -4,8 +4,10 @@
 
 use super::linalg::solve3;
 use super::search::{Candidate, MAX_CANDIDATES};
-use super::{Effort, IndexEstimate, Job, Prepared, Scratch, Solver, INDEX_SAMPLE_PIXELS};
-use crate::estimate::level::LevelMode;
+use super::{
+    Effort, IndexEstimate, Job, Prepared, Scratch, Solver, INDEX_SAMPLE_PIXELS, LEVEL_SAMPLE_PIXELS,
+};
+use crate::estimate::level::{Level, LevelMode};
 use crate::estimate::noise::NoiseModel;
 use crate::estimate::{Cube, EstimateError};
 use crate::optics::dispersion::Dispersion;
@@ -92,6 +94,20 @@ impl Solver {
         if self.scene.level != LevelMode::Free {
             if let Some(fitted) = self.fit_level(&sample, &est)? {
                 est = fitted;
+                // A level is in force. Its gain trades with each pixel's
+                // angle and with the index, so it is fitted again, with the
+                // index, on a sample four times larger (σ of the gain
+                // halves); clean images keep the small sample's cost.
+                let big = self.sample_pixels(cube, LEVEL_SAMPLE_PIXELS);
+                if big.len() > sample.len() {
+                    let nb = self.bands.len();
+                    self.set_level(Level::identity(nb), LevelMode::Absolute, String::new());
+                    let est_abs = self.index_for(&big)?;
+                    est = match self.fit_level(&big, &est_abs)? {
+                        Some(fitted) => fitted,
+                        None => est_abs,
+                    };
+                }
             }
         }
         if self.noise.is_none() {

@@ -105,8 +105,12 @@ pub struct IndexEstimate {
 }
 
 /// Pixels sampled (on a jittered grid) for the global film-index search
-/// (half as many in `fast` mode).
-pub const INDEX_SAMPLE_PIXELS: usize = 1600;
+/// (every mode).
+pub const INDEX_SAMPLE_PIXELS: usize = 400;
+
+/// Pixels sampled for an image-wide level once the index sample has shown
+/// one (its gain trades with the pixels' angles: more pixels pin it).
+pub const LEVEL_SAMPLE_PIXELS: usize = 1600;
 
 /// Reflectance error of point sampling above which the accurate mode
 /// integrates the passband (a fifth of the paper's noise level).
