@@ -1,7 +1,10 @@
 //! Publishing to a real MQTT broker (Debian's mosquitto, installed by
 //! `.ci/run`) with a real subscribing client: every segment message of a
-//! line run arrives, also when the broker goes away mid-run and comes back;
-//! a full queue drops (and counts) instead of stalling the line.
+//! line run arrives, also when the publisher's connection to the broker is
+//! cut mid-run and comes back (a TCP proxy between them drops every
+//! connection and refuses new ones for 0.8 s; the subscriber stays
+//! connected, so what it must see is exactly what was published); a full
+//! queue drops (and counts) instead of stalling the line.
 
 use irid::estimate::Mode;
 use irid::line::mqtt::{MqttConfig, MqttPublisher};
@@ -31,8 +34,7 @@ fn free_port() -> u16 {
         .port()
 }
 
-/// A mosquitto on `port` that keeps sessions across restarts (persistence
-/// in `dir`), so a subscriber's subscription survives the outage.
+/// A mosquitto on `port` (persistence in `dir`).
 struct Broker {
     bin: PathBuf,
     conf: PathBuf,
@@ -99,6 +101,59 @@ impl Drop for Broker {
     }
 }
 
+/// A TCP proxy to a local port that can cut every connection through it
+/// and refuse new ones: a network outage between publisher and broker.
+struct Proxy {
+    port: u16,
+    cut: Arc<AtomicBool>,
+    conns: Arc<Mutex<Vec<std::net::TcpStream>>>,
+}
+
+impl Proxy {
+    fn start(upstream: u16) -> Proxy {
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = listener.local_addr().unwrap().port();
+        let cut = Arc::new(AtomicBool::new(false));
+        let conns = Arc::new(Mutex::new(Vec::new()));
+        let (c, k) = (cut.clone(), conns.clone());
+        // Runs until the test process ends.
+        std::thread::spawn(move || {
+            for client in listener.incoming() {
+                let Ok(client) = client else { continue };
+                if c.load(Ordering::SeqCst) {
+                    continue; // dropped: refused
+                }
+                let Ok(server) = std::net::TcpStream::connect(("127.0.0.1", upstream)) else {
+                    continue;
+                };
+                let mut held = k.lock().unwrap();
+                held.push(client.try_clone().unwrap());
+                held.push(server.try_clone().unwrap());
+                let (c2, s2) = (client.try_clone().unwrap(), server.try_clone().unwrap());
+                std::thread::spawn(move || pump(client, server));
+                std::thread::spawn(move || pump(s2, c2));
+            }
+        });
+        Proxy { port, cut, conns }
+    }
+
+    fn down(&self) {
+        self.cut.store(true, Ordering::SeqCst);
+        for s in self.conns.lock().unwrap().drain(..) {
+            let _ = s.shutdown(std::net::Shutdown::Both);
+        }
+    }
+
+    fn up(&self) {
+        self.cut.store(false, Ordering::SeqCst);
+    }
+}
+
+fn pump(mut from: std::net::TcpStream, mut to: std::net::TcpStream) {
+    let _ = std::io::copy(&mut from, &mut to);
+    let _ = to.shutdown(std::net::Shutdown::Both);
+}
+
 /// A subscriber to `irid/line/#` with a persistent session; collects payloads.
 fn subscribe(
     port: u16,
@@ -138,14 +193,14 @@ fn wait_for(what: &str, secs: u64, mut f: impl FnMut() -> bool) {
 }
 
 #[test]
-fn segments_reach_a_subscriber_across_a_broker_outage() {
+fn segments_reach_a_subscriber_across_a_connection_outage() {
     let Some(bin) = mosquitto() else {
         eprintln!("SKIPPED: mosquitto is not installed (.ci/run installs it)");
         return;
     };
     let dir = tempfile::tempdir().unwrap();
-    let broker = Arc::new(Mutex::new(Broker::start(&bin, dir.path())));
-    let port = broker.lock().unwrap().port;
+    let broker = Broker::start(&bin, dir.path());
+    let port = broker.port;
     let stop = Arc::new(AtomicBool::new(false));
     let (got, sub) = subscribe(port, stop.clone());
     // The subscription must be in place before anything is published.
@@ -160,7 +215,8 @@ fn segments_reach_a_subscriber_across_a_broker_outage() {
     cfg.realtime_speed = 4.0;
     let built = rig.build(cfg, Mode::Balanced).unwrap();
     let (mut cam, mut tuner, setup) = (built.camera, built.tuner, built.setup);
-    let mqtt = MqttPublisher::start(MqttConfig::new("127.0.0.1", port));
+    let proxy = Arc::new(Proxy::start(port));
+    let mqtt = MqttPublisher::start(MqttConfig::new("127.0.0.1", proxy.port));
     let stats = Arc::new(Mutex::new(None));
     let out_cfg = OutputConfig {
         segment_rows: 8,
@@ -169,13 +225,13 @@ fn segments_reach_a_subscriber_across_a_broker_outage() {
         topic: "irid/line".into(),
     };
 
-    // The broker goes away after 0.7 s and comes back 0.8 s later.
-    let b = broker.clone();
+    // The broker becomes unreachable after 0.7 s and is back 0.8 s later.
+    let p = proxy.clone();
     let outage = std::thread::spawn(move || {
         std::thread::sleep(Duration::from_millis(700));
-        b.lock().unwrap().down();
+        p.down();
         std::thread::sleep(Duration::from_millis(800));
-        b.lock().unwrap().up();
+        p.up();
     });
     /// Keeps the stats at the end, and the longest a publish call took.
     struct Keep(
