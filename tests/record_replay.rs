@@ -54,10 +54,17 @@ fn record(dir: &Path, sweeps: u32, extra: &[&str]) -> PathBuf {
     rec
 }
 
+/// The finished sweep maps in `dir` (`sweep-*.exr`, sorted); a writer's
+/// temporary file left by a killed run (`.sweep-*.exr.tmp-*`) is not one.
 fn sweep_files(dir: &Path) -> Vec<PathBuf> {
     let mut v: Vec<PathBuf> = std::fs::read_dir(dir)
         .map(|d| d.map(|e| e.unwrap().path()).collect())
         .unwrap_or_default();
+    v.retain(|p| {
+        p.file_name()
+            .and_then(|n| n.to_str())
+            .is_some_and(|n| n.starts_with("sweep-") && n.ends_with(".exr"))
+    });
     v.sort();
     v
 }
