@@ -162,27 +162,59 @@ fn run_at(x: &[f64], y: &[f64], var: &[f64], d0: f64) -> Run {
     Run { ext, sigma_x }
 }
 
-/// σ, in samples, of the vertex of the quadratic fitted to `y` over
-/// `i ± w` (noise variance `var`): `σ_b / (2|c|)` for `y ≈ a + b t + c t²`
-/// with `t = k − i` (the vertex sits near `t = 0`). Infinite where the
-/// curve has no curvature to place a vertex by.
-fn vertex_sigma(y: &[f64], var: f64, i: usize, w: usize) -> f64 {
-    let n = y.len();
-    let (a, b) = (i.saturating_sub(w), (i + w + 1).min(n));
+/// Weighted least-squares residual `Σ w (y − f·c)²` of `y` on the basis
+/// `f(k)` (the normal equations, lightly regularised); ∞ where singular.
+/// At most 8 basis functions (the normal equations stay on the stack).
+fn weighted_sse<const P: usize>(y: &[f64], w: &[f64], f: impl Fn(usize) -> [f64; P]) -> f64 {
+    let mut buf = [0.0; 64];
+    let ata = &mut buf[..P * P];
+    let mut aty = [0.0; P];
+    let mut yy = 0.0;
+    for k in 0..y.len() {
+        let fk = f(k);
+        yy += w[k] * y[k] * y[k];
+        for i in 0..P {
+            aty[i] += w[k] * fk[i] * y[k];
+            for j in 0..P {
+                ata[i * P + j] += w[k] * fk[i] * fk[j];
+            }
+        }
+    }
+    for i in 0..P {
+        ata[i * P + i] *= 1.0 + 1e-10;
+    }
+    match solve_spd(ata, P, &aty) {
+        Some(c) => yy - c.iter().zip(&aty).map(|(c, b)| c * b).sum::<f64>(),
+        None => f64::INFINITY,
+    }
+}
+
+/// Normal equations of the quadratic `a + b t + c t²` in `t = k − i` over
+/// samples `k ∈ [lo, hi)` of `y`: `(AᵀA, Aᵀy)`.
+fn local_quadratic(y: &[f64], i: usize, lo: usize, hi: usize) -> ([f64; 9], [f64; 3]) {
     let mut m = [0.0f64; 5];
     let mut r = [0.0f64; 3];
-    for k in a..b {
+    for (k, &v) in y.iter().enumerate().take(hi).skip(lo) {
         let t = k as f64 - i as f64;
         let mut p = 1.0;
         for mj in m.iter_mut() {
             *mj += p;
             p *= t;
         }
-        r[0] += y[k];
-        r[1] += t * y[k];
-        r[2] += t * t * y[k];
+        r[0] += v;
+        r[1] += t * v;
+        r[2] += t * t * v;
     }
-    let ata = [m[0], m[1], m[2], m[1], m[2], m[3], m[2], m[3], m[4]];
+    ([m[0], m[1], m[2], m[1], m[2], m[3], m[2], m[3], m[4]], r)
+}
+
+/// σ, in samples, of the vertex of the quadratic fitted to `y` over
+/// `i ± w` (noise variance `var`): `σ_b / (2|c|)` for `y ≈ a + b t + c t²`
+/// with `t = k − i` (the vertex sits near `t = 0`). Infinite where the
+/// curve has no curvature to place a vertex by.
+fn vertex_sigma(y: &[f64], var: f64, i: usize, w: usize) -> f64 {
+    let n = y.len();
+    let (ata, r) = local_quadratic(y, i, i.saturating_sub(w), (i + w + 1).min(n));
     let (Some(coef), Some(e1)) = (solve_spd(&ata, 3, &r), solve_spd(&ata, 3, &[0.0, 1.0, 0.0]))
     else {
         return f64::INFINITY;
@@ -205,28 +237,10 @@ fn period(x: &[f64], y: &[f64], var: &[f64], (d_min, d_max): (f64, f64)) -> Opti
     let u: Vec<f64> = x.iter().map(|v| 2.0 * (v - x_lo) / span - 1.0).collect();
     let w: Vec<f64> = var.iter().map(|v| 1.0 / v.max(1e-300)).collect();
     let sse = |d: f64| -> f64 {
-        const P: usize = 7;
-        let mut ata = [0.0; P * P];
-        let mut aty = [0.0; P];
-        let mut yy = 0.0;
-        for k in 0..n {
+        weighted_sse::<7>(y, &w, |k| {
             let (s, c) = (4.0 * std::f64::consts::PI * d * x[k]).sin_cos();
-            let f = [1.0, u[k], u[k] * u[k], c, c * u[k], s, s * u[k]];
-            yy += w[k] * y[k] * y[k];
-            for i in 0..P {
-                aty[i] += w[k] * f[i] * y[k];
-                for j in 0..P {
-                    ata[i * P + j] += w[k] * f[i] * f[j];
-                }
-            }
-        }
-        for i in 0..P {
-            ata[i * P + i] *= 1.0 + 1e-10;
-        }
-        match solve_spd(&ata, P, &aty) {
-            Some(c) => yy - c.iter().zip(&aty).map(|(c, b)| c * b).sum::<f64>(),
-            None => f64::INFINITY,
-        }
+            [1.0, u[k], u[k] * u[k], c, c * u[k], s, s * u[k]]
+        })
     };
     // A peak is ~1/(2·span) wide in d; start at half a fringe over the band.
     let step = 1.0 / (2.0 * span * GRID_PER_PEAK);
@@ -250,25 +264,7 @@ fn period(x: &[f64], y: &[f64], var: &[f64], (d_min, d_max): (f64, f64)) -> Opti
     // A fringe at all? The sinusoid's four parameters must lower χ² by
     // more than noise would at any of the independent frequencies tried
     // (the look-elsewhere effect: p = 1e-3 over all of them).
-    let baseline = {
-        const P: usize = 3;
-        let mut ata = [0.0; P * P];
-        let mut aty = [0.0; P];
-        let mut yy = 0.0;
-        for k in 0..n {
-            let f = [1.0, u[k], u[k] * u[k]];
-            yy += w[k] * y[k] * y[k];
-            for i in 0..P {
-                aty[i] += w[k] * f[i] * y[k];
-                for j in 0..P {
-                    ata[i * P + j] += w[k] * f[i] * f[j];
-                }
-            }
-        }
-        solve_spd(&ata, P, &aty).map_or(f64::INFINITY, |c| {
-            yy - c.iter().zip(&aty).map(|(c, b)| c * b).sum::<f64>()
-        })
-    };
+    let baseline = weighted_sse::<3>(y, &w, |k| [1.0, u[k], u[k] * u[k]]);
     let n_freq = ((hi - lo) * 2.0 * span).max(1.0);
     if baseline - best.0 < chi2_upper_quantile(4.0, DETECTION_PROBABILITY / n_freq) {
         return None;
@@ -285,24 +281,8 @@ fn smooth(y: &[f64], var: &[f64], h: usize) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
     let mut vs = vec![0.0; n];
     for i in 0..n {
         let (a, b) = (i.saturating_sub(h), (i + h + 1).min(n));
-        // Moments of t = k − i over the window.
-        let mut m = [0.0f64; 5];
-        let mut r = [0.0f64; 3];
-        let mut mean_var = 0.0;
-        for k in a..b {
-            let t = k as f64 - i as f64;
-            let mut p = 1.0;
-            for mj in m.iter_mut() {
-                *mj += p;
-                p *= t;
-            }
-            r[0] += y[k];
-            r[1] += t * y[k];
-            r[2] += t * t * y[k];
-            mean_var += var[k];
-        }
-        mean_var /= (b - a) as f64;
-        let ata = [m[0], m[1], m[2], m[1], m[2], m[3], m[2], m[3], m[4]];
+        let (ata, r) = local_quadratic(y, i, a, b);
+        let mean_var = var[a..b].iter().sum::<f64>() / (b - a) as f64;
         // Value at t = 0 and the weight vector's squared norm: the first row
         // of (AᵀA)⁻¹ gives both.
         let e0 = solve_spd(&ata, 3, &[1.0, 0.0, 0.0]);
