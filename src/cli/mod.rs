@@ -11,6 +11,7 @@
 
 pub mod calibrate;
 pub mod common;
+pub mod export;
 pub mod fit;
 pub mod lctf;
 pub mod line;
@@ -63,6 +64,8 @@ pub enum Command {
     /// List a recording's contents: channels, sweeps, bands, gaps, drops,
     /// damage.
     Inspect(record::InspectArgs),
+    /// Write one recorded sweep's calibrated cube as ENVI.
+    Export(export::ExportArgs),
 }
 
 /// Run a parsed command line.
@@ -79,6 +82,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Some(Command::Replay(a)) => record::replay(&a),
         Some(Command::Record(a)) => record::record_only(&a),
         Some(Command::Inspect(a)) => record::inspect(&a),
+        Some(Command::Export(a)) => export::export(&a),
     }
 }
 

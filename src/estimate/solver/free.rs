@@ -4,9 +4,18 @@
 //! intensities, where only the fringes' positions and shapes carry the
 //! thickness.
 //!
-//! First the fringe positions ([`fringes`](super::fringes)): fewer than two
-//! extrema standing out of the noise flag the pixel "no fringe" (one broad
-//! hump moves with the envelope). Then, within one fringe order of what
+//! First the fringe positions ([`fringes`](super::fringes)): no extremum
+//! standing out of the noise flags the pixel "no fringe". Where the
+//! positions leave the order open (one extremum, or two to four that fit
+//! several order sets), the spectrum's shape chooses: a slow offset and
+//! scale, `y ≈ (a₀ + a₁u) + R·(c₀ + c₁u)` with `c₀ > 0`, fitted near each
+//! candidate, must prefer one by a wide margin (Δχ² ≥ 25 after scaling by
+//! its own reduced χ², and more than its whole misfit); the chosen film
+//! must put as many extrema in the band as were found (a lamp's bump on a
+//! thin film mimics a fringe's shape, not its count); and from one
+//! extremum, the thickness must not move by more than σ when the offset's
+//! slope is dropped. Otherwise "ambiguous order": one broad hump moves
+//! with the envelope. Then, within one fringe order of what
 //! the positions say, variable projection: for each trial thickness the
 //! linear coefficients are solved by least squares, the thickness searched
 //! on a grid of its profile, then refined by golden section; σ from the
@@ -39,6 +48,13 @@ const MAX_RELATIVE_SIGMA: f64 = 0.033;
 /// Largest relative σ of a thickness read from fringe positions alone
 /// (their scatter, not the noise, sets it).
 const MAX_FRINGE_RELATIVE_SIGMA: f64 = 0.05;
+/// χ², scaled by the level model's own reduced χ² where above one, by
+/// which the spectrum's shape must prefer one of the order sets the fringe
+/// positions leave open (five σ: the misfit of a measured spectrum is
+/// systematic, so the margin is wide).
+const RESOLVE_CHI2: f64 = 25.0;
+/// Grid points per candidate order's search window.
+const RESOLVE_GRID: usize = 8;
 /// Largest rms distance of the extrema from their orders, in orders: beyond
 /// it the extrema are not one film's fringes.
 const MAX_ORDER_RMS: f64 = 0.25;
@@ -172,10 +188,20 @@ impl Solver {
         let level_fits = self.judging() && self.fit_passes(chi2, n_ok, n_lin + 1);
         if !level_fits {
             // The level model misses the spectrum (or nothing judges it):
-            // the fringe positions alone, with their own σ.
+            // the fringe positions alone, with their own σ — their order
+            // chosen by the spectrum's shape where the positions leave it
+            // open.
             let rms = (sse_at(deg_j, fringes.fit.d, &mut trial) / n_ok as f64).sqrt();
+            let mut fit = fringes.fit;
+            if fit.ambiguous {
+                if let Some((d, sigma)) =
+                    self.resolve_orders(prep, theta, &fringes, &u, scratch, &mut trial)
+                {
+                    (fit.d, fit.sigma, fit.ambiguous) = (d, sigma, false);
+                }
+            }
             scratch.trial = trial;
-            return self.fringe_estimate(prep, &fringes.fit, theta, rms);
+            return self.fringe_estimate(prep, &fit, theta, rms);
         }
         scratch.trial = trial;
         let mut reason = Reason::Ok;
@@ -210,10 +236,33 @@ impl Solver {
     }
 }
 
-/// The fringe analysis of a pixel, with the mean phase rate of its bands.
+/// The fringe analysis of a pixel, with the mean phase rate of its bands
+/// and the noise variance of each band (band order; 0 where missing).
 struct PixelFringes {
     fit: FringeFit,
     x_mean: f64,
+    /// Lowest and highest phase rate, and the bands' count.
+    x_range: (f64, f64, usize),
+    var: Vec<f64>,
+}
+
+impl PixelFringes {
+    /// How many extrema a film of thickness `d` puts where the fringe
+    /// analysis would find them: whole orders `4 d x = m` inside the band,
+    /// short of its ends by the margin [`fringes::fit`] keeps there.
+    fn extrema_expected(&self, d: f64) -> usize {
+        let (lo, hi, n) = self.x_range;
+        let dx = (hi - lo) / (n.max(2) - 1) as f64;
+        let h = (1.0 / (16.0 * d * dx))
+            .clamp(2.0, (n / 8).max(2) as f64)
+            .floor();
+        let margin = (h / 2.0).floor().max(2.0) * dx;
+        let (a, b) = (4.0 * d * (lo + margin), 4.0 * d * (hi - margin));
+        if b < a {
+            return 0;
+        }
+        (b.floor() - a.ceil() + 1.0).max(0.0) as usize
+    }
 }
 
 impl Solver {
@@ -244,7 +293,143 @@ impl Solver {
         let (half, quarter) = prep.model.envelopes(theta);
         let fit = fringes::fit(&x, &y, &var, quarter > half, (self.d_min, self.d_max))?;
         let x_mean = x.iter().sum::<f64>() / x.len() as f64;
-        Some(PixelFringes { fit, x_mean })
+        let x_range = (x[x.len() - 1], x[0], x.len());
+        let mut var_band = vec![0.0; rates.len()];
+        for (&k, &v) in idx.iter().zip(&var) {
+            var_band[k] = v;
+        }
+        Some(PixelFringes {
+            fit,
+            x_mean,
+            x_range,
+            var: var_band,
+        })
+    }
+
+    /// The order set, among those the fringe positions leave open, whose
+    /// thickness the whole spectrum's shape prefers: the level model
+    /// `y ≈ (a₀ + a₁u) + R·(c₀ + c₁u)` (a slow offset and scale, noise-
+    /// weighted) fitted near each candidate. Its χ² is scaled by its own
+    /// reduced χ² where that exceeds one (a measured spectrum's shape is
+    /// never exactly the model's), and the best must win by
+    /// [`RESOLVE_CHI2`]; `None` otherwise — the pixel stays ambiguous.
+    fn resolve_orders(
+        &self,
+        prep: &Prepared,
+        theta: f64,
+        f: &PixelFringes,
+        u: &[f64],
+        scratch: &Scratch,
+        trial: &mut crate::estimate::model::ModelOut,
+    ) -> Option<(f64, f64)> {
+        let cands: Vec<(f64, f64)> = f
+            .fit
+            .candidates
+            .iter()
+            .copied()
+            .filter(|c| c.0.is_finite())
+            .collect();
+        if cands.len() < 2 {
+            return None;
+        }
+        let w: Vec<f64> = (0..u.len())
+            .map(|k| {
+                let v = f.var[k];
+                if scratch.weight[k] > 0.0 && v > 0.0 {
+                    1.0 / v
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let n_ok = w.iter().filter(|&&w| w > 0.0).count();
+        let y = &scratch.spectrum;
+        let mut sse_at = |d: f64| {
+            prep.model.eval(d, theta, trial, false);
+            let r = &trial.r;
+            // The scale must be positive mid-band (a negative one turns
+            // maxima into minima: the neighbouring order).
+            match fringes::weighted_lsq::<4>(y, &w, |k| [1.0, u[k], r[k], r[k] * u[k]]) {
+                Some((sse, c)) if c[2] > 0.0 => sse,
+                _ => f64::INFINITY,
+            }
+        };
+        // Candidates are two orders apart; each is searched within half an
+        // order (a grid, then golden section on its best cell), short of
+        // the neighbouring order a sign-flipped scale would also fit.
+        let half_order = 1.0 / (8.0 * f.x_mean);
+        let mut sse: Vec<(f64, usize, bool, f64)> = cands
+            .iter()
+            .enumerate()
+            .map(|(i, &(d0, _))| {
+                let (lo, hi) = (
+                    (d0 - half_order).max(self.d_min),
+                    (d0 + half_order).min(self.d_max),
+                );
+                let step = (hi - lo) / RESOLVE_GRID as f64;
+                let best = (0..=RESOLVE_GRID)
+                    .map(|j| lo + step * j as f64)
+                    .map(|d| (sse_at(d), d))
+                    .min_by(|a, b| a.0.total_cmp(&b.0))
+                    .map_or(lo, |b| b.1);
+                let (d, v) = golden((best - step).max(lo), (best + step).min(hi), &mut sse_at);
+                // A minimum at the window's edge belongs to no candidate.
+                let interior = d - lo > step && hi - d > step;
+                (v, i, interior, d)
+            })
+            .collect();
+        sse.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let birge = (sse[0].0 / n_ok.saturating_sub(5).max(1) as f64).max(1.0);
+        // The loser's excess misfit must also exceed all the winner's: a
+        // systematic misfit that large could tip the balance either way.
+        let margin = sse[1].0 - sse[0].0;
+        // Every candidate must be fitted by a positive scale: where one
+        // is not, the fringe is too weak for its shape to tell.
+        let all_fitted = sse.iter().all(|c| c.0.is_finite());
+        if !(all_fitted && sse[0].2 && margin / birge >= RESOLVE_CHI2 && margin >= sse[0].0) {
+            return None;
+        }
+        let (d_c, sigma_c) = cands[sse[0].1];
+        // The chosen film must put as many extrema in the band as were
+        // found: a lamp's bump on a thin film can mimic a fringe's shape,
+        // not its count.
+        if f.extrema_expected(sse[0].3) != f.fit.n_extrema {
+            return None;
+        }
+        if f.fit.n_extrema > 1 {
+            return Some((d_c, sigma_c));
+        }
+        // One extremum: its position is pulled by the envelope, so the
+        // shape's own minimum, σ from the profile's curvature (scaled as
+        // the χ²), never below the extremum's.
+        let d = sse[0].3;
+        let h = 1e-3 * d.max(1.0);
+        let curv = (sse_at(d + h) + sse_at(d - h) - 2.0 * sse[0].0) / (h * h);
+        let sigma = if curv > 0.0 {
+            (2.0 * birge / curv).sqrt().max(sigma_c * d / d_c)
+        } else {
+            f64::INFINITY
+        };
+        // The answer must not hinge on the envelope: with a constant
+        // offset instead of a sloped one, the minimum near it must stay
+        // within σ (the difference then joins σ).
+        let w_ref = &w;
+        let mut flat_at = |d: f64| {
+            prep.model.eval(d, theta, trial, false);
+            let r = &trial.r;
+            match fringes::weighted_lsq::<3>(y, w_ref, |k| [1.0, r[k], r[k] * u[k]]) {
+                Some((sse, c)) if c[1] > 0.0 => sse,
+                _ => f64::INFINITY,
+            }
+        };
+        let (lo, hi) = (
+            (d - 2.0 * sigma).max(self.d_min),
+            (d + 2.0 * sigma).min(self.d_max),
+        );
+        let (d_flat, v_flat) = golden(lo, hi, &mut flat_at);
+        let shift = (d_flat - d).abs();
+        let pinned = d_flat - lo < 1e-3 * sigma || hi - d_flat < 1e-3 * sigma;
+        (v_flat.is_finite() && !pinned && shift <= sigma).then_some((d, sigma.max(shift)))
     }
 
     /// A pixel's estimate from its fringe positions alone.

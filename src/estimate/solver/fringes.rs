@@ -53,6 +53,8 @@ const MIN_SPACING_EXTREMA: usize = 5;
 const DETECTION_PROBABILITY: f64 = 1e-3;
 /// Periodogram grid points per peak width.
 const GRID_PER_PEAK: f64 = 8.0;
+/// Most ambiguous order sets reported.
+pub(super) const MAX_CANDIDATES: usize = 4;
 
 /// What the fringe positions say.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -67,6 +69,10 @@ pub(super) struct FringeFit {
     pub order_rms: f64,
     /// Another set of whole orders lines up about as well.
     pub ambiguous: bool,
+    /// Where ambiguous, the order sets within [`AMBIGUITY_CHI2`] of the
+    /// best, best first: `(d, σ)` each (the rest `NaN`), for the level
+    /// model's shape to choose between.
+    pub candidates: [(f64, f64); MAX_CANDIDATES],
     /// Thickness from the periodogram alone, nm.
     pub period_d: f64,
 }
@@ -74,7 +80,8 @@ pub(super) struct FringeFit {
 /// The fringe analysis of one spectrum: `x` the phase rates, `y` the
 /// values, `var` their noise variances (all sorted by descending `x`,
 /// i.e. ascending wavelength); `max_is_odd` whether maxima are quarter-wave
-/// orders. `None` when fewer than two fringe extrema stand out.
+/// orders. `None` when no fringe extremum stands out (one alone leaves
+/// its order open: see [`single`]).
 pub(super) fn fit(
     x: &[f64],
     y: &[f64],
@@ -101,6 +108,15 @@ pub(super) fn fit(
             }
         }
     }
+    if run.ext.len() == 1 {
+        let f = single(
+            x[run.ext[0].0],
+            run.ext[0].1 == max_is_odd,
+            d_range,
+            period_d,
+        );
+        return f.d.is_finite().then_some(f);
+    }
     if run.ext.len() < 2 {
         return None;
     }
@@ -108,6 +124,31 @@ pub(super) fn fit(
     let last_is_max = run.ext[run.ext.len() - 1].1;
     orders(&xs, &run.sigma_x, last_is_max == max_is_odd, d_range)
         .map(|f| FringeFit { period_d, ..f })
+}
+
+/// One extremum alone (at `x`, of odd order iff `odd`) fixes the
+/// thickness only up to its order: the lowest orders in range, all open
+/// ([`FringeFit::ambiguous`]), for the spectrum's shape to choose between.
+/// Each with a twentieth of an order's position error.
+fn single(x: f64, odd: bool, (d_min, d_max): (f64, f64), period_d: f64) -> FringeFit {
+    let mut candidates = [(f64::NAN, f64::NAN); MAX_CANDIDATES];
+    let orders = (0..).map(|j| 2 * j + if odd { 1 } else { 2 });
+    let in_range = orders
+        .map(|m| (m as f64, m as f64 / (4.0 * x)))
+        .skip_while(|&(_, d)| d < d_min)
+        .take_while(|&(_, d)| d <= d_max);
+    for (slot, (m, d)) in candidates.iter_mut().zip(in_range) {
+        *slot = (d, d * MIN_ORDER_ERROR / m);
+    }
+    FringeFit {
+        d: candidates[0].0,
+        sigma: candidates[0].1,
+        n_extrema: 1,
+        order_rms: 0.0,
+        ambiguous: true,
+        candidates,
+        period_d,
+    }
 }
 
 /// Noise variance of each sample of a densely sampled spectrum, from the
@@ -165,7 +206,21 @@ fn run_at(x: &[f64], y: &[f64], var: &[f64], d0: f64) -> Run {
 /// Weighted least-squares residual `Σ w (y − f·c)²` of `y` on the basis
 /// `f(k)` (the normal equations, lightly regularised); ∞ where singular.
 /// At most 8 basis functions (the normal equations stay on the stack).
-fn weighted_sse<const P: usize>(y: &[f64], w: &[f64], f: impl Fn(usize) -> [f64; P]) -> f64 {
+pub(super) fn weighted_sse<const P: usize>(
+    y: &[f64],
+    w: &[f64],
+    f: impl Fn(usize) -> [f64; P],
+) -> f64 {
+    weighted_lsq(y, w, f).map_or(f64::INFINITY, |(sse, _)| sse)
+}
+
+/// The weighted least-squares fit behind [`weighted_sse`]: the residual
+/// and the coefficients.
+pub(super) fn weighted_lsq<const P: usize>(
+    y: &[f64],
+    w: &[f64],
+    f: impl Fn(usize) -> [f64; P],
+) -> Option<(f64, [f64; P])> {
     let mut buf = [0.0; 64];
     let ata = &mut buf[..P * P];
     let mut aty = [0.0; P];
@@ -183,10 +238,11 @@ fn weighted_sse<const P: usize>(y: &[f64], w: &[f64], f: impl Fn(usize) -> [f64;
     for i in 0..P {
         ata[i * P + i] *= 1.0 + 1e-10;
     }
-    match solve_spd(ata, P, &aty) {
-        Some(c) => yy - c.iter().zip(&aty).map(|(c, b)| c * b).sum::<f64>(),
-        None => f64::INFINITY,
-    }
+    let c = solve_spd(ata, P, &aty)?;
+    let mut out = [0.0; P];
+    out.copy_from_slice(&c[..P]);
+    let sse = yy - out.iter().zip(&aty).map(|(c, b)| c * b).sum::<f64>();
+    Some((sse, out))
 }
 
 /// Normal equations of the quadratic `a + b t + c t²` in `t = k − i` over
@@ -428,9 +484,8 @@ fn orders(
     let sxx: f64 = xs.iter().map(|x| x * x).sum();
     let m_cap = (4.0 * d_max * xs[n - 1]).ceil() as i64 + 2;
     // Per candidate: (χ² against the positions' σ, rms misfit, d, mean
-    // order, relative σ of d).
-    let mut first = (f64::INFINITY, f64::INFINITY, f64::NAN, 0.0, f64::INFINITY);
-    let mut second = f64::INFINITY;
+    // order, relative σ of d), all kept for the ambiguous case.
+    let mut all: Vec<(f64, f64, f64, f64, f64)> = Vec::new();
     let mut m_last = if last_odd { 1 } else { 2 };
     while m_last <= m_cap.max(1) {
         let ms = |j: usize| (m_last + (n - 1 - j) as i64) as f64;
@@ -449,16 +504,30 @@ fn orders(
         // δd/d from the positions: 1/√Σ(m/σ_m)².
         let rel = 1.0 / (0..n).map(|j| (ms(j) / sm(j)).powi(2)).sum::<f64>().sqrt();
         if (d_min..=d_max).contains(&d) {
-            if chi2 < first.0 {
-                second = first.0;
-                first = (chi2, rms, d, mean_m, rel);
-            } else if chi2 < second {
-                second = chi2;
-            }
+            all.push((chi2, rms, d, mean_m, rel));
         }
         m_last += 2;
     }
-    let (chi2, rms, d_int, mean_m, rel) = first;
+    all.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let &(chi2, rms, d_int, mean_m, rel) = all.first()?;
+    let second = all.get(1).map_or(f64::INFINITY, |c| c.0);
+    // Relative σ of an order set's thickness: random position errors
+    // average down over the extrema; a shift common to them all (the
+    // envelope's pull, the index table's error) does not, so never below
+    // MIN_ORDER_ERROR of the mean order.
+    let floor = |rel: f64, rms: f64, mean_m: f64| {
+        rel.max(rms / (mean_m * (n as f64).sqrt()))
+            .max(MIN_ORDER_ERROR / mean_m)
+    };
+    // The open order sets: those within AMBIGUITY_CHI2, and always the
+    // best's two neighbours (a displaced extremum — washed-out contrast,
+    // noise — can move the truth just past the margin).
+    let near =
+        |c: &(f64, f64, f64, f64, f64)| c.0 - chi2 < AMBIGUITY_CHI2 || (c.3 - mean_m).abs() < 2.5;
+    let mut candidates = [(f64::NAN, f64::NAN); MAX_CANDIDATES];
+    for (slot, c) in candidates.iter_mut().zip(all.iter().filter(|c| near(c))) {
+        *slot = (c.2, c.2 * floor(c.4, c.1, c.3));
+    }
     if !d_int.is_finite() || d_int <= 0.0 {
         return None;
     }
@@ -470,18 +539,13 @@ fn orders(
     // three or four extrema is a difference of positions the envelope
     // pulls: the orders' ambiguity is then the answer, a flag).
     if n < MIN_SPACING_EXTREMA || (!ambiguous && rms <= ORDER_FIT_RMS) {
-        // Random position errors average down over the extrema; a shift
-        // common to them all (the envelope's pull, the index table's
-        // error) does not: σ never below MIN_ORDER_ERROR of the mean order.
-        let rel = rel
-            .max(rms / (mean_m * (n as f64).sqrt()))
-            .max(MIN_ORDER_ERROR / mean_m);
         return Some(FringeFit {
             d: d_int,
-            sigma: d_int * rel,
+            sigma: d_int * floor(rel, rms, mean_m),
             n_extrema: n,
             order_rms: rms,
             ambiguous,
+            candidates,
             period_d: f64::NAN,
         });
     }
@@ -509,6 +573,7 @@ fn orders(
         n_extrema: n,
         order_rms: scatter,
         ambiguous: false,
+        candidates: [(f64::NAN, f64::NAN); MAX_CANDIDATES],
         period_d: f64::NAN,
     })
 }
