@@ -383,6 +383,11 @@ fn demo_rig_for(args: &RunArgs, file: &SceneFile, base: &Path) -> anyhow::Result
         // Large images draw their noise from a pool at a fresh offset per
         // frame, so the camera does not limit the line.
         noise_pool: big,
+        // At its frame rate (sped up as the emulated controller is), as a
+        // real camera: unpaced, frames come as fast as the CPU renders
+        // them and the pipeline rightly drops the sweeps it cannot take.
+        realtime: !args.unpaced,
+        speed: args.time_scale,
         ..Default::default()
     };
     let seq_mode = if args.triggered {
