@@ -558,3 +558,67 @@ fn a_recorded_sweep_exports_as_an_envi_cube() {
         dl.len()
     );
 }
+
+/// `irid replay CUBE.hdr --scene S`: an ENVI cube from elsewhere goes
+/// through the live pipeline as one sweep, and its map agrees with the
+/// cube's ground truth as a live sweep's does (σ honest, error small).
+#[test]
+fn an_envi_cube_replays_as_one_sweep() {
+    let dir = tempfile::tempdir().unwrap();
+    let cube = dir.path().join("cube.hdr");
+    ok(&["synth", "--out", s(&cube)]);
+    let scene = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/data/scenes/paper-cylinder.toml"
+    );
+    // A cube carries no scene and needs no calibration: both said.
+    let no_scene = irid(&["replay", s(&cube), "--out", s(&dir.path().join("x"))]);
+    assert!(!no_scene.status.success());
+    assert!(String::from_utf8_lossy(&no_scene.stderr).contains("--scene"));
+    let out = dir.path().join("rp");
+    let run = ok(&[
+        "replay",
+        s(&cube),
+        "--scene",
+        scene,
+        "--json",
+        "--out",
+        s(&out),
+    ]);
+    assert_eq!(json_lines(&run).len(), 1, "one sweep");
+    let maps = sweep_files(&out);
+    assert_eq!(maps.len(), 1);
+    let got = irid::io::exr_maps::read_channels(&maps[0]).unwrap();
+    let truth = irid::io::exr_maps::read_channels(&dir.path().join("cube.truth.exr")).unwrap();
+    let ch = |m: &irid::io::exr_maps::Channels, name: &str| -> Vec<f32> {
+        m.channels
+            .iter()
+            .find(|(n, _)| n == name)
+            .unwrap_or_else(|| panic!("no channel {name}"))
+            .1
+            .clone()
+    };
+    let (d, sd, dt) = (
+        ch(&got, "thickness_nm"),
+        ch(&got, "sigma_thickness_nm"),
+        ch(&truth, "thickness_nm"),
+    );
+    let valid: Vec<usize> = (0..d.len()).filter(|&i| d[i].is_finite()).collect();
+    assert!(
+        valid.len() * 10 >= d.len() * 9,
+        "{} of {} valid",
+        valid.len(),
+        d.len()
+    );
+    let mae = valid.iter().map(|&i| (d[i] - dt[i]).abs()).sum::<f32>() / valid.len() as f32;
+    let covered = valid
+        .iter()
+        .filter(|&&i| (d[i] - dt[i]).abs() <= 2.0 * sd[i])
+        .count() as f64
+        / valid.len() as f64;
+    println!("cube replay: MAE {mae:.3} nm, 2σ coverage {covered:.3}");
+    // The paper's cylinder at its noise: sub-nm, and σ neither too small
+    // nor too large (2σ coverage of a Gaussian is 0.954).
+    assert!(mae < 1.5, "MAE {mae} nm");
+    assert!((0.88..=0.995).contains(&covered), "2σ coverage {covered}");
+}

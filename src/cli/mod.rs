@@ -57,7 +57,7 @@ pub enum Command {
     /// Pictures: a map as PNG, the film's colour, the speed/accuracy chart.
     Render(render::RenderArgs),
     /// Replay a recording (MCAP) through the pipeline, with its own or
-    /// another mode, scene or calibration.
+    /// another mode, scene or calibration; or an ENVI cube as one sweep.
     Replay(record::ReplayArgs),
     /// Record what the line sees (MCAP) without solving.
     Record(record::RecordArgs),

@@ -134,7 +134,8 @@ pub(crate) fn finish(r: Recorder, path: Option<&Path>, json: bool) -> anyhow::Re
 /// Arguments of `irid replay`.
 #[derive(clap::Args, Debug, Clone)]
 pub struct ReplayArgs {
-    /// The recording (`irid run --record`).
+    /// The recording (`irid run --record`), or an ENVI cube (`.hdr`),
+    /// replayed as one sweep (needs `--scene`).
     pub file: PathBuf,
     /// Output directory of the maps.
     #[arg(long, default_value = "out")]
@@ -197,6 +198,9 @@ pub fn replay(args: &ReplayArgs) -> anyhow::Result<()> {
     let (profile, _chrome_guard) = init_tracing(args.trace.as_ref(), args.profile)?;
     if ctrlc::set_handler(|| STOP.store(true, Ordering::Relaxed)).is_err() {
         tracing::warn!("Ctrl-C handler not installed");
+    }
+    if is_envi(&args.file) {
+        return replay_cube(args);
     }
     let rec = Recording::open(&args.file)?;
     let s = rec.session.clone();
@@ -305,6 +309,95 @@ pub fn replay(args: &ReplayArgs) -> anyhow::Result<()> {
             args.file.display(),
             d.offset,
             d.message
+        );
+    }
+    if let Some(p) = profile {
+        eprint!("{}", p.report());
+    }
+    drop(_chrome_guard);
+    Ok(())
+}
+
+/// An ENVI header (by its extension or its first line) rather than a
+/// recording.
+fn is_envi(path: &Path) -> bool {
+    if path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("hdr"))
+    {
+        return true;
+    }
+    let mut head = [0u8; 4];
+    std::fs::File::open(path)
+        .and_then(|mut f| std::io::Read::read_exact(&mut f, &mut head))
+        .is_ok_and(|()| &head == b"ENVI")
+}
+
+/// `irid replay CUBE.hdr`: an ENVI reflectance cube through the live
+/// pipeline as a one-sweep stream ([`CubeStream`]): the scene must be
+/// given (a cube carries none), the calibration is the cube's own.
+fn replay_cube(args: &ReplayArgs) -> anyhow::Result<()> {
+    use crate::device::record::cube_stream::{CubeStream, InstantTuner};
+    let Some(scene_path) = &args.scene else {
+        anyhow::bail!(
+            "{}: an ENVI cube carries no scene: give --scene FILE",
+            args.file.display()
+        );
+    };
+    if args.calibration.is_some() {
+        anyhow::bail!(
+            "{}: an ENVI cube is already reflectance: --calibration does not apply",
+            args.file.display()
+        );
+    }
+    let (profile, _chrome_guard) = init_tracing(args.trace.as_ref(), args.profile)?;
+    let scene = Scene::load(scene_path)?;
+    let cube = crate::io::envi::read_cube(&args.file)?;
+    let label = args.file.display().to_string();
+    let mut source = CubeStream::new(cube, &label);
+    let bands = source.bands().to_vec();
+    let setup = Setup {
+        scene,
+        order: (0..bands.len()).collect(),
+        bands,
+        seq_mode: crate::pipeline::sequencer::SeqMode::Stepped,
+        calibrator: source.calibrator(),
+    };
+    let cfg = RunConfig {
+        sweeps: Some(1),
+        mode: args.mode.unwrap_or(Mode::Balanced),
+        threads: args.threads,
+        single_thread: args.single_thread,
+        lossless: true,
+        ..RunConfig::default()
+    };
+    let out = if args.no_maps {
+        None
+    } else {
+        std::fs::create_dir_all(&args.out)
+            .with_context(|| format!("creating {}", args.out.display()))?;
+        Some(args.out.clone())
+    };
+    let mut sink = CliSink {
+        out,
+        json: args.json,
+        png: false,
+        live: None,
+    };
+    let started = std::time::Instant::now();
+    let report = runner::run(
+        &mut source,
+        &mut InstantTuner,
+        setup,
+        &cfg,
+        &mut sink,
+        &STOP,
+    )?;
+    if !args.json {
+        eprintln!(
+            "irid: replayed {label} as one sweep: {} mapped in {:.2} s",
+            report.sweeps_completed,
+            started.elapsed().as_secs_f64()
         );
     }
     if let Some(p) = profile {

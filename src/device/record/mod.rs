@@ -26,8 +26,10 @@
 //! and survives damage: a bad chunk is skipped and reported, a truncated
 //! tail ends the stream, garbage is skipped to the next valid chunk.
 //! [`replay`] turns a recording back into a [`crate::device::camera::FrameSource`]
-//! and a [`crate::pipeline::sequencer::BandTuner`].
+//! and a [`crate::pipeline::sequencer::BandTuner`]; [`cube_stream`] does the
+//! same for an ENVI cube (one sweep).
 
+pub mod cube_stream;
 pub mod reader;
 pub mod replay;
 pub mod writer;
