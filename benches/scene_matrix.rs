@@ -55,6 +55,26 @@ fn main() {
     println!("| scene | angle | mode | pixels/s | valid | mean \\|Δd\\| | p99 \\|Δd\\| | efficient | ratio | \\|Δd\\| ≤ 2σ | index+noise+level |");
     println!("|---|---|---|---|---|---|---|---|---|---|---|");
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/scenes");
+    // A bar on stderr when it is a terminal: the table on stdout stays clean.
+    let jobs = SCENES
+        .iter()
+        .filter(|(n, _)| only_scene.as_deref().is_none_or(|s| s == *n))
+        .count()
+        * if only_angle.is_some() { 1 } else { 2 }
+        * if only_mode.is_some() { 1 } else { 3 };
+    let bar = if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
+        let b = indicatif::ProgressBar::new(jobs as u64);
+        b.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{msg} [{elapsed_precise}] {wide_bar} {pos}/{len}",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        b.set_message("trade study");
+        b
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
     for (name, label) in SCENES {
         if only_scene.as_deref().is_some_and(|s| s != name) {
             continue;
@@ -95,25 +115,29 @@ fn main() {
                     );
                 }
                 let (maps, t_fit) = common::time_fits(&mut solver, &cube, best_of);
+                bar.inc(1);
                 let acc = compare(&maps, &truth);
                 let px = (cube.width * cube.height) as f64 / t_fit;
-                println!(
-                    "| {label} | {angle} | `{}` | {} | {:.1} % | {:.3} nm | {:.2} nm | {:.3} nm | {:.2} | {:.1} % | {:.2} s |",
-                    mode.name(),
-                    if px >= 1e6 {
-                        format!("{:.2} M", px / 1e6)
-                    } else {
-                        format!("{:.0} k", px / 1e3)
-                    },
-                    100.0 * acc.valid_fraction,
-                    acc.thickness_mae_nm,
-                    acc.thickness_p99_nm,
-                    efficient,
-                    acc.thickness_mae_nm / efficient,
-                    100.0 * acc.coverage_2sigma,
-                    t_index,
-                );
+                bar.suspend(|| {
+                    println!(
+                        "| {label} | {angle} | `{}` | {} | {:.1} % | {:.3} nm | {:.2} nm | {:.3} nm | {:.2} | {:.1} % | {:.2} s |",
+                        mode.name(),
+                        if px >= 1e6 {
+                            format!("{:.2} M", px / 1e6)
+                        } else {
+                            format!("{:.0} k", px / 1e3)
+                        },
+                        100.0 * acc.valid_fraction,
+                        acc.thickness_mae_nm,
+                        acc.thickness_p99_nm,
+                        efficient,
+                        acc.thickness_mae_nm / efficient,
+                        100.0 * acc.coverage_2sigma,
+                        t_index,
+                    );
+                });
             }
         }
     }
+    bar.finish_and_clear();
 }

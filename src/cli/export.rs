@@ -6,7 +6,8 @@
 //! for the sweep (their band from the `/irid/sequencer` verdicts),
 //! calibrated with the recorded calibration (or another). Two linear
 //! passes over the file — the verdicts, then the frames — keep memory at
-//! one cube and one frame, whatever the recording's length. A band the
+//! one cube and one frame, whatever the recording's length (a progress
+//! bar over both on a terminal). A band the
 //! sweep never received is written as NaN and named on stderr.
 
 use super::common::overwrite;
@@ -68,8 +69,11 @@ pub fn export(args: &ExportArgs) -> anyhow::Result<()> {
     // Pass 1: which frame (sequence number) the sequencer gave each band.
     let mut band_of: HashMap<u64, usize> = HashMap::new();
     let mut missing = Vec::new();
+    let len = std::fs::metadata(&args.file).map_or(0, |m| m.len());
+    let bar = super::progress::bytes_bar(2 * len, &format!("export {}", args.file.display()));
     let mut reader = RecordReader::open(&args.file)?;
     while let Some(m) = reader.next_message() {
+        bar.set_position(reader.progress().0);
         if m.topic != TOPIC_SEQUENCER {
             continue;
         }
@@ -109,6 +113,7 @@ pub fn export(args: &ExportArgs) -> anyhow::Result<()> {
     let mut counts = vec![0u16; w * h];
     let mut reader = RecordReader::open(&args.file)?;
     while let Some(m) = reader.next_message() {
+        bar.set_position(len + reader.progress().0);
         if m.topic != TOPIC_FRAME {
             continue;
         }
@@ -134,6 +139,7 @@ pub fn export(args: &ExportArgs) -> anyhow::Result<()> {
         calibrator.apply(b, &counts, meta.format.max_value(), meta.exposure_us, plane);
         filled[b] = true;
     }
+    bar.finish_and_clear();
     let absent: Vec<String> = (0..nb)
         .filter(|&b| !filled[b])
         .map(|b| format!("{:.1} nm", s.bands_nm[b]))

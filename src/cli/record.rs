@@ -181,14 +181,13 @@ pub struct ReplayArgs {
 static STOP: AtomicBool = AtomicBool::new(false);
 
 fn progress_bar(file: &Path) -> crate::device::record::replay::Progress {
-    let name = file.display().to_string();
-    let mut last = std::time::Instant::now();
+    let len = std::fs::metadata(file).map_or(0, |m| m.len());
+    let bar = super::progress::bytes_bar(len, &format!("replay {}", file.display()));
     Box::new(move |pos, len| {
-        if last.elapsed().as_millis() >= 200 {
-            last = std::time::Instant::now();
-            let pct = 100.0 * pos as f64 / (len.max(1)) as f64;
-            let bar = "#".repeat((pct / 5.0) as usize);
-            eprint!("\rreplay {name} [{bar:<20}] {pct:5.1} %");
+        bar.set_length(len);
+        bar.set_position(pos);
+        if pos >= len {
+            bar.finish_and_clear();
         }
     })
 }
