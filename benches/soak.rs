@@ -4,8 +4,10 @@
 //! band to map, window by window, and their trend over the run. Flat lines
 //! are the result wanted: no leak, no growing queue.
 //!
-//! `cargo bench --bench soak [-- --sweeps N] [--every K] [--time-scale S]`
-//! (defaults: 10 000 sweeps, a line every 500, S = 100).
+//! `cargo bench --bench soak [-- --sweeps N] [--every K] [--time-scale S]
+//! [--in-process [--speed X]]` (defaults: 10 000 sweeps, a line every 500,
+//! S = 100; in-process: the emulated filter on the camera's clock, paced
+//! at X = 10× real time).
 
 use irid::device::camera::synthetic::{FilterView, SensorModel, SyntheticCamera, SyntheticConfig};
 use irid::device::camera::{FrameSource, Target};
@@ -169,7 +171,24 @@ fn main() {
     let white = capture_reference("white", &mut cam, &mut cal_tuner, &plan).unwrap();
     cam.set_target(Target::Scene).unwrap();
     cam.set_realtime(true);
-    let (mut tuner, _emu) = irid::cli::run::emulated_varispec(view, time_scale).unwrap();
+    // The firmware emulator on a pseudo-terminal (each band waits on the
+    // serial round trip: ~5 s a sweep), or with --in-process the emulated
+    // filter on the camera's clock, paced at --speed × real time: the
+    // 10 000-sweep soak in minutes.
+    let in_process = std::env::args().any(|a| a == "--in-process");
+    let (mut tuner, _emu): (Box<dyn irid::pipeline::sequencer::BandTuner>, _) = if in_process {
+        cam.set_speed(arg("--speed", 10.0));
+        let t = EmulatedTuner::new(
+            view.clone(),
+            Duration::from_millis(5),
+            Duration::from_micros(400),
+            9,
+        );
+        (Box::new(t), None)
+    } else {
+        let (t, h) = irid::cli::run::emulated_varispec(view, time_scale).unwrap();
+        (Box::new(t), Some(h))
+    };
     let info = cam.info();
     let meta = CalMeta {
         version: 1,
@@ -188,7 +207,12 @@ fn main() {
     let policy = CalibrationPolicy::for_format(info.format);
     let cal = Calibration::from_references(meta, &dark, &white, &policy);
     println!(
-        "soak: {sweeps} sweeps of 32 × 8 px, 31 bands, fast, threaded, VariSpec emulator at {time_scale}× ({})",
+        "soak: {sweeps} sweeps of 32 × 8 px, 31 bands, fast, threaded, {} ({})",
+        if in_process {
+            format!("in-process filter, camera paced at {}×", arg("--speed", 10.0))
+        } else {
+            format!("VariSpec emulator at {time_scale}×")
+        },
         irid::pipeline::sequencer::BandTuner::describe(&tuner)
     );
     let setup = Setup {

@@ -734,8 +734,7 @@ pub fn run_tapped(
     };
     let tracker = Tracker::new(w, h, &setup.bands).track_extrema(cfg.track_extrema);
     let n_sweep_bufs = cfg.sweep_buffers.max(1);
-    let mut sweep_bufs: Vec<SweepBuf> =
-        (0..n_sweep_bufs).map(|_| tracker.new_sweep_buf()).collect();
+    let sweep_bufs: Vec<SweepBuf> = (0..n_sweep_bufs).map(|_| tracker.new_sweep_buf()).collect();
     let mut ingest = Ingest {
         tracker,
         cal: setup.calibrator,
@@ -763,84 +762,163 @@ pub fn run_tapped(
         fault: cfg.fault,
         handled: 0,
     };
+    let n_bands = setup.order.len();
+    let (completed, stopped) = if cfg.single_thread {
+        run_single(
+            &mut capture,
+            &mut ingest,
+            &mut solve,
+            sweep_bufs,
+            (w, h),
+            cfg,
+            sink,
+            rows,
+            stop,
+        )?
+    } else {
+        let wiring = Threaded {
+            size: (w, h),
+            format: info.format,
+            n_bands,
+            counters: &counters,
+        };
+        wiring.run(capture, ingest, solve, sweep_bufs, cfg, sink, rows, stop)?
+    };
+    Ok(RunReport {
+        sweeps_completed: completed,
+        sweeps_dropped: counters.sweeps_dropped.load(Ordering::Relaxed),
+        frames_dropped: counters.frames_dropped.load(Ordering::Relaxed),
+        frames_settling: counters.frames_settling.load(Ordering::Relaxed),
+        frames_total: counters.frames_total.load(Ordering::Relaxed),
+        frames_lost_tuning: counters.frames_lost_tuning.load(Ordering::Relaxed),
+        stopped,
+    })
+}
+
+/// The pipeline on the caller's thread: capture one frame, ingest what it
+/// produced, solve and write a sweep the moment it completes. Returns the
+/// sweeps written and whether the stop flag ended the run.
+#[allow(clippy::too_many_arguments)]
+fn run_single(
+    capture: &mut Capture<'_>,
+    ingest: &mut Ingest,
+    solve: &mut Solve,
+    mut sweep_bufs: Vec<SweepBuf>,
+    (w, h): (usize, usize),
+    cfg: &RunConfig,
+    sink: &mut dyn SweepSink,
+    rows: &mut dyn RowSink,
+    stop: &AtomicBool,
+) -> Result<(u64, bool), RunError> {
     let mut stopped = false;
     let mut completed = 0u64;
-
-    if cfg.single_thread {
-        let mut maps = ParamMaps::new(w, h);
-        let mut pool: Vec<Frame> = vec![Frame::with_size(info.width, info.height, info.format)];
-        let mut packets: std::collections::VecDeque<Packet> =
-            std::collections::VecDeque::with_capacity(64);
-        let mut result = Ok(());
-        let mut sink_faults = 0;
-        loop {
-            if stop.load(Ordering::Relaxed) {
-                stopped = true;
-                packets.push_back(Packet::End);
-            } else {
-                let step = catch(|| {
-                    capture.step(pool.pop(), &mut |p| packets.push_back(p), &mut |f| {
-                        pool.push(f)
-                    })
+    let format = capture.spare.meta.format;
+    let mut maps = ParamMaps::new(w, h);
+    let mut pool: Vec<Frame> = vec![Frame::with_size(w as u32, h as u32, format)];
+    let mut packets: std::collections::VecDeque<Packet> =
+        std::collections::VecDeque::with_capacity(64);
+    let mut result = Ok(());
+    let mut sink_faults = 0;
+    loop {
+        if stop.load(Ordering::Relaxed) {
+            stopped = true;
+            packets.push_back(Packet::End);
+        } else {
+            let step = catch(|| {
+                capture.step(pool.pop(), &mut |p| packets.push_back(p), &mut |f| {
+                    pool.push(f)
                 })
-                .unwrap_or_else(|message| {
-                    Err(RunError::Panicked {
-                        stage: Stage::Capture,
-                        message,
-                    })
-                });
-                match step {
-                    Ok(Step::Continue) => {}
-                    Ok(Step::Done) => packets.push_back(Packet::End),
-                    Err(e) => {
-                        result = Err(e);
-                        packets.push_back(Packet::End);
-                    }
-                }
-            }
-            let mut ended = false;
-            while let Some(p) = packets.pop_front() {
-                ended |= matches!(p, Packet::End);
-                let mut finished: Option<(SweepBuf, Instant)> = None;
-                let f = catch(|| {
-                    ingest.on_packet(p, &mut sweep_bufs, &mut |b, t| finished = Some((b, t)))
-                })
-                .map_err(|message| RunError::Panicked {
-                    stage: Stage::Ingest,
+            })
+            .unwrap_or_else(|message| {
+                Err(RunError::Panicked {
+                    stage: Stage::Capture,
                     message,
-                })?;
-                if let Some(f) = f {
-                    pool.push(f);
+                })
+            });
+            match step {
+                Ok(Step::Continue) => {}
+                Ok(Step::Done) => packets.push_back(Packet::End),
+                Err(e) => {
+                    result = Err(e);
+                    packets.push_back(Packet::End);
                 }
-                if let Some((b, t)) = finished {
-                    let mut s =
-                        catch(|| solve.solve(&b, &mut maps, None, rows)).map_err(|message| {
-                            RunError::Panicked {
-                                stage: Stage::Solve,
-                                message,
-                            }
-                        })?;
-                    s.latency_ms = t.elapsed().as_secs_f64() * 1e3;
-                    let _span = tracing::info_span!("write.sweep", sweep = b.sweep).entered();
-                    catch(|| {
-                        StageFault::check(cfg.fault, Stage::Sink, &mut sink_faults);
-                        sink.on_sweep(&s, &maps)
-                    })
-                    .map_err(|message| RunError::Panicked {
-                        stage: Stage::Sink,
-                        message,
-                    })?
-                    .map_err(RunError::Sink)?;
-                    completed += 1;
-                    sweep_bufs.push(b);
-                }
-            }
-            if ended {
-                break;
             }
         }
-        result?;
-    } else {
+        let mut ended = false;
+        while let Some(p) = packets.pop_front() {
+            ended |= matches!(p, Packet::End);
+            let mut finished: Option<(SweepBuf, Instant)> = None;
+            let f = catch(|| {
+                ingest.on_packet(p, &mut sweep_bufs, &mut |b, t| finished = Some((b, t)))
+            })
+            .map_err(|message| RunError::Panicked {
+                stage: Stage::Ingest,
+                message,
+            })?;
+            if let Some(f) = f {
+                pool.push(f);
+            }
+            if let Some((b, t)) = finished {
+                let mut s =
+                    catch(|| solve.solve(&b, &mut maps, None, rows)).map_err(|message| {
+                        RunError::Panicked {
+                            stage: Stage::Solve,
+                            message,
+                        }
+                    })?;
+                s.latency_ms = t.elapsed().as_secs_f64() * 1e3;
+                let _span = tracing::info_span!("write.sweep", sweep = b.sweep).entered();
+                catch(|| {
+                    StageFault::check(cfg.fault, Stage::Sink, &mut sink_faults);
+                    sink.on_sweep(&s, &maps)
+                })
+                .map_err(|message| RunError::Panicked {
+                    stage: Stage::Sink,
+                    message,
+                })?
+                .map_err(RunError::Sink)?;
+                completed += 1;
+                sweep_bufs.push(b);
+            }
+        }
+        if ended {
+            break;
+        }
+    }
+    result?;
+    Ok((completed, stopped))
+}
+
+/// The threaded wiring: capture, ingest and the sink on their own threads,
+/// the solver on the caller's (with a rayon pool for rows), joined by
+/// lock-free rings (frames) and bounded channels (sweeps, maps).
+struct Threaded<'c> {
+    size: (usize, usize),
+    format: crate::device::camera::PixelFormat,
+    n_bands: usize,
+    counters: &'c Arc<Counters>,
+}
+
+impl Threaded<'_> {
+    /// Run until the sequencer is done, the stop flag is set or a stage
+    /// fails: the sweeps written and whether the stop flag ended the run.
+    #[allow(clippy::too_many_arguments)]
+    fn run(
+        &self,
+        mut capture: Capture<'_>,
+        mut ingest: Ingest,
+        mut solve: Solve,
+        mut sweep_bufs: Vec<SweepBuf>,
+        cfg: &RunConfig,
+        sink: &mut dyn SweepSink,
+        rows: &mut dyn RowSink,
+        stop: &AtomicBool,
+    ) -> Result<(u64, bool), RunError> {
+        let (w, h) = self.size;
+        let counters = self.counters;
+        let n_sweep_bufs = sweep_bufs.len().max(1);
+        let mut stopped = false;
+        let mut completed = 0u64;
         let rayon_pool = rayon::ThreadPoolBuilder::new()
             .num_threads(cfg.threads.unwrap_or(0))
             .thread_name(|i| format!("irid-solve-{i}"))
@@ -849,11 +927,11 @@ pub fn run_tapped(
         let n_frames = cfg.frame_pool.max(2);
         let (mut free_prod, mut free_cons) = HeapRb::<Frame>::new(n_frames).split();
         for _ in 0..n_frames {
-            let _ = free_prod.try_push(Frame::with_size(info.width, info.height, info.format));
+            let _ = free_prod.try_push(Frame::with_size(w as u32, h as u32, self.format));
         }
         // Room for every pooled frame plus markers.
         let (mut pkt_prod, mut pkt_cons) =
-            HeapRb::<Packet>::new(n_frames + 2 * setup.order.len() + 4).split();
+            HeapRb::<Packet>::new(n_frames + 2 * self.n_bands + 4).split();
         // Capture → ingest doorbell: the ring is lock-free, the bell only
         // wakes a sleeping ingest.
         let (bell_tx, bell_rx) = crossbeam_channel::bounded::<()>(1);
@@ -1059,14 +1137,6 @@ pub fn run_tapped(
             Ok(())
         });
         outcome?;
+        Ok((completed, stopped))
     }
-    Ok(RunReport {
-        sweeps_completed: completed,
-        sweeps_dropped: counters.sweeps_dropped.load(Ordering::Relaxed),
-        frames_dropped: counters.frames_dropped.load(Ordering::Relaxed),
-        frames_settling: counters.frames_settling.load(Ordering::Relaxed),
-        frames_total: counters.frames_total.load(Ordering::Relaxed),
-        frames_lost_tuning: counters.frames_lost_tuning.load(Ordering::Relaxed),
-        stopped,
-    })
 }

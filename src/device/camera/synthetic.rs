@@ -235,6 +235,13 @@ impl SyntheticCamera {
         self.started = None;
     }
 
+    /// When pacing, run the clock `speed` times faster than the wall
+    /// (non-positive: real time).
+    pub fn set_speed(&mut self, speed: f64) {
+        self.cfg.speed = speed;
+        self.started = None;
+    }
+
     /// The bands the camera knows how to render.
     pub fn bands(&self) -> &[Band] {
         &self.bands
