@@ -209,7 +209,10 @@ fn main() {
     println!(
         "soak: {sweeps} sweeps of 32 × 8 px, 31 bands, fast, threaded, {} ({})",
         if in_process {
-            format!("in-process filter, camera paced at {}×", arg("--speed", 10.0))
+            format!(
+                "in-process filter, camera paced at {}×",
+                arg("--speed", 10.0)
+            )
         } else {
             format!("VariSpec emulator at {time_scale}×")
         },

@@ -848,13 +848,12 @@ fn run_single(
         while let Some(p) = packets.pop_front() {
             ended |= matches!(p, Packet::End);
             let mut finished: Option<(SweepBuf, Instant)> = None;
-            let f = catch(|| {
-                ingest.on_packet(p, &mut sweep_bufs, &mut |b, t| finished = Some((b, t)))
-            })
-            .map_err(|message| RunError::Panicked {
-                stage: Stage::Ingest,
-                message,
-            })?;
+            let f =
+                catch(|| ingest.on_packet(p, &mut sweep_bufs, &mut |b, t| finished = Some((b, t))))
+                    .map_err(|message| RunError::Panicked {
+                        stage: Stage::Ingest,
+                        message,
+                    })?;
             if let Some(f) = f {
                 pool.push(f);
             }
