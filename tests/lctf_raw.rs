@@ -52,3 +52,52 @@ fn raw_bytes_on_the_line() {
     exchange(p, b"\r", b"\r");
     exchange(p, b"@", b"@G");
 }
+
+/// A device that floods the line without ever ending one (wrong baud, a
+/// different instrument, noise): the driver gives up with a short error
+/// quoting the start, in bounded time and memory — never a giant reply.
+#[test]
+fn a_flood_without_line_ends_is_a_short_error() {
+    use irid::device::filter::varispec::{VariSpec, VariSpecOptions};
+    use nix::sys::termios::{cfmakeraw, tcgetattr, tcsetattr, SetArg};
+    use std::io::Write;
+    use std::os::fd::AsFd;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::Arc;
+
+    let pty = nix::pty::openpty(None, None).unwrap();
+    let mut t = tcgetattr(pty.slave.as_fd()).unwrap();
+    cfmakeraw(&mut t);
+    tcsetattr(pty.slave.as_fd(), SetArg::TCSANOW, &t).unwrap();
+    let path = nix::unistd::ttyname(pty.slave.as_fd()).unwrap();
+    let stop = Arc::new(AtomicBool::new(false));
+    let flood = {
+        let stop = stop.clone();
+        let mut master = std::fs::File::from(pty.master);
+        std::thread::spawn(move || {
+            let junk = [b'A'; 4096];
+            while !stop.load(Ordering::Relaxed) {
+                if master.write_all(&junk).is_err() {
+                    break;
+                }
+            }
+        })
+    };
+    let opts = VariSpecOptions {
+        reply_timeout: Duration::from_millis(200),
+        retries: 1,
+        ..VariSpecOptions::default()
+    };
+    let started = std::time::Instant::now();
+    let err = VariSpec::open(path.to_str().unwrap(), opts).unwrap_err();
+    let took = started.elapsed();
+    stop.store(true, Ordering::Relaxed);
+    drop(pty.slave);
+    let _ = flood.join();
+    let msg = err.to_string();
+    assert!(msg.contains("without a line end"), "{msg}");
+    assert!(msg.len() < 400, "error of {} bytes: {msg}", msg.len());
+    // Resync (2 reply timeouts) + at most 2 attempts, each well under a
+    // second: bounded, not a hang.
+    assert!(took < Duration::from_secs(5), "took {took:?}");
+}

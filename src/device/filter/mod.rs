@@ -70,6 +70,14 @@ pub enum FilterError {
         waited: Duration,
         got: String,
     },
+    /// More than a reply's worth of bytes without a line end: line noise,
+    /// a wrong baud rate, or a device that is not the controller.
+    #[error("controller sent more than {limit} bytes without a line end while waiting for {what}; they began {head:?}")]
+    LineTooLong {
+        what: String,
+        limit: usize,
+        head: String,
+    },
     /// The echo differs from the command (bytes lost or garbled on the line).
     #[error("controller echoed {echoed:?} to command {sent:?}")]
     Echo { sent: String, echoed: String },
@@ -104,7 +112,11 @@ impl FilterError {
     pub fn is_transient(&self) -> bool {
         matches!(
             self,
-            Self::Timeout { .. } | Self::Echo { .. } | Self::Reply { .. } | Self::Controller { .. }
+            Self::Timeout { .. }
+                | Self::LineTooLong { .. }
+                | Self::Echo { .. }
+                | Self::Reply { .. }
+                | Self::Controller { .. }
         )
     }
 }

@@ -28,6 +28,21 @@ pub const PALETTE_CAPACITY: usize = 128;
 /// A quiet line for this long means no stale bytes are still coming.
 const QUIET: Duration = Duration::from_millis(15);
 
+/// Longest reply line kept waiting for its line end: the longest real one
+/// (the version string) is ~40 bytes.
+const MAX_LINE: usize = 512;
+/// Bytes of unexpected input quoted in an error.
+const QUOTED: usize = 64;
+
+/// `got`, as text, cut to its first [`QUOTED`] bytes.
+fn quote(got: &[u8]) -> String {
+    let mut s = String::from_utf8_lossy(&got[..got.len().min(QUOTED)]).into_owned();
+    if got.len() > QUOTED {
+        s.push_str(&format!("… ({} bytes)", got.len()));
+    }
+    s
+}
+
 /// Serial and retry settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct VariSpecOptions {
@@ -139,7 +154,7 @@ impl VariSpec {
         FilterError::Timeout {
             what: what.to_owned(),
             waited: started.elapsed(),
-            got: String::from_utf8_lossy(got).into_owned(),
+            got: quote(got),
         }
     }
 
@@ -150,6 +165,17 @@ impl VariSpec {
             if let Some(i) = self.rx.iter().position(|&b| b == b'\r') {
                 let line: Vec<u8> = self.rx.drain(..=i).take(i).collect();
                 return Ok(line);
+            }
+            if self.rx.len() > MAX_LINE {
+                // A flood without line ends never becomes a reply: stop
+                // before it costs memory (the next command resynchronises).
+                let head: Vec<u8> = self.rx.iter().copied().take(QUOTED).collect();
+                self.rx.clear();
+                return Err(FilterError::LineTooLong {
+                    what: what.to_owned(),
+                    limit: MAX_LINE,
+                    head: String::from_utf8_lossy(&head).into_owned(),
+                });
             }
             if !self.fill(deadline)? {
                 let got: Vec<u8> = self.rx.iter().copied().collect();
