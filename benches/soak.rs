@@ -186,7 +186,7 @@ fn main() {
         );
         (Box::new(t), None)
     } else {
-        let (t, h) = irid::cli::run::emulated_varispec(view, time_scale).unwrap();
+        let (t, h) = irid::device::rig::emulated_varispec(view, time_scale).unwrap();
         (Box::new(t), Some(h))
     };
     let info = cam.info();

@@ -304,7 +304,7 @@ fn line_toml() {
     let seeds = vec![std::fs::read(root().join("tools/line.example.toml")).unwrap()];
     fuzz("line toml", seeds, |b| {
         let text = String::from_utf8_lossy(b);
-        let _ = toml::from_str::<irid::cli::run::LineConfig>(&text);
+        let _ = toml::from_str::<irid::device::rig::LineConfig>(&text);
     });
 }
 

@@ -45,7 +45,7 @@ fn maps_match_the_truth_threaded_in_any_band_order() {
 #[test]
 fn over_a_pseudo_terminal_with_the_varispec_firmware() {
     let mut r = rig(3, "ascending", false);
-    let (mut tuner, _emu) = irid::cli::run::emulated_varispec(r.view.clone(), 20.0).unwrap();
+    let (mut tuner, _emu) = irid::device::rig::emulated_varispec(r.view.clone(), 20.0).unwrap();
     r.cam.set_realtime(true);
     let mut sink = CollectSink::default();
     let stop = AtomicBool::new(false);

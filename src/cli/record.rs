@@ -5,7 +5,7 @@
 //! runner as a live run (`lossless`: it waits rather than drops), with the
 //! recorded scene, mode and calibration unless others are given.
 
-use super::run::{demo_scene_file, init_tracing, CliSink, LineConfig, Rig, RunArgs};
+use super::run::{demo_scene_file, init_tracing, CliSink, Rig, RunArgs};
 use crate::device::record::reader::RecordReader;
 use crate::device::record::replay::Recording;
 use crate::device::record::writer::{Compression, RecordOptions, RecordStats, Recorder};
@@ -13,6 +13,7 @@ use crate::device::record::{
     ircal_bytes, RecorderEvent, SeqEvent, Session, TOPIC_FRAME, TOPIC_RECORDER, TOPIC_SEQUENCER,
     TOPIC_SESSION,
 };
+use crate::device::rig::LineConfig;
 use crate::estimate::Mode;
 use crate::optics::band::Band;
 use crate::pipeline::calibration::{Calibration, Calibrator};
