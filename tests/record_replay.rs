@@ -427,6 +427,16 @@ fn a_replay_traces_the_same_spans_as_the_live_run() {
     assert_eq!(a, b);
 }
 
+/// The values of map channel `name`.
+fn channel(m: &irid::io::exr_maps::Channels, name: &str) -> Vec<f32> {
+    m.channels
+        .iter()
+        .find(|(n, _)| n == name)
+        .unwrap_or_else(|| panic!("no channel {name}"))
+        .1
+        .clone()
+}
+
 /// `irid export --sweep N --envi`: the recorded sweep's calibrated cube,
 /// read by Spectral Python (an independent ENVI reader) with the session's
 /// wavelengths, and carrying what the live run saw: `irid fit` on it with
@@ -529,16 +539,11 @@ fn a_recorded_sweep_exports_as_an_envi_cube() {
     let live = sweep_files(&dir.path().join("live"));
     let live = irid::io::exr_maps::read_channels(&live[0]).unwrap();
     let fit = irid::io::exr_maps::read_channels(&maps).unwrap();
-    let ch = |m: &irid::io::exr_maps::Channels, name: &str| -> Vec<f32> {
-        m.channels
-            .iter()
-            .find(|(n, _)| n == name)
-            .unwrap_or_else(|| panic!("no channel {name}"))
-            .1
-            .clone()
-    };
-    let (dl, sl) = (ch(&live, "thickness_nm"), ch(&live, "sigma_thickness_nm"));
-    let df = ch(&fit, "thickness_nm");
+    let (dl, sl) = (
+        channel(&live, "thickness_nm"),
+        channel(&live, "sigma_thickness_nm"),
+    );
+    let df = channel(&fit, "thickness_nm");
     let mut compared = 0;
     for ((l, s), f) in dl.iter().zip(&sl).zip(&df) {
         if l.is_finite() && f.is_finite() {
@@ -590,18 +595,10 @@ fn an_envi_cube_replays_as_one_sweep() {
     assert_eq!(maps.len(), 1);
     let got = irid::io::exr_maps::read_channels(&maps[0]).unwrap();
     let truth = irid::io::exr_maps::read_channels(&dir.path().join("cube.truth.exr")).unwrap();
-    let ch = |m: &irid::io::exr_maps::Channels, name: &str| -> Vec<f32> {
-        m.channels
-            .iter()
-            .find(|(n, _)| n == name)
-            .unwrap_or_else(|| panic!("no channel {name}"))
-            .1
-            .clone()
-    };
     let (d, sd, dt) = (
-        ch(&got, "thickness_nm"),
-        ch(&got, "sigma_thickness_nm"),
-        ch(&truth, "thickness_nm"),
+        channel(&got, "thickness_nm"),
+        channel(&got, "sigma_thickness_nm"),
+        channel(&truth, "thickness_nm"),
     );
     let valid: Vec<usize> = (0..d.len()).filter(|&i| d[i].is_finite()).collect();
     assert!(

@@ -17,8 +17,7 @@ use crate::device::record::{decode_frame_meta, decode_samples, SeqEvent};
 use crate::device::record::{TOPIC_FRAME, TOPIC_SEQUENCER};
 use crate::estimate::cube::Cube;
 use crate::io::envi;
-use crate::optics::band::Band;
-use crate::pipeline::calibration::{Calibration, Calibrator};
+use crate::pipeline::calibration::Calibrator;
 use anyhow::Context;
 use std::collections::HashMap;
 use std::path::PathBuf;
@@ -49,22 +48,7 @@ pub struct ExportArgs {
 pub fn export(args: &ExportArgs) -> anyhow::Result<()> {
     let rec = Recording::open(&args.file)?;
     let s = rec.session.clone();
-    let cal = match &args.calibration {
-        Some(p) => Calibration::load(p)?,
-        None => Calibration::from_bytes(&rec.calibration)
-            .map_err(|e| anyhow::anyhow!("{}: recorded calibration: {e}", args.file.display()))?,
-    };
-    if (cal.meta.width, cal.meta.height) != (s.width, s.height) || cal.meta.bands_nm != s.bands_nm {
-        anyhow::bail!(
-            "the calibration is for {}×{} with {} bands, the recording has {}×{} with {} bands",
-            cal.meta.width,
-            cal.meta.height,
-            cal.meta.bands_nm.len(),
-            s.width,
-            s.height,
-            s.bands_nm.len()
-        );
-    }
+    let cal = super::record::calibration_for(&rec, &args.file, args.calibration.as_deref())?;
     let nb = s.bands_nm.len();
     // Pass 1: which frame (sequence number) the sequencer gave each band.
     let mut band_of: HashMap<u64, usize> = HashMap::new();
@@ -100,12 +84,7 @@ pub fn export(args: &ExportArgs) -> anyhow::Result<()> {
     }
     // Pass 2: calibrate those frames into their planes.
     let (w, h) = (s.width as usize, s.height as usize);
-    let bands: Vec<Band> = s
-        .bands_nm
-        .iter()
-        .zip(s.fwhm_nm.iter().chain(std::iter::repeat(&0.0)))
-        .map(|(&center_nm, &fwhm_nm)| Band { center_nm, fwhm_nm })
-        .collect();
+    let bands = s.bands();
     let mut cube = Cube::zeros(w, h, bands);
     cube.data.fill(f32::NAN);
     let calibrator = Calibrator::from_calibration(cal);

@@ -15,7 +15,6 @@ use crate::device::record::{
 };
 use crate::device::rig::LineConfig;
 use crate::estimate::Mode;
-use crate::optics::band::Band;
 use crate::pipeline::calibration::{Calibration, Calibrator};
 use crate::pipeline::runner::{self, RunConfig, Setup};
 use crate::scene::{Scene, SceneFile};
@@ -193,6 +192,50 @@ fn progress_bar(file: &Path) -> crate::device::record::replay::Progress {
     })
 }
 
+/// The calibration a replay or export uses: `given`, or the one recorded
+/// in `rec` (`file`); either must fit the recording's frames and bands.
+pub(crate) fn calibration_for(
+    rec: &Recording,
+    file: &Path,
+    given: Option<&Path>,
+) -> anyhow::Result<Calibration> {
+    let s = &rec.session;
+    let cal = match given {
+        Some(p) => Calibration::load(p)?,
+        None => Calibration::from_bytes(&rec.calibration)
+            .map_err(|e| anyhow::anyhow!("{}: recorded calibration: {e}", file.display()))?,
+    };
+    if (cal.meta.width, cal.meta.height) != (s.width, s.height) || cal.meta.bands_nm != s.bands_nm {
+        anyhow::bail!(
+            "the calibration is for {}×{} with {} bands, the recording has {}×{} with {} bands",
+            cal.meta.width,
+            cal.meta.height,
+            cal.meta.bands_nm.len(),
+            s.width,
+            s.height,
+            s.bands_nm.len()
+        );
+    }
+    Ok(cal)
+}
+
+/// A replay's sink: maps in `--out` (created) unless `--no-maps`.
+fn replay_sink(args: &ReplayArgs) -> anyhow::Result<CliSink> {
+    let out = if args.no_maps {
+        None
+    } else {
+        std::fs::create_dir_all(&args.out)
+            .with_context(|| format!("creating {}", args.out.display()))?;
+        Some(args.out.clone())
+    };
+    Ok(CliSink {
+        out,
+        json: args.json,
+        png: false,
+        live: None,
+    })
+}
+
 /// Run `irid replay`.
 pub fn replay(args: &ReplayArgs) -> anyhow::Result<()> {
     let (profile, _chrome_guard) = init_tracing(args.trace.as_ref(), args.profile)?;
@@ -213,40 +256,13 @@ pub fn replay(args: &ReplayArgs) -> anyhow::Result<()> {
                 .map_err(|e| anyhow::anyhow!("{}: recorded scene: {e}", args.file.display()))?
         }
     };
-    let cal = match &args.calibration {
-        Some(p) => Calibration::load(p)?,
-        None => Calibration::from_bytes(&rec.calibration)
-            .map_err(|e| anyhow::anyhow!("{}: recorded calibration: {e}", args.file.display()))?,
-    };
-    if (cal.meta.width, cal.meta.height) != (s.width, s.height) || cal.meta.bands_nm != s.bands_nm {
-        anyhow::bail!(
-            "the calibration is for {}×{} with {} bands, the recording has {}×{} with {} bands",
-            cal.meta.width,
-            cal.meta.height,
-            cal.meta.bands_nm.len(),
-            s.width,
-            s.height,
-            s.bands_nm.len()
-        );
-    }
+    let cal = calibration_for(&rec, &args.file, args.calibration.as_deref())?;
     let mode = match args.mode {
         Some(m) => m,
         None => <Mode as clap::ValueEnum>::from_str(&s.mode, true)
             .map_err(|e| anyhow::anyhow!("{}: recorded mode: {e}", args.file.display()))?,
     };
-    let bands: Vec<Band> = s
-        .bands_nm
-        .iter()
-        .zip(s.fwhm_nm.iter().chain(std::iter::repeat(&0.0)))
-        .map(|(&center_nm, &fwhm_nm)| Band { center_nm, fwhm_nm })
-        .collect();
-    let out = if args.no_maps {
-        None
-    } else {
-        std::fs::create_dir_all(&args.out)
-            .with_context(|| format!("creating {}", args.out.display()))?;
-        Some(args.out.clone())
-    };
+    let bands = s.bands();
     let cfg = RunConfig {
         sweeps: args.sweeps,
         mode,
@@ -269,12 +285,7 @@ pub fn replay(args: &ReplayArgs) -> anyhow::Result<()> {
         source = source.with_progress(progress_bar(&args.file));
     }
     let mut tuner = rec.tuner();
-    let mut sink = CliSink {
-        out,
-        json: args.json,
-        png: false,
-        live: None,
-    };
+    let mut sink = replay_sink(args)?;
     let started = std::time::Instant::now();
     let report = runner::run(&mut source, &mut tuner, setup, &cfg, &mut sink, &STOP)?;
     if bar {
@@ -371,19 +382,7 @@ fn replay_cube(args: &ReplayArgs) -> anyhow::Result<()> {
         lossless: true,
         ..RunConfig::default()
     };
-    let out = if args.no_maps {
-        None
-    } else {
-        std::fs::create_dir_all(&args.out)
-            .with_context(|| format!("creating {}", args.out.display()))?;
-        Some(args.out.clone())
-    };
-    let mut sink = CliSink {
-        out,
-        json: args.json,
-        png: false,
-        live: None,
-    };
+    let mut sink = replay_sink(args)?;
     let started = std::time::Instant::now();
     let report = runner::run(
         &mut source,

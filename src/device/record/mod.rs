@@ -139,6 +139,17 @@ pub struct Session {
     pub sweeps: Option<u64>,
 }
 
+impl Session {
+    /// The recorded bands, in plane order (FWHM 0 where none was recorded).
+    pub fn bands(&self) -> Vec<crate::optics::band::Band> {
+        self.bands_nm
+            .iter()
+            .zip(self.fwhm_nm.iter().chain(std::iter::repeat(&0.0)))
+            .map(|(&center_nm, &fwhm_nm)| crate::optics::band::Band { center_nm, fwhm_nm })
+            .collect()
+    }
+}
+
 /// Encode a frame message into `out` (cleared first).
 pub fn encode_frame(meta: &FrameMeta, samples: &[u16], out: &mut Vec<u8>) {
     out.clear();
