@@ -18,11 +18,10 @@
 
 mod common;
 
-use irid::estimate::{Mode, Solver};
-use irid::scene::{AngleKnowledge, Scene};
+use irid::estimate::Mode;
+use irid::scene::Scene;
 use irid::synth::{compare, scene_bands};
 use std::path::Path;
-use std::time::Instant;
 
 /// The scene classes: file under `data/scenes`, and what it stands for.
 const SCENES: [(&str, &str); 5] = [
@@ -36,20 +35,13 @@ const SCENES: [(&str, &str); 5] = [
     ("dispersive-p61", "150–350 nm TiO2 on PET, p, 61 bands"),
 ];
 
-fn arg<T: std::str::FromStr>(args: &[String], name: &str) -> Option<T> {
-    args.iter()
-        .position(|a| a == name)
-        .and_then(|i| args.get(i + 1))
-        .and_then(|v| v.parse().ok())
-}
-
 fn main() {
     let args: Vec<String> = std::env::args().collect();
-    let min_pixels: usize = arg(&args, "--pixels").unwrap_or(100_000);
-    let best_of: usize = arg(&args, "--best-of").unwrap_or(1).max(1);
-    let only_scene: Option<String> = arg(&args, "--scene");
-    let only_mode: Option<String> = arg(&args, "--mode");
-    let only_angle: Option<String> = arg(&args, "--angle");
+    let min_pixels: usize = common::arg(&args, "--pixels").unwrap_or(100_000);
+    let best_of: usize = common::arg(&args, "--best-of").unwrap_or(1).max(1);
+    let only_scene: Option<String> = common::arg(&args, "--scene");
+    let only_mode: Option<String> = common::arg(&args, "--mode");
+    let only_angle: Option<String> = common::arg(&args, "--angle");
     println!("machine: {}", common::machine());
     println!();
     println!("| scene | angle | mode | pixels/s | valid | mean \\|Δd\\| | p99 \\|Δd\\| | efficient | ratio | \\|Δd\\| ≤ 2σ | index+noise+level |");
@@ -62,27 +54,14 @@ fn main() {
         .count()
         * if only_angle.is_some() { 1 } else { 2 }
         * if only_mode.is_some() { 1 } else { 3 };
-    let bar = if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
-        let b = indicatif::ProgressBar::new(jobs as u64);
-        b.set_style(
-            indicatif::ProgressStyle::with_template(
-                "{msg} [{elapsed_precise}] {wide_bar} {pos}/{len}",
-            )
-            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
-        );
-        b.set_message("trade study");
-        b
-    } else {
-        indicatif::ProgressBar::hidden()
-    };
+    let bar = common::bar(jobs as u64, "trade study");
     for (name, label) in SCENES {
         if only_scene.as_deref().is_some_and(|s| s != name) {
             continue;
         }
         let scene = Scene::load(&dir.join(format!("{name}.toml"))).expect("scene");
         let bands = scene_bands(&scene).unwrap();
-        let n0 = scene.truth.as_ref().map_or(1, |t| t.width * t.height);
-        let repeat = (min_pixels as f64 / n0 as f64).sqrt().ceil().max(1.0) as usize;
+        let repeat = common::repeat_for(&scene, min_pixels);
         let (cube, truth, sigma_r) = common::render_tiled(&scene, &bands, repeat);
         let (crb_unknown, crb_known) = common::crb(&scene, &bands, &truth, sigma_r);
         for angle_known in [false, true] {
@@ -90,23 +69,19 @@ fn main() {
             if only_angle.as_deref().is_some_and(|a| a != angle) {
                 continue;
             }
-            let mut sc = scene.clone();
-            if angle_known {
-                sc.angle = AngleKnowledge::Map {
-                    width: truth.width,
-                    height: truth.height,
-                    deg: truth.theta_deg.clone(),
-                };
-            }
-            let efficient = 0.798 * if angle_known { crb_known } else { crb_unknown };
+            let sc = if angle_known {
+                common::with_known_angle(&scene, &truth)
+            } else {
+                scene.clone()
+            };
+            let efficient =
+                common::EFFICIENT_MAE_PER_SIGMA * if angle_known { crb_known } else { crb_unknown };
             for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
                 if only_mode.as_deref().is_some_and(|m| m != mode.name()) {
                     continue;
                 }
-                let mut solver = Solver::new(&sc, &bands, mode).unwrap();
-                let t0 = Instant::now();
-                solver.estimate_film_index(&cube).unwrap();
-                let t_index = t0.elapsed().as_secs_f64();
+                let (solver, maps, t_index, t_fit) =
+                    common::run_mode(&sc, &bands, &cube, mode, best_of);
                 let (_, level_mode, level_note) = solver.level();
                 if args.iter().any(|a| a == "--levels") {
                     eprintln!(
@@ -114,7 +89,6 @@ fn main() {
                         mode.name()
                     );
                 }
-                let (maps, t_fit) = common::time_fits(&mut solver, &cube, best_of);
                 bar.inc(1);
                 let acc = compare(&maps, &truth);
                 let px = (cube.width * cube.height) as f64 / t_fit;

@@ -1,14 +1,28 @@
 //! Pieces the benchmarks share: the machine's name, a scene tiled to a
-//! larger image, and the Cramér–Rao bound of a scene's truth.
+//! larger image (noisy, or clean for noise to be added at several levels),
+//! the angle made known, one mode's fit timed, the Cramér–Rao bound of a
+//! scene's truth, and a progress bar that stays off pipes.
 
 #![allow(dead_code)]
 
 use irid::estimate::model::{FilmModel, ModelOut};
-use irid::estimate::{Cube, ParamMaps, Solver};
+use irid::estimate::{Cube, Mode, ParamMaps, Solver};
 use irid::optics::band::Band;
 use irid::optics::dispersion::Dispersion;
-use irid::scene::{FilmKnowledge, Scene};
+use irid::scene::{AngleKnowledge, FilmKnowledge, Scene};
 use irid::synth::{add_noise, Renderer, TruthMaps};
+
+/// Mean |Δd| of an efficient (unbiased, Gaussian) estimator per σ_CRB:
+/// E|x| = σ √(2/π).
+pub const EFFICIENT_MAE_PER_SIGMA: f64 = 0.798;
+
+/// The value after `name` on the command line, parsed.
+pub fn arg<T: std::str::FromStr>(args: &[String], name: &str) -> Option<T> {
+    args.iter()
+        .position(|a| a == name)
+        .and_then(|i| args.get(i + 1))
+        .and_then(|v| v.parse().ok())
+}
 
 /// The CPU model and the number of threads the solver runs on.
 pub fn machine() -> String {
@@ -23,11 +37,33 @@ pub fn machine() -> String {
     format!("{cpu}, {} threads", rayon::current_num_threads())
 }
 
+/// How many times to tile the scene's truth image in each direction so
+/// the tiled image has at least `min_pixels` pixels.
+pub fn repeat_for(scene: &Scene, min_pixels: usize) -> usize {
+    let n0 = scene.truth.as_ref().map_or(1, |t| t.width * t.height);
+    (min_pixels as f64 / n0 as f64).sqrt().ceil().max(1.0) as usize
+}
+
 /// The scene rendered and tiled `repeat × repeat` times, with noise drawn
 /// afresh for every pixel of the tiled image (tiles that repeated the same
 /// noise would let image-wide estimates — the noise level, the level fit —
 /// count one pixel's noise several times).
 pub fn render_tiled(scene: &Scene, bands: &[Band], repeat: usize) -> (Cube, TruthMaps, f64) {
+    let (mut cube, truth, sigma, seed) = render_tiled_clean(scene, bands, repeat);
+    if sigma > 0.0 {
+        add_noise(&mut cube.data, sigma, seed);
+    }
+    (cube, truth, sigma)
+}
+
+/// The scene rendered noise-free and tiled `repeat × repeat` times, with
+/// the noise σ and seed its truth asks for (to add with
+/// [`irid::synth::add_noise`], at that σ or any other).
+pub fn render_tiled_clean(
+    scene: &Scene,
+    bands: &[Band],
+    repeat: usize,
+) -> (Cube, TruthMaps, f64, u64) {
     let mut quiet = scene.clone();
     let (sigma, seed) = match quiet.truth.as_mut() {
         Some(t) => {
@@ -40,11 +76,19 @@ pub fn render_tiled(scene: &Scene, bands: &[Band], repeat: usize) -> (Cube, Trut
     let r = Renderer::new(&quiet).expect("the scene renders");
     let truth = r.truth_maps(bands);
     let cube = r.render_cube(bands).expect("the scene renders");
-    let (mut cube, truth) = tile(&cube, &truth, repeat);
-    if sigma > 0.0 {
-        add_noise(&mut cube.data, sigma, seed);
-    }
-    (cube, truth, sigma)
+    let (cube, truth) = tile(&cube, &truth, repeat);
+    (cube, truth, sigma, seed)
+}
+
+/// `scene` with the angle known: the truth's per-pixel angle map.
+pub fn with_known_angle(scene: &Scene, truth: &TruthMaps) -> Scene {
+    let mut sc = scene.clone();
+    sc.angle = AngleKnowledge::Map {
+        width: truth.width,
+        height: truth.height,
+        deg: truth.theta_deg.clone(),
+    };
+    sc
 }
 
 /// The cube and its truth tiled `repeat × repeat` times.
@@ -129,4 +173,39 @@ pub fn time_fits(solver: &mut Solver, cube: &Cube, best_of: usize) -> (ParamMaps
         maps = Some(m);
     }
     (maps.expect("at least one fit"), t_fit)
+}
+
+/// One mode on `cube`: the solver after its once-per-image stage (film
+/// index, noise and level), the maps of the last of `best_of` fits, the
+/// once-per-image stage's time and the fastest fit's, seconds.
+pub fn run_mode(
+    scene: &Scene,
+    bands: &[Band],
+    cube: &Cube,
+    mode: Mode,
+    best_of: usize,
+) -> (Solver, ParamMaps, f64, f64) {
+    let mut solver = Solver::new(scene, bands, mode).expect("the scene's solver");
+    let t0 = std::time::Instant::now();
+    solver
+        .estimate_film_index(cube)
+        .expect("the film index is estimated");
+    let t_index = t0.elapsed().as_secs_f64();
+    let (maps, t_fit) = time_fits(&mut solver, cube, best_of);
+    (solver, maps, t_index, t_fit)
+}
+
+/// A bar of `len` steps labelled `what` on stderr when it is a terminal,
+/// hidden otherwise: the table on stdout stays clean.
+pub fn bar(len: u64, what: &str) -> indicatif::ProgressBar {
+    if !std::io::IsTerminal::is_terminal(&std::io::stderr()) {
+        return indicatif::ProgressBar::hidden();
+    }
+    let b = indicatif::ProgressBar::new(len);
+    b.set_style(
+        indicatif::ProgressStyle::with_template("{msg} [{elapsed_precise}] {wide_bar} {pos}/{len}")
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    b.set_message(what.to_string());
+    b
 }
