@@ -20,7 +20,7 @@
 //!   (encoder or speed), per-web-row accumulation and solving, lane
 //!   statistics, recipe alarms, EXR strip segments, MQTT publishing.
 //! - [`render`]: pictures: maps as PNG with a colour bar, the film's colour
-//!   (CIE 1931, D65, sRGB), the speed/accuracy chart.
+//!   (CIE 1931, D65, sRGB), the speed/accuracy and accuracy/noise charts.
 //! - [`cli`]: the command-line front ends (`irid fit`, `irid run`, …).
 //!
 //! Time is always passed in, never read, below the [`cli`] layer, so tests and

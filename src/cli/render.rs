@@ -9,11 +9,13 @@
 //!   thickness and angle.
 //! - `irid render --trade TABLE.md --out TRADE.svg`: the speed/accuracy
 //!   chart from the scene-matrix benchmark's table.
+//! - `irid render --noise TABLE.md --out NOISE.svg`: thickness error
+//!   against noise from the noise-sweep benchmark's table.
 
 use super::common::SceneOverrides;
 use crate::io::{envi, exr_maps};
 use crate::render::map::{self, MapStyle};
-use crate::render::{film_colour, trade};
+use crate::render::{film_colour, noise, trade, RenderError};
 use crate::scene::{FilmKnowledge, Scene};
 use anyhow::{bail, Context};
 use std::path::{Path, PathBuf};
@@ -24,7 +26,7 @@ pub struct RenderArgs {
     /// The map file (OpenEXR, as `irid fit` and `irid run` write).
     #[arg(value_name = "MAP.exr")]
     pub map: Option<PathBuf>,
-    /// The picture to write (`.png`; the trade chart also `.svg`).
+    /// The picture to write (`.png`; the trade and noise charts also `.svg`).
     #[arg(long, value_name = "OUT.png")]
     pub out: PathBuf,
     /// The channel to draw.
@@ -41,7 +43,7 @@ pub struct RenderArgs {
     #[arg(long, value_name = "CUBE.hdr")]
     pub cube: Option<PathBuf>,
     /// A chart of the film's colour against thickness and angle.
-    #[arg(long, conflicts_with_all = ["colour", "trade"])]
+    #[arg(long, conflicts_with_all = ["colour", "trade", "noise"])]
     pub chart: bool,
     /// --chart: thickness range, nm.
     #[arg(long, value_name = "LO:HI", default_value = "0:1500")]
@@ -53,6 +55,10 @@ pub struct RenderArgs {
     /// `cargo bench --bench scene_matrix` (a file holding it, e.g. README.md).
     #[arg(long, value_name = "TABLE.md", conflicts_with_all = ["colour", "map"])]
     pub trade: Option<PathBuf>,
+    /// Draw thickness error against noise from a Markdown table printed by
+    /// `cargo bench --bench noise_sweep` (a file holding it, e.g. README.md).
+    #[arg(long, value_name = "TABLE.md", conflicts_with_all = ["colour", "map", "trade"])]
+    pub noise: Option<PathBuf>,
     /// Scene TOML for --colour and --chart (media, polarisation).
     #[arg(long, value_name = "FILE")]
     pub scene: Option<PathBuf>,
@@ -64,13 +70,18 @@ pub struct RenderArgs {
 /// Run `irid render`.
 pub fn run(a: &RenderArgs) -> anyhow::Result<()> {
     if let Some(table) = &a.trade {
-        return trade(a, table);
+        let title = "irid: thickness error against speed, per mode and scene (scene_matrix bench)";
+        return table_chart(table, &a.out, title, trade::parse_table, trade::write_chart);
+    }
+    if let Some(table) = &a.noise {
+        let title = "irid: thickness error against noise, per mode (noise_sweep bench)";
+        return table_chart(table, &a.out, title, noise::parse_table, noise::write_chart);
     }
     if a.chart {
         return chart(a);
     }
     let Some(path) = &a.map else {
-        bail!("nothing to render: give MAP.exr, --chart or --trade TABLE.md");
+        bail!("nothing to render: give MAP.exr, --chart, --trade TABLE.md or --noise TABLE.md");
     };
     if a.colour {
         return colour(a, path);
@@ -147,17 +158,24 @@ fn chart(a: &RenderArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn trade(a: &RenderArgs, table: &Path) -> anyhow::Result<()> {
+/// A benchmark chart: the table `parse` finds in the file `table`, drawn
+/// by `write` to `out`.
+fn table_chart<R>(
+    table: &Path,
+    out: &Path,
+    title: &str,
+    parse: fn(&str) -> Result<Vec<R>, RenderError>,
+    write: fn(&[R], &str, &Path) -> Result<(), RenderError>,
+) -> anyhow::Result<()> {
     let text = std::fs::read_to_string(table)
         .with_context(|| format!("cannot read {}", table.display()))?;
-    let rows = trade::parse_table(&text).with_context(|| table.display().to_string())?;
-    let title = "irid: thickness error against speed, per mode and scene (scene_matrix bench)";
-    trade::write_chart(&rows, title, &a.out)?;
+    let rows = parse(&text).with_context(|| table.display().to_string())?;
+    write(&rows, title, out)?;
     eprintln!(
         "irid render: {} rows of {} → {}",
         rows.len(),
         table.display(),
-        a.out.display()
+        out.display()
     );
     Ok(())
 }

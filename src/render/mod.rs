@@ -9,16 +9,22 @@
 //!   compiled in from `data/cie/`).
 //! - [`film_colour`]: a map's fitted parameters re-synthesised to spectra
 //!   and rendered beside the measured cube; the colour-vs-thickness chart.
+//! - `chart` (internal): what the benchmark charts share (Markdown tables read
+//!   back, palette, mode markers, SVG or PNG output).
 //! - [`trade`]: the speed/accuracy chart from the scene-matrix table.
+//! - [`noise`]: the accuracy-against-noise chart from the noise-sweep
+//!   table, whose rows it also prints.
 //!
 //! Text is drawn with DejaVu Sans compiled into the binary
 //! (`assets/fonts/`), so rendering needs no system font library. Nothing
 //! here panics on file contents: bad input is a [`RenderError`].
 
 pub mod canvas;
+mod chart;
 pub mod colour;
 pub mod film_colour;
 pub mod map;
+pub mod noise;
 pub mod trade;
 
 use std::path::PathBuf;

@@ -9,7 +9,8 @@
 //! added columns do not break it. Values keep their units as printed
 //! (`1.12 M`, `629 k`, `0.683 nm`).
 
-use super::canvas::{RgbImage, FONT_FAMILY};
+use super::canvas::FONT_FAMILY;
+use super::chart::{self, bad_cell, marker, number, Chart, Table, MODES, PALETTE};
 use super::RenderError;
 use plotters::coord::Shift;
 use plotters::prelude::*;
@@ -32,70 +33,25 @@ pub struct TradeRow {
     pub efficient_nm: f64,
 }
 
-fn cells(line: &str) -> Vec<String> {
-    // `\|` inside a cell is an escaped bar, not a separator.
-    let l = line.trim().replace("\\|", "\u{1}");
-    let l = l.strip_prefix('|').unwrap_or(&l);
-    let l = l.strip_suffix('|').unwrap_or(l);
-    l.split('|')
-        .map(|c| c.replace('\u{1}', "|").trim().to_string())
-        .collect()
-}
-
-/// A number with an optional SI suffix (`k`, `M`, `G`) and unit.
-fn number(s: &str) -> Option<f64> {
-    let s = s.trim().trim_matches('`');
-    let mut parts = s.split_whitespace();
-    let v: f64 = parts.next()?.parse().ok()?;
-    let mult = match parts.next() {
-        Some("k") => 1e3,
-        Some("M") => 1e6,
-        Some("G") => 1e9,
-        _ => 1.0,
-    };
-    Some(v * mult).filter(|v| v.is_finite())
-}
-
 /// The rows of the first scene-matrix table in `text`.
 pub fn parse_table(text: &str) -> Result<Vec<TradeRow>, RenderError> {
-    let lines: Vec<&str> = text.lines().collect();
-    let start = lines
-        .iter()
-        .position(|l| {
-            let c = cells(l);
-            l.trim_start().starts_with('|')
-                && ["scene", "angle", "mode", "pixels/s", "efficient"]
-                    .iter()
-                    .all(|h| c.iter().any(|x| x == h))
-        })
-        .ok_or_else(|| {
-            RenderError::input(
-                "no scene-matrix table (a header with scene, angle, mode, pixels/s, mean |Δd|, efficient)",
-            )
-        })?;
-    let head = cells(lines[start]);
-    let col = |name: &str| -> Result<usize, RenderError> {
-        head.iter()
-            .position(|h| h == name)
-            .ok_or_else(|| RenderError::input(format!("table has no `{name}` column")))
-    };
+    let table = Table::find(
+        text,
+        &["scene", "angle", "mode", "pixels/s", "efficient"],
+        "scene-matrix",
+    )?;
     let (cs, ca, cm, cp, ce, cf) = (
-        col("scene")?,
-        col("angle")?,
-        col("mode")?,
-        col("pixels/s")?,
-        col("mean |Δd|")?,
-        col("efficient")?,
+        table.col("scene")?,
+        table.col("angle")?,
+        table.col("mode")?,
+        table.col("pixels/s")?,
+        table.col("mean |Δd|")?,
+        table.col("efficient")?,
     );
     let mut rows = Vec::new();
-    for (k, line) in lines.iter().enumerate().skip(start + 2) {
-        if !line.trim_start().starts_with('|') {
-            break;
-        }
-        let c = cells(line);
+    for (k, line, c) in table.rows() {
         let get = |i: usize| c.get(i).map(String::as_str).unwrap_or("");
-        let bad =
-            |what: &str| RenderError::input(format!("table line {}: bad {what}: {line:?}", k + 1));
+        let bad = |what: &str| bad_cell(k, what, line);
         rows.push(TradeRow {
             scene: get(cs).to_string(),
             angle_known: get(ca) == "known",
@@ -109,32 +65,6 @@ pub fn parse_table(text: &str) -> Result<Vec<TradeRow>, RenderError> {
         return Err(RenderError::input("the scene-matrix table has no rows"));
     }
     Ok(rows)
-}
-
-const PALETTE: [RGBColor; 6] = [
-    RGBColor(31, 119, 180),
-    RGBColor(255, 127, 14),
-    RGBColor(44, 160, 44),
-    RGBColor(214, 39, 40),
-    RGBColor(148, 103, 189),
-    RGBColor(140, 86, 75),
-];
-
-fn marker<DB: DrawingBackend>(
-    root: &DrawingArea<DB, Shift>,
-    at: (i32, i32),
-    mode: &str,
-    style: ShapeStyle,
-) -> Result<(), String> {
-    let e = |e: DrawingAreaErrorKind<DB::ErrorType>| e.to_string();
-    let (x, y) = at;
-    match mode {
-        "fast" => root.draw(&TriangleMarker::new((x, y), 7, style)).map_err(e),
-        "accurate" => root
-            .draw(&Rectangle::new([(x - 5, y - 5), (x + 5, y + 5)], style))
-            .map_err(e),
-        _ => root.draw(&Circle::new((x, y), 5, style)).map_err(e),
-    }
 }
 
 /// Draw the chart on any plotters backend.
@@ -244,7 +174,7 @@ pub fn draw<DB: DrawingBackend>(
         y += 20;
     }
     y += 10;
-    for mode in ["fast", "balanced", "accurate"] {
+    for mode in MODES {
         marker(&legend, (12, y + 6), mode, BLACK.stroke_width(2))?;
         legend.draw(&text(mode, 24, y)).map_err(e)?;
         y += 20;
@@ -274,24 +204,18 @@ pub fn draw<DB: DrawingBackend>(
 /// Chart size, pixels.
 pub const SIZE: (u32, u32) = (1100, 560);
 
+struct TradeChart<'a> {
+    rows: &'a [TradeRow],
+    title: &'a str,
+}
+
+impl Chart for TradeChart<'_> {
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<(), String> {
+        draw(root, self.rows, self.title)
+    }
+}
+
 /// Draw the chart to `out`: SVG when it ends in `.svg`, else PNG.
 pub fn write_chart(rows: &[TradeRow], title: &str, out: &Path) -> Result<(), RenderError> {
-    let svg = out
-        .extension()
-        .is_some_and(|e| e.eq_ignore_ascii_case("svg"));
-    if svg {
-        super::canvas::register_font();
-        let mut text = String::new();
-        {
-            let root = SVGBackend::with_string(&mut text, SIZE).into_drawing_area();
-            draw(&root, rows, title).map_err(RenderError::Draw)?;
-            root.present()
-                .map_err(|e| RenderError::Draw(e.to_string()))?;
-        }
-        super::canvas::write_atomic(out, text.as_bytes())
-    } else {
-        let mut img = RgbImage::new(SIZE.0 as usize, SIZE.1 as usize)?;
-        img.draw(|root| draw(root, rows, title))?;
-        img.write_png(out)
-    }
+    chart::write(&TradeChart { rows, title }, SIZE, out)
 }

@@ -1,0 +1,258 @@
+//! The accuracy-against-noise chart (`irid render --noise`): its table
+//! read back as printed (a round trip through the bench's own row format,
+//! beside the scene-matrix table it must not be confused with), malformed
+//! tables refused with an error that names the line, one series per mode
+//! in the SVG and the PNG, and the Cramér–Rao bound the bench draws as the
+//! limit scaling linearly with the noise.
+
+#[path = "../benches/common/mod.rs"]
+mod bench_common;
+
+use irid::render::canvas::decode_png;
+use irid::render::noise::{parse_table, write_chart, NoiseRow, HEADER, SIZE};
+use irid::scene::Scene;
+use irid::synth::scene_bands;
+use std::path::Path;
+
+const MODES: [&str; 3] = ["fast", "balanced", "accurate"];
+/// The modes' colours (the charts' palette, in the modes' order).
+const COLOURS: [(&str, [u8; 3]); 3] = [
+    ("#1F77B4", [31, 119, 180]),
+    ("#FF7F0E", [255, 127, 14]),
+    ("#2CA02C", [44, 160, 44]),
+];
+
+/// Two scenes × `modes` × four noise levels, with values over several
+/// decades (and one measurement with nothing valid).
+fn rows(modes: &[&str]) -> Vec<NoiseRow> {
+    let mut out = Vec::new();
+    for (si, (scene, known)) in [("paper: 420–560 nm, n | s", false), ("thin", true)]
+        .into_iter()
+        .enumerate()
+    {
+        for (mi, mode) in modes.iter().enumerate() {
+            for (k, sigma) in [0.0003, 0.001, 0.003, 0.03].into_iter().enumerate() {
+                let efficient = 367.891_234 * sigma * (1.0 + si as f64);
+                let blow_up = 1.0 + (k * k * mi) as f64 * 0.37;
+                out.push(NoiseRow {
+                    scene: scene.to_string(),
+                    angle_known: known,
+                    mode: mode.to_string(),
+                    sigma_r: sigma,
+                    valid_fraction: 0.99412 - 0.1 * k as f64,
+                    mean_err_nm: efficient * blow_up * 1.003_71,
+                    p99_err_nm: efficient * 3.87654 * blow_up,
+                    efficient_nm: efficient,
+                    coverage_2sigma: if si == 1 && k == 3 && mi == 0 {
+                        f64::NAN
+                    } else {
+                        0.95 + 0.001_23 * k as f64
+                    },
+                });
+            }
+        }
+    }
+    out
+}
+
+/// A README-like text: prose, the trade table first, then the noise table.
+fn document(rows: &[NoiseRow]) -> String {
+    let mut t = String::from(
+        "# irid\n\nprose\n\n\
+         | scene | angle | mode | pixels/s | valid | mean \\|Δd\\| | efficient |\n\
+         |---|---|---|---|---|---|---|\n\
+         | paper | unknown | `fast` | 1.02 M | 99.4 % | 0.683 nm | 0.368 nm |\n\n\
+         ### Accuracy against noise\n\n",
+    );
+    t.push_str(HEADER);
+    t.push('\n');
+    for r in rows {
+        t.push_str(&r.markdown());
+        t.push('\n');
+    }
+    t.push_str("\nmore prose | with a bar\n");
+    t
+}
+
+fn close(a: f64, b: f64, rel: f64) -> bool {
+    (a.is_nan() && b.is_nan()) || (a - b).abs() <= rel * b.abs()
+}
+
+#[test]
+fn the_table_reads_back_as_printed() {
+    let want = rows(&MODES);
+    let text = document(&want);
+    let got = parse_table(&text).unwrap();
+    assert_eq!(got.len(), want.len());
+    for (g, w) in got.iter().zip(&want) {
+        assert_eq!(
+            (&g.scene, g.angle_known, &g.mode),
+            (&w.scene, w.angle_known, &w.mode)
+        );
+        // σ is printed exactly; lengths to four significant digits (half a
+        // unit of the fourth: 5e-4 relative); fractions to 0.1 %.
+        assert_eq!(g.sigma_r, w.sigma_r);
+        for (a, b) in [
+            (g.mean_err_nm, w.mean_err_nm),
+            (g.p99_err_nm, w.p99_err_nm),
+            (g.efficient_nm, w.efficient_nm),
+        ] {
+            assert!(close(a, b, 5e-4), "{a} vs {b}");
+        }
+        for (a, b) in [
+            (g.valid_fraction, w.valid_fraction),
+            (g.coverage_2sigma, w.coverage_2sigma),
+        ] {
+            assert!(
+                (a.is_nan() && b.is_nan()) || (a - b).abs() <= 5e-4,
+                "{a} vs {b}"
+            );
+        }
+        // Printing what was read gives the same line (but for the ratio,
+        // which is derived from the unrounded values).
+        let cells = |r: &NoiseRow| {
+            let mut c: Vec<String> = r.markdown().split(" | ").map(String::from).collect();
+            c.remove(8);
+            c
+        };
+        assert_eq!(cells(g), cells(w));
+    }
+    // The scene-matrix reader takes its own table, not this one.
+    let trade = irid::render::trade::parse_table(&text).unwrap();
+    assert_eq!(trade.len(), 1);
+}
+
+#[test]
+fn malformed_tables_are_errors_naming_the_line() {
+    let good = document(&rows(&MODES));
+    let e = |text: &str| parse_table(text).unwrap_err().to_string();
+    assert!(e("no table here").contains("no noise-sweep table"));
+    // The scene-matrix table alone is not a noise table.
+    let trade_only: String = good.split("### Accuracy").next().unwrap().to_string();
+    assert!(e(&trade_only).contains("no noise-sweep table"));
+    // Header and rule but no rows.
+    assert!(e(&format!("{HEADER}\n\ntext")).contains("no rows"));
+    // A bad σ, a zero σ, an unknown angle word, a cut-off row, a missing
+    // column: each an error with the table line, none a panic.
+    let first = rows(&MODES)[0].markdown();
+    let line_no = good.lines().position(|l| l == first).unwrap() + 1;
+    for (from, to, what) in [
+        ("| 0.0003 |", "| lots |", "noise σ"),
+        ("| 0.0003 |", "| 0 |", "noise σ"),
+        ("| unknown |", "| maybe |", "angle"),
+    ] {
+        let broken = good.replacen(&first, &first.replacen(from, to, 1), 1);
+        let msg = e(&broken);
+        assert!(
+            msg.contains(what) && msg.contains(&format!("line {line_no}")),
+            "{msg}"
+        );
+    }
+    let cut: String = first.split(" nm |").next().unwrap().to_string() + " |";
+    assert!(e(&good.replacen(&first, &cut, 1)).contains(&format!("line {line_no}")));
+    let no_p99 = good.replacen("| p99 \\|Δd\\| |", "| p98 \\|Δd\\| |", 1);
+    assert!(e(&no_p99).contains("p99"));
+}
+
+fn count(svg: &str, needle: &str) -> usize {
+    svg.matches(needle).count()
+}
+
+/// The contents of the SVG's text elements, trimmed.
+fn texts(svg: &str) -> Vec<String> {
+    svg.split("<text")
+        .skip(1)
+        .filter_map(|t| {
+            let body = t.split_once('>')?.1;
+            Some(body.split("</text>").next()?.trim().to_string())
+        })
+        .collect()
+}
+
+fn svg_of(rows: &[NoiseRow]) -> String {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("noise.svg");
+    write_chart(rows, "noise", &out).unwrap();
+    std::fs::read_to_string(&out).unwrap()
+}
+
+#[test]
+fn the_svg_has_one_line_per_mode_and_panel() {
+    let svg = svg_of(&rows(&MODES));
+    assert!(svg.trim_start().starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
+    for ((mode, (hex, _)), shape) in MODES.iter().zip(COLOURS).zip(["polygon", "circle", "rect"]) {
+        // A line per panel (two) and the legend's sample.
+        let lines = count(
+            &svg,
+            &format!("stroke=\"{hex}\" stroke-width=\"2\" points="),
+        );
+        assert_eq!(lines, 3, "{mode}: {lines} lines");
+        // A marker per noise level in each panel (2 × 4), one in the legend.
+        let markers = svg
+            .split('<')
+            .filter(|t| t.starts_with(shape) && t.contains(&format!("fill=\"{hex}\"")))
+            .count();
+        assert_eq!(markers, 9, "{mode}: {markers} markers");
+        let legend = texts(&svg).iter().filter(|t| t == mode).count();
+        assert_eq!(legend, 1, "{mode} legend");
+    }
+    let t = texts(&svg);
+    for want in [
+        "Cramér–Rao-efficient",
+        "reflectance noise σ per band",
+        "mean |thickness error|, nm",
+        "thin, angle known",
+    ] {
+        assert!(t.iter().any(|x| x == want), "no {want:?} in {t:?}");
+    }
+    // Without `accurate`, neither its line nor its legend entry.
+    let svg = svg_of(&rows(&MODES[..2]));
+    assert_eq!(count(&svg, &format!("stroke=\"{}\"", COLOURS[2].0)), 0);
+    assert!(!texts(&svg).iter().any(|t| t == "accurate"));
+    assert_eq!(
+        count(
+            &svg,
+            &format!("stroke=\"{}\" stroke-width=\"2\" points=", COLOURS[0].0)
+        ),
+        3
+    );
+}
+
+#[test]
+fn the_png_shows_each_mode_in_its_colour() {
+    let dir = tempfile::tempdir().unwrap();
+    let pixels_of = |rows: &[NoiseRow]| {
+        let out = dir.path().join("noise.png");
+        write_chart(rows, "noise", &out).unwrap();
+        let img = decode_png(&std::fs::read(&out).unwrap()).unwrap();
+        assert_eq!((img.width as u32, img.height as u32), SIZE);
+        COLOURS.map(|(_, rgb)| img.data.chunks(3).filter(|p| *p == rgb).count())
+    };
+    let all = pixels_of(&rows(&MODES));
+    // Each mode: two lines across a panel and nine markers, hundreds of
+    // pixels at least.
+    assert!(all.iter().all(|n| *n > 300), "{all:?}");
+    let two = pixels_of(&rows(&MODES[..2]));
+    assert!(two[0] > 300 && two[1] > 300 && two[2] == 0, "{two:?}");
+}
+
+#[test]
+fn the_bound_scales_linearly_with_the_noise() {
+    // σ_CRB = σ_R √((JᵀJ)⁻¹)_dd: at ten times the noise, ten times the
+    // bound, on both swept scenes and with the angle known or not.
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/scenes");
+    for name in ["paper-cylinder", "thin-coating"] {
+        let scene = Scene::load(&dir.join(format!("{name}.toml"))).unwrap();
+        let bands = scene_bands(&scene).unwrap();
+        let (_, truth, _, _) = bench_common::render_tiled_clean(&scene, &bands, 1);
+        let (u1, k1) = bench_common::crb(&scene, &bands, &truth, 0.0003);
+        let (u2, k2) = bench_common::crb(&scene, &bands, &truth, 0.03);
+        for (lo, hi) in [(u1, u2), (k1, k2)] {
+            assert!(lo > 0.0 && lo.is_finite(), "{name}: {lo}");
+            assert!(
+                ((hi / lo) / 100.0 - 1.0).abs() < 1e-6,
+                "{name}: {lo} → {hi}"
+            );
+        }
+    }
+}
