@@ -23,7 +23,7 @@ const COLOURS: [(&str, [u8; 3]); 3] = [
 ];
 
 /// Two scenes × `modes` × four noise levels, with values over several
-/// decades (and one measurement with nothing valid).
+/// decades; on the second scene nothing is valid at the highest noise.
 fn rows(modes: &[&str]) -> Vec<NoiseRow> {
     let mut out = Vec::new();
     for (si, (scene, known)) in [("paper: 420–560 nm, n | s", false), ("thin", true)]
@@ -34,20 +34,22 @@ fn rows(modes: &[&str]) -> Vec<NoiseRow> {
             for (k, sigma) in [0.0003, 0.001, 0.003, 0.03].into_iter().enumerate() {
                 let efficient = 367.891_234 * sigma * (1.0 + si as f64);
                 let blow_up = 1.0 + (k * k * mi) as f64 * 0.37;
+                let none_valid = si == 1 && k == 3;
+                let measured = |v: f64| if none_valid { f64::NAN } else { v };
                 out.push(NoiseRow {
                     scene: scene.to_string(),
                     angle_known: known,
                     mode: mode.to_string(),
                     sigma_r: sigma,
-                    valid_fraction: 0.99412 - 0.1 * k as f64,
-                    mean_err_nm: efficient * blow_up * 1.003_71,
-                    p99_err_nm: efficient * 3.87654 * blow_up,
-                    efficient_nm: efficient,
-                    coverage_2sigma: if si == 1 && k == 3 && mi == 0 {
-                        f64::NAN
+                    valid_fraction: if none_valid {
+                        0.0
                     } else {
-                        0.95 + 0.001_23 * k as f64
+                        0.99412 - 0.1 * k as f64
                     },
+                    mean_err_nm: measured(efficient * blow_up * 1.003_71),
+                    p99_err_nm: measured(efficient * 3.87654 * blow_up),
+                    efficient_nm: efficient,
+                    coverage_2sigma: measured(0.95 + 0.001_23 * k as f64),
                 });
             }
         }
@@ -187,12 +189,13 @@ fn the_svg_has_one_line_per_mode_and_panel() {
             &format!("stroke=\"{hex}\" stroke-width=\"2\" points="),
         );
         assert_eq!(lines, 3, "{mode}: {lines} lines");
-        // A marker per noise level in each panel (2 × 4), one in the legend.
+        // A marker per noise level with valid pixels in each panel (4 + 3),
+        // one in the legend.
         let markers = svg
             .split('<')
             .filter(|t| t.starts_with(shape) && t.contains(&format!("fill=\"{hex}\"")))
             .count();
-        assert_eq!(markers, 9, "{mode}: {markers} markers");
+        assert_eq!(markers, 8, "{mode}: {markers} markers");
         let legend = texts(&svg).iter().filter(|t| t == mode).count();
         assert_eq!(legend, 1, "{mode} legend");
     }
@@ -202,9 +205,25 @@ fn the_svg_has_one_line_per_mode_and_panel() {
         "reflectance noise σ per band",
         "mean |thickness error|, nm",
         "thin, angle known",
+        "σ = 0.03: no valid pixel (all flagged)",
     ] {
         assert!(t.iter().any(|x| x == want), "no {want:?} in {t:?}");
     }
+    assert_eq!(
+        t.iter().filter(|x| x.contains("no valid pixel")).count(),
+        1,
+        "the note is in the second panel only"
+    );
+    // Where fewer than 90 % are valid, the panel says so per mode.
+    let low = "σ = 0.03: valid fast 69 %, balanced 69 %, accurate 69 %";
+    assert_eq!(t.iter().filter(|x| *x == low).count(), 1, "{t:?}");
+    let low = "σ = 0.003: valid fast 79 %, balanced 79 %, accurate 79 %";
+    assert_eq!(t.iter().filter(|x| *x == low).count(), 2, "{t:?}");
+    let mut all_valid = rows(&MODES);
+    all_valid.retain(|r| r.valid_fraction > 0.0);
+    assert!(!texts(&svg_of(&all_valid))
+        .iter()
+        .any(|x| x.contains("no valid pixel")));
     // Without `accurate`, neither its line nor its legend entry.
     let svg = svg_of(&rows(&MODES[..2]));
     assert_eq!(count(&svg, &format!("stroke=\"{}\"", COLOURS[2].0)), 0);
@@ -229,7 +248,7 @@ fn the_png_shows_each_mode_in_its_colour() {
         COLOURS.map(|(_, rgb)| img.data.chunks(3).filter(|p| *p == rgb).count())
     };
     let all = pixels_of(&rows(&MODES));
-    // Each mode: two lines across a panel and nine markers, hundreds of
+    // Each mode: two lines across a panel and eight markers, hundreds of
     // pixels at least.
     assert!(all.iter().all(|n| *n > 300), "{all:?}");
     let two = pixels_of(&rows(&MODES[..2]));

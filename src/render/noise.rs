@@ -10,7 +10,8 @@
 //! `mean |Δd|` … `efficient` …) with columns looked up by name. Lengths
 //! keep four significant digits, so the table reads back within 0.05 %; σ
 //! is printed exactly. A measurement with no valid pixel prints `–` and
-//! reads back as NaN (not drawn).
+//! reads back as NaN: not drawn, and the panel says at which σ nothing
+//! was valid.
 
 use super::canvas::FONT_FAMILY;
 use super::chart::{self, bad_cell, marker, number, Chart, Table, MODES, PALETTE};
@@ -58,6 +59,15 @@ fn sig(v: f64, digits: i32) -> String {
     format!("{v:.dec$}")
 }
 
+/// A length, nm, with four significant digits; `–` when not finite.
+fn length(v: f64) -> String {
+    if v.is_finite() {
+        format!("{} nm", sig(v, 4))
+    } else {
+        "–".into()
+    }
+}
+
 /// A fraction as a percentage with one decimal; `–` when not finite.
 fn percent(v: f64) -> String {
     if v.is_finite() {
@@ -76,16 +86,19 @@ impl NoiseRow {
     /// The row as a Markdown table line under [`HEADER`].
     pub fn markdown(&self) -> String {
         format!(
-            "| {} | {} | `{}` | {} | {} | {} nm | {} nm | {} nm | {:.2} | {} |",
+            "| {} | {} | `{}` | {} | {} | {} | {} | {} | {} | {} |",
             self.scene.replace('|', "\\|"),
             if self.angle_known { "known" } else { "unknown" },
             self.mode,
             self.sigma_r,
             percent(self.valid_fraction),
-            sig(self.mean_err_nm, 4),
-            sig(self.p99_err_nm, 4),
-            sig(self.efficient_nm, 4),
-            self.ratio(),
+            length(self.mean_err_nm),
+            length(self.p99_err_nm),
+            length(self.efficient_nm),
+            match self.ratio() {
+                r if r.is_finite() => format!("{r:.2}"),
+                _ => "–".into(),
+            },
             percent(self.coverage_2sigma),
         )
     }
@@ -93,7 +106,7 @@ impl NoiseRow {
 
 /// A measured value: a number, or `–` (nothing valid) as NaN.
 fn measured(cell: &str) -> Option<f64> {
-    number(cell).or_else(|| (cell.trim_end_matches(" nm") == "–").then_some(f64::NAN))
+    number(cell).or_else(|| (cell == "–").then_some(f64::NAN))
 }
 
 /// The rows of the first noise-sweep table in `text`.
@@ -196,6 +209,32 @@ fn log_range(vals: impl Iterator<Item = f64>, pad: f64) -> Option<std::ops::Rang
     (lo <= hi).then(|| lo / pad..hi * pad)
 }
 
+/// What the lines do not show: the noise levels where no mode had a valid
+/// pixel (not drawn), and those where some mode had fewer than 90 % valid
+/// (its mean is over the valid ones only).
+fn validity_notes(rows: &[&NoiseRow]) -> Vec<String> {
+    let mut sigmas: Vec<f64> = rows.iter().map(|r| r.sigma_r).collect();
+    sigmas.sort_by(f64::total_cmp);
+    sigmas.dedup();
+    let mut notes = Vec::new();
+    for s in sigmas {
+        let at: Vec<&&NoiseRow> = rows.iter().filter(|r| r.sigma_r == s).collect();
+        if at
+            .iter()
+            .all(|r| !(r.mean_err_nm.is_finite() && r.mean_err_nm > 0.0))
+        {
+            notes.push(format!("σ = {s}: no valid pixel (all flagged)"));
+        } else if at.iter().any(|r| r.valid_fraction < 0.9) {
+            let each: Vec<String> = at
+                .iter()
+                .map(|r| format!("{} {:.0} %", r.mode, 100.0 * r.valid_fraction))
+                .collect();
+            notes.push(format!("σ = {s}: valid {}", each.join(", ")));
+        }
+    }
+    notes
+}
+
 /// One scene's panel: each mode's mean |Δd| against σ and the efficient
 /// error. Markers go on `root` (backend pixels), lines on the panel.
 fn draw_panel<DB: DrawingBackend>(
@@ -214,12 +253,16 @@ fn draw_panel<DB: DrawingBackend>(
     let (Some(xr), Some(yr)) = (xr, yr) else {
         return Err(format!("{caption}: no positive values to plot"));
     };
+    // Ticks at the measured noise levels.
+    let mut sigmas: Vec<f64> = rows.iter().map(|r| r.sigma_r).collect();
+    sigmas.sort_by(f64::total_cmp);
+    sigmas.dedup();
     let mut ch = ChartBuilder::on(area)
         .caption(caption, (FONT_FAMILY, 13))
         .margin(10)
         .x_label_area_size(45)
         .y_label_area_size(60)
-        .build_cartesian_2d(xr.log_scale(), yr.log_scale())
+        .build_cartesian_2d(xr.log_scale().with_key_points(sigmas), yr.log_scale())
         .map_err(e)?;
     ch.configure_mesh()
         .x_desc("reflectance noise σ per band")
@@ -240,7 +283,9 @@ fn draw_panel<DB: DrawingBackend>(
     limit.dedup_by(|a, b| a.0 == b.0);
     ch.draw_series(DashedLineSeries::new(limit, 6, 4, BLACK.stroke_width(1)))
         .map_err(e)?;
-    for mode in modes(rows) {
+    // Where modes agree their lines coincide: the first mode is drawn last,
+    // on top, and the markers' shapes show the ones beneath.
+    for mode in modes(rows).into_iter().rev() {
         let c = colour(&mode, all_modes);
         let pts = by_sigma(
             rows.iter()
@@ -253,6 +298,14 @@ fn draw_panel<DB: DrawingBackend>(
         for p in &pts {
             marker(root, ch.backend_coord(p), &mode, c.filled())?;
         }
+    }
+    for (i, note) in validity_notes(rows).into_iter().enumerate() {
+        area.draw(&Text::new(
+            note,
+            (80, 34 + 16 * i as i32),
+            (FONT_FAMILY, 12),
+        ))
+        .map_err(e)?;
     }
     Ok(())
 }
@@ -278,9 +331,11 @@ fn draw_legend<DB: DrawingBackend>(
         y += 22;
     }
     y += 8;
-    legend
-        .draw(&PathElement::new(vec![(4, y + 6), (36, y + 6)], BLACK))
-        .map_err(e)?;
+    for x in [4, 14, 24] {
+        legend
+            .draw(&PathElement::new(vec![(x, y + 6), (x + 6, y + 6)], BLACK))
+            .map_err(e)?;
+    }
     legend
         .draw(&text("Cramér–Rao-efficient", 44, y))
         .map_err(e)?;
