@@ -23,18 +23,6 @@ use irid::scene::Scene;
 use irid::synth::{compare, scene_bands};
 use std::path::Path;
 
-/// The scene classes: file under `data/scenes`, and what it stands for.
-const SCENES: [(&str, &str); 5] = [
-    (
-        "paper-cylinder",
-        "paper: 420–560 nm, n unknown, s, 31 bands",
-    ),
-    ("thin-coating", "thin 60–400 nm SiO2 on PET, u, 31 bands"),
-    ("wide-range", "100–1500 nm, n unknown, s, 31 bands"),
-    ("thick-hardcoat", "1–4 µm Si3N4 on silica, u, 61 bands"),
-    ("dispersive-p61", "150–350 nm TiO2 on PET, p, 61 bands"),
-];
-
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let min_pixels: usize = common::arg(&args, "--pixels").unwrap_or(100_000);
@@ -48,14 +36,14 @@ fn main() {
     println!("|---|---|---|---|---|---|---|---|---|---|---|");
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/scenes");
     // A bar on stderr when it is a terminal: the table on stdout stays clean.
-    let jobs = SCENES
+    let jobs = common::SCENES
         .iter()
         .filter(|(n, _)| only_scene.as_deref().is_none_or(|s| s == *n))
         .count()
         * if only_angle.is_some() { 1 } else { 2 }
         * if only_mode.is_some() { 1 } else { 3 };
     let bar = common::bar(jobs as u64, "trade study");
-    for (name, label) in SCENES {
+    for (name, label) in common::SCENES {
         if only_scene.as_deref().is_some_and(|s| s != name) {
             continue;
         }

@@ -1,7 +1,8 @@
-//! Pieces the benchmarks share: the machine's name, a scene tiled to a
-//! larger image (noisy, or clean for noise to be added at several levels),
-//! the angle made known, one mode's fit timed, the Cramér–Rao bound of a
-//! scene's truth, and a progress bar that stays off pipes.
+//! Pieces the benchmarks share: the scene classes, the machine's name, a
+//! scene tiled to a larger image (noisy, or clean for noise to be added at
+//! several levels), the angle made known, one mode's fit timed, the
+//! Cramér–Rao bound of a scene's truth, and a progress bar that stays off
+//! pipes.
 
 #![allow(dead_code)]
 
@@ -11,6 +12,18 @@ use irid::optics::band::Band;
 use irid::optics::dispersion::Dispersion;
 use irid::scene::{AngleKnowledge, FilmKnowledge, Scene};
 use irid::synth::{add_noise, Renderer, TruthMaps};
+
+/// The scene classes: file under `data/scenes`, and what it stands for.
+pub const SCENES: [(&str, &str); 5] = [
+    (
+        "paper-cylinder",
+        "paper: 420–560 nm, n unknown, s, 31 bands",
+    ),
+    ("thin-coating", "thin 60–400 nm SiO2 on PET, u, 31 bands"),
+    ("wide-range", "100–1500 nm, n unknown, s, 31 bands"),
+    ("thick-hardcoat", "1–4 µm Si3N4 on silica, u, 61 bands"),
+    ("dispersive-p61", "150–350 nm TiO2 on PET, p, 61 bands"),
+];
 
 /// Mean |Δd| of an efficient (unbiased, Gaussian) estimator per σ_CRB:
 /// E|x| = σ √(2/π).
