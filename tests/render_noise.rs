@@ -2,12 +2,15 @@
 //! read back as printed (a round trip through the bench's own row format,
 //! beside the scene-matrix table it must not be confused with), malformed
 //! tables refused with an error that names the line, one series per mode
-//! in the SVG and the PNG, and the Cramér–Rao bound the bench draws as the
-//! limit scaling linearly with the noise.
+//! in the SVG and the PNG, the Cramér–Rao bound the bench draws as the
+//! limit scaling linearly with the noise, the README's measured table, and
+//! the command (`irid render --noise`) on it and on a file without one.
 
 #[path = "../benches/common/mod.rs"]
 mod bench_common;
+mod cli_common;
 
+use cli_common::{fails_with, ok, s};
 use irid::render::canvas::decode_png;
 use irid::render::noise::{parse_table, write_chart, NoiseRow, HEADER, SIZE};
 use irid::scene::Scene;
@@ -274,4 +277,55 @@ fn the_bound_scales_linearly_with_the_noise() {
             );
         }
     }
+}
+
+#[test]
+fn the_readme_noise_table_parses_and_its_bound_scales_as_sigma() {
+    let readme =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("README.md")).unwrap();
+    let rows = parse_table(&readme).unwrap();
+    assert_eq!(rows.len(), 30, "2 cases × 5 noise levels × 3 modes");
+    // Within each case every mode at every σ, and the efficient error per
+    // σ one constant (to the four printed digits: 5e-4 each way).
+    for known in [false, true] {
+        let case: Vec<&NoiseRow> = rows.iter().filter(|r| r.angle_known == known).collect();
+        assert_eq!(case.len(), 15);
+        let per_sigma = case[0].efficient_nm / case[0].sigma_r;
+        for r in &case {
+            assert!(MODES.contains(&r.mode.as_str()), "{r:?}");
+            let k = r.efficient_nm / r.sigma_r;
+            assert!(
+                (k / per_sigma - 1.0).abs() < 1e-3,
+                "{r:?}: {k} vs {per_sigma}"
+            );
+        }
+    }
+}
+
+#[test]
+fn the_command_draws_the_readme_and_refuses_a_file_without_a_table() {
+    let dir = tempfile::tempdir().unwrap();
+    let readme = Path::new(env!("CARGO_MANIFEST_DIR")).join("README.md");
+    let out = dir.path().join("noise.svg");
+    ok(&["render", "--noise", s(&readme), "--out", s(&out)]);
+    let svg = std::fs::read_to_string(&out).unwrap();
+    assert!(MODES.iter().all(|m| texts(&svg).iter().any(|t| t == m)));
+    let empty = dir.path().join("notes.md");
+    std::fs::write(&empty, "# notes\n\nno table\n").unwrap();
+    fails_with(
+        &["render", "--noise", s(&empty), "--out", s(&out)],
+        &["notes.md", "no noise-sweep table"],
+    );
+    fails_with(
+        &[
+            "render",
+            "--noise",
+            s(&readme),
+            "--trade",
+            s(&readme),
+            "--out",
+            s(&out),
+        ],
+        &["cannot be used with"],
+    );
 }
