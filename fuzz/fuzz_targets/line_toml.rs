@@ -4,5 +4,5 @@ use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
     let text = String::from_utf8_lossy(data);
-    let _ = toml::from_str::<irid::cli::run::LineConfig>(&text);
+    let _ = toml::from_str::<irid::device::rig::LineConfig>(&text);
 });

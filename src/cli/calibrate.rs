@@ -5,7 +5,8 @@
 //! With `--config line.toml` the operator is asked to cap the lens and to
 //! place the white reference; without, the demo rig calibrates itself.
 
-use super::run::{capture_calibration, demo_rig, hardware_rig, RunArgs};
+use super::run::{ask_operator, now_unix_s, RunArgs};
+use crate::device::rig::{demo_rig, hardware_rig, DemoOptions};
 use crate::pipeline::calibration::flag;
 use anyhow::Context;
 use std::path::PathBuf;
@@ -44,8 +45,10 @@ pub fn run(args: &CalibrateArgs) -> anyhow::Result<()> {
             (rig, line.calibration.white_reflectance)
         }
         None => {
-            let mut demo = RunArgs::defaults();
-            demo.size.clone_from(&args.size);
+            let demo = DemoOptions {
+                size: args.size.clone(),
+                ..RunArgs::defaults().demo_options()
+            };
             (demo_rig(&demo)?, 0.99)
         }
     };
@@ -53,7 +56,8 @@ pub fn run(args: &CalibrateArgs) -> anyhow::Result<()> {
     if !(white > 0.0 && white <= 1.0) {
         anyhow::bail!("--white-reflectance must lie in (0, 1], not {white}");
     }
-    let cal = capture_calibration(&mut rig, args.frames.max(1), white)?;
+    let cal =
+        rig.capture_calibration(args.frames.max(1), white, now_unix_s(), &mut ask_operator)?;
     cal.save_with(&args.out, overwrite)
         .with_context(|| format!("saving {}", args.out.display()))?;
     let count = |f: u8| cal.flags.iter().filter(|&&x| x & f != 0).count();

@@ -5,7 +5,7 @@
 //! runner as a live run (`lossless`: it waits rather than drops), with the
 //! recorded scene, mode and calibration unless others are given.
 
-use super::run::{demo_scene_file, init_tracing, CliSink, Rig, RunArgs};
+use super::run::{init_tracing, CliSink, RunArgs};
 use crate::device::record::reader::RecordReader;
 use crate::device::record::replay::Recording;
 use crate::device::record::writer::{Compression, RecordOptions, RecordStats, Recorder};
@@ -13,7 +13,7 @@ use crate::device::record::{
     ircal_bytes, RecorderEvent, SeqEvent, Session, TOPIC_FRAME, TOPIC_RECORDER, TOPIC_SEQUENCER,
     TOPIC_SESSION,
 };
-use crate::device::rig::LineConfig;
+use crate::device::rig::{demo_scene_file, LineConfig, Rig};
 use crate::estimate::Mode;
 use crate::pipeline::calibration::{Calibration, Calibrator};
 use crate::pipeline::runner::{self, RunConfig, Setup};
@@ -42,7 +42,7 @@ fn mode_name(m: Mode) -> String {
 /// The scene file of a run and where its relative paths start.
 fn scene_file_of(args: &RunArgs) -> anyhow::Result<(SceneFile, PathBuf)> {
     match &args.config {
-        None => demo_scene_file(args),
+        None => Ok(demo_scene_file(&args.demo_options())?),
         Some(p) => {
             let (line, base) = LineConfig::load(p)?;
             let path = base.join(&line.scene);

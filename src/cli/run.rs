@@ -9,24 +9,21 @@
 //! Per sweep: `OUT/sweep-NNNNNN.exr` and one summary line (`--json`: one
 //! JSON object per line). Ctrl-C abandons the sweep in progress, flushes
 //! the finished ones and exits 0.
+//!
+//! The rigs are built by [`crate::device::rig`]; this module turns the
+//! flags into its [`DemoOptions`], asks the operator for the references a
+//! real camera cannot show itself, reads the clock and prints.
 
-use crate::device::camera::synthetic::{FilterView, SensorModel, SyntheticCamera, SyntheticConfig};
-use crate::device::camera::{FrameSource, PixelFormat, Target};
-use crate::device::rig::{emulated_varispec, CameraSection, LineConfig};
+use crate::device::camera::Target;
+use crate::device::rig::{demo_rig, hardware_rig, DemoOptions, Rig, StoredCalibration};
 use crate::estimate::{Mode, ParamMaps};
-use crate::optics::band::Band;
-use crate::pipeline::calibration::{
-    capture_reference, CalExpect, CalMeta, Calibration, CalibrationPolicy, Calibrator, CapturePlan,
-};
+use crate::pipeline::calibration::{CalExpect, Calibration, Calibrator};
 use crate::pipeline::output::{sweep_path, write_map, SweepSummary};
 use crate::pipeline::profile::ProfileLayer;
 use crate::pipeline::runner::{self, RunConfig, Setup, SweepSink};
-use crate::pipeline::sequencer::{order_for, BandTuner, ControllerTuner, EmulatedTuner, SeqMode};
-use crate::scene::{Scene, SceneFile};
-use anyhow::{bail, Context};
-use std::path::{Path, PathBuf};
+use anyhow::Context;
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Duration;
 
 /// Whether `irid run` tracks fringe extrema while bands arrive.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -145,6 +142,20 @@ impl RunArgs {
     pub fn defaults() -> RunArgs {
         <DefaultsOnly as clap::Parser>::parse_from(["irid"]).args
     }
+
+    /// What the demo flags ask of the demo rig.
+    pub fn demo_options(&self) -> DemoOptions {
+        DemoOptions {
+            scene: self.scene.clone(),
+            size: self.size.clone(),
+            order: self.order.clone(),
+            triggered: self.triggered,
+            in_process_filter: self.in_process_filter,
+            time_scale: self.time_scale,
+            paced: !self.unpaced,
+            seed: self.seed,
+        }
+    }
 }
 
 /// Seconds since the Unix epoch (the CLI reads the clock; layers below are
@@ -155,303 +166,20 @@ pub fn now_unix_s() -> u64 {
         .map_or(0, |d| d.as_secs())
 }
 
-/// A camera and a filter, ready to run.
-pub struct Rig {
-    /// The camera.
-    pub source: Box<dyn FrameSource>,
-    /// The filter.
-    pub tuner: Box<dyn BandTuner>,
-    /// Scene knowledge.
-    pub scene: Scene,
-    /// Bands, plane order.
-    pub bands: Vec<Band>,
-    /// Capture order.
-    pub order: Vec<usize>,
-    /// Pairing.
-    pub seq_mode: SeqMode,
-    /// Stored calibration and its limits, for hardware.
-    pub calibration: Option<(PathBuf, f64, f64)>,
-    /// Keeps the emulated controller's pseudo-terminal alive.
-    pub _emulator: Option<lctf_firmware::emu::EmulatorHandle>,
-}
-
-fn parse_size(s: &str) -> anyhow::Result<(usize, usize)> {
-    let (w, h) = s
-        .split_once(['x', 'X'])
-        .context("--size wants WxH, e.g. 1280x1024")?;
-    let (w, h): (usize, usize) = (w.trim().parse()?, h.trim().parse()?);
-    if w == 0 || h == 0 || w * h > 1 << 26 {
-        bail!("--size {s}: out of range");
-    }
-    Ok((w, h))
-}
-
-/// The demo rig: synthetic camera + emulated filter.
-pub fn demo_rig(args: &RunArgs) -> anyhow::Result<Rig> {
-    let (file, base) = demo_scene_file(args)?;
-    demo_rig_for(args, &file, &base)
-}
-
-/// The demo's scene file (`--scene` or the embedded cylinder, stretched
-/// to `--size`) and where its relative paths start.
-pub fn demo_scene_file(args: &RunArgs) -> anyhow::Result<(SceneFile, PathBuf)> {
-    let (mut file, base): (SceneFile, PathBuf) = match &args.scene {
-        Some(p) => {
-            let text = std::fs::read_to_string(p)
-                .with_context(|| format!("cannot read scene {}", p.display()))?;
-            let f =
-                toml::from_str(&text).map_err(|e| anyhow::anyhow!("scene {}: {e}", p.display()))?;
-            (f, p.parent().unwrap_or(Path::new(".")).to_path_buf())
+/// How the operator is asked to set up a reference a real camera cannot
+/// show by itself: a line on stderr, then Enter.
+pub(crate) fn ask_operator(target: Target) -> std::io::Result<()> {
+    eprintln!(
+        "irid: {}; then press Enter",
+        if target == Target::Dark {
+            "cap the lens (or close the shutter)"
+        } else {
+            "place the white reference in view"
         }
-        None => (
-            toml::from_str(crate::scene::PAPER_CYLINDER).expect("embedded scene parses"),
-            PathBuf::from("."),
-        ),
-    };
-    if let Some(s) = &args.size {
-        let (w, h) = parse_size(s)?;
-        let t = file
-            .truth
-            .as_mut()
-            .context("the scene has no [truth] to render")?;
-        // Fields given per row / column are stretched to the new size.
-        use crate::scene::Field;
-        let (ow, oh) = (t.width as f64, t.height as f64);
-        let stretch = |f: &mut Field| match f {
-            Field::Rows([_, s]) => *s *= (oh - 1.0).max(1.0) / (h as f64 - 1.0).max(1.0),
-            Field::Columns([_, s]) => *s *= (ow - 1.0).max(1.0) / (w as f64 - 1.0).max(1.0),
-            _ => {}
-        };
-        stretch(&mut t.thickness_nm);
-        if let Some(a) = t.angle_deg.as_mut() {
-            stretch(a);
-        }
-        t.width = w;
-        t.height = h;
-    }
-    Ok((file, base))
-}
-
-fn demo_rig_for(args: &RunArgs, file: &SceneFile, base: &Path) -> anyhow::Result<Rig> {
-    let scene = Scene::resolve(file, base).map_err(|e| anyhow::anyhow!("scene: {e}"))?;
-    let bands = scene.bands.clone().context("the scene has no [bands]")?;
-    let nm: Vec<f64> = bands.iter().map(|b| b.center_nm).collect();
-    let order = order_for(&args.order, bands.len(), &nm).with_context(|| {
-        format!(
-            "unknown --order {} (ascending, descending, interleaved)",
-            args.order
-        )
-    })?;
-    let view = FilterView::new();
-    let big = file_pixels(&scene) > 100_000;
-    let mut cfg = SyntheticConfig {
-        sensor: SensorModel::default(),
-        seed: args.seed,
-        // Large images draw their noise from a pool at a fresh offset per
-        // frame, so the camera does not limit the line.
-        noise_pool: big,
-        // At its frame rate (sped up as the emulated controller is), as a
-        // real camera: unpaced, frames come as fast as the CPU renders
-        // them and the pipeline rightly drops the sweeps it cannot take.
-        realtime: !args.unpaced,
-        speed: args.time_scale,
-        ..Default::default()
-    };
-    let seq_mode = if args.triggered {
-        cfg.trigger_palette = Some(order.clone());
-        SeqMode::Triggered
-    } else {
-        SeqMode::Stepped
-    };
-    let camera =
-        SyntheticCamera::new(&scene, &bands, view.clone(), cfg).context("rendering the scene")?;
-    let (tuner, emulator): (Box<dyn BandTuner>, _) = if args.in_process_filter || args.triggered {
-        let t = EmulatedTuner::new(
-            view,
-            Duration::from_millis(50),
-            Duration::from_millis(2),
-            args.seed,
-        );
-        (Box::new(t), None)
-    } else {
-        let (t, h) = emulated_varispec(view, args.time_scale)?;
-        (Box::new(t), Some(h))
-    };
-    Ok(Rig {
-        source: Box::new(camera),
-        tuner,
-        scene,
-        bands,
-        order,
-        seq_mode,
-        calibration: None,
-        _emulator: emulator,
-    })
-}
-
-fn file_pixels(scene: &Scene) -> usize {
-    scene.truth.as_ref().map_or(0, |t| t.width * t.height)
-}
-
-/// The hardware rig of `line.toml`.
-pub fn hardware_rig(path: &Path) -> anyhow::Result<(Rig, LineConfig)> {
-    let (line, base) = LineConfig::load(path)?;
-    let scene = Scene::load(&base.join(&line.scene)).map_err(|e| anyhow::anyhow!("{e}"))?;
-    let bands = match &line.bands {
-        Some(b) => {
-            let mut f = SceneFile::default();
-            f.substrate.n = Some(1.5);
-            f.bands = b.clone();
-            Scene::resolve(&f, &base)
-                .map_err(|e| anyhow::anyhow!("{}: [bands]: {e}", path.display()))?
-                .bands
-                .context("[bands] is empty")?
-        }
-        None => scene
-            .bands
-            .clone()
-            .context("neither line.toml nor the scene gives [bands]")?,
-    };
-    let nm: Vec<f64> = bands.iter().map(|b| b.center_nm).collect();
-    let order = order_for(&line.sequence.order, bands.len(), &nm).with_context(|| {
-        format!(
-            "{}: unknown sequence.order {}",
-            path.display(),
-            line.sequence.order
-        )
-    })?;
-    let source = open_camera(&line.camera)?;
-    let tuner = {
-        use crate::device::filter::{FilterController, VariSpec, VariSpecOptions};
-        let mut ctrl = VariSpec::open(
-            &line.filter.port,
-            VariSpecOptions {
-                baud: line.filter.baud,
-                ..Default::default()
-            },
-        )
-        .with_context(|| format!("opening the filter controller on {}", line.filter.port))?;
-        ctrl.ensure_ready(Duration::from_secs(60))
-            .context("initialising the filter controller")?;
-        if line.sequence.mode == SeqMode::Triggered {
-            let seqnm: Vec<f64> = order.iter().map(|&b| nm[b]).collect();
-            ctrl.define_sequence(&seqnm)
-                .context("loading the band palette")?;
-            ctrl.select_palette(0).context("selecting the first band")?;
-            ctrl.arm_sync(1).context("arming the sync input")?;
-        }
-        ControllerTuner::new(
-            ctrl,
-            None,
-            1.0,
-            Duration::from_millis(line.filter.settle_timeout_ms),
-        )
-    };
-    let cal = (
-        base.join(&line.calibration.file),
-        line.calibration.max_age_h,
-        line.calibration.white_reflectance,
     );
-    Ok((
-        Rig {
-            source,
-            tuner: Box::new(tuner),
-            scene,
-            bands,
-            order,
-            seq_mode: line.sequence.mode,
-            calibration: Some(cal),
-            _emulator: None,
-        },
-        line,
-    ))
-}
-
-#[cfg(feature = "v4l2")]
-fn open_camera(c: &CameraSection) -> anyhow::Result<Box<dyn FrameSource>> {
-    use crate::device::camera::v4l2::{V4l2Camera, V4l2Config};
-    let format = PixelFormat::parse(&c.format)
-        .with_context(|| format!("camera.format {}: grey8, y10, y12 or y16", c.format))?;
-    let mut cam = V4l2Camera::open(&V4l2Config {
-        path: c.device.clone(),
-        width: c.width,
-        height: c.height,
-        format,
-        exposure_us: c.exposure_us,
-        buffers: c.buffers,
-    })?;
-    if let Some(g) = c.gain {
-        cam.set_gain(g)?;
-    }
-    Ok(Box::new(cam))
-}
-
-#[cfg(not(feature = "v4l2"))]
-fn open_camera(c: &CameraSection) -> anyhow::Result<Box<dyn FrameSource>> {
-    let _ = PixelFormat::parse(&c.format);
-    bail!(
-        "camera {}: this irid was built without V4L2 support; rebuild with `cargo build --release --features v4l2`",
-        c.device
-    )
-}
-
-/// Capture dark and white references with the rig (the synthetic camera
-/// switches its own target; a real one needs a person).
-pub fn capture_calibration(
-    rig: &mut Rig,
-    frames: u32,
-    white_reflectance: f64,
-) -> anyhow::Result<Calibration> {
-    let info = rig.source.info();
-    let nm: Vec<f64> = rig.bands.iter().map(|b| b.center_nm).collect();
-    let mut refs = Vec::new();
-    for (name, target) in [
-        ("dark", Target::Dark),
-        ("white", Target::White(white_reflectance)),
-    ] {
-        if !rig.source.set_target(target)? {
-            eprintln!(
-                "irid: {}; then press Enter",
-                if name == "dark" {
-                    "cap the lens (or close the shutter)"
-                } else {
-                    "place the white reference in view"
-                }
-            );
-            let mut s = String::new();
-            std::io::stdin().read_line(&mut s)?;
-        }
-        let plan = CapturePlan {
-            mode: rig.seq_mode,
-            bands_nm: &nm,
-            order: &rig.order,
-            frames,
-            timeout: Duration::from_secs(2),
-        };
-        let acc = capture_reference(name, rig.source.as_mut(), rig.tuner.as_mut(), &plan)?;
-        refs.push(acc);
-    }
-    rig.source.set_target(Target::Scene)?;
-    let meta = CalMeta {
-        version: 1,
-        width: info.width,
-        height: info.height,
-        bands_nm: nm,
-        exposure_us: info.exposure_us,
-        gain: info.gain,
-        format: info.format,
-        camera_id: info.id,
-        created_unix_s: now_unix_s(),
-        white_reflectance,
-        frames,
-        noise: None,
-    };
-    Ok(Calibration::from_references(
-        meta,
-        &refs[0],
-        &refs[1],
-        &CalibrationPolicy::for_format(info.format),
-    ))
+    let mut s = String::new();
+    std::io::stdin().read_line(&mut s)?;
+    Ok(())
 }
 
 /// Writes each sweep's map and prints its summary line.
@@ -532,10 +260,12 @@ pub(crate) fn rig_and_calibration(args: &RunArgs) -> anyhow::Result<(Rig, Mode, 
             };
             (rig, mode)
         }
-        None => (demo_rig(args)?, args.mode),
+        None => (demo_rig(&args.demo_options())?, args.mode),
     };
     let calibration = match rig.calibration.clone() {
-        Some((path, max_age_h, _)) => {
+        Some(StoredCalibration {
+            path, max_age_h, ..
+        }) => {
             let cal = Calibration::load(&path)?;
             cal.check(
                 &path.display().to_string(),
@@ -557,7 +287,7 @@ pub(crate) fn rig_and_calibration(args: &RunArgs) -> anyhow::Result<(Rig, Mode, 
                     rig.tuner.describe()
                 );
             }
-            capture_calibration(&mut rig, 4, 0.99)?
+            rig.capture_calibration(4, 0.99, now_unix_s(), &mut ask_operator)?
         }
     };
     Ok((rig, mode, calibration))
@@ -670,4 +400,29 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     }
     drop(_chrome_guard);
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn demo(flags: &[&str]) -> DemoOptions {
+        let argv = std::iter::once("irid").chain(flags.iter().copied());
+        <DefaultsOnly as clap::Parser>::parse_from(argv)
+            .args
+            .demo_options()
+    }
+
+    #[test]
+    fn the_demo_flags_default_to_the_library_defaults() {
+        assert_eq!(demo(&[]), DemoOptions::default());
+    }
+
+    #[test]
+    fn the_demo_camera_is_paced_unless_unpaced() {
+        assert!(demo(&[]).paced);
+        let fast = demo(&["--unpaced", "--time-scale", "2"]);
+        assert!(!fast.paced);
+        assert_eq!(fast.time_scale, 2.0);
+    }
 }

@@ -1,14 +1,10 @@
-//! The line's hardware as configured (`line.toml`: camera, filter
-//! controller, sequence, calibration) and the emulated filter controller
-//! the demo, the tests and the benches run against — library parts, so
-//! nothing below the command line imports the command line.
+//! `line.toml`: a production line's hardware as configured (camera,
+//! filter controller, bands, sequence, calibration, scene). Only the schema
+//! and its loading; `hardware.rs` opens what it names.
 
-use crate::device::camera::synthetic::FilterView;
-use crate::device::filter::FilterError;
-use crate::pipeline::sequencer::{ControllerTuner, SeqMode};
+use crate::pipeline::sequencer::SeqMode;
 use crate::scene::BandsSpec;
 use std::path::{Path, PathBuf};
-use std::time::Duration;
 
 /// `line.toml` could not be read or parsed.
 #[derive(Debug, thiserror::Error)]
@@ -168,38 +164,4 @@ impl LineConfig {
         })?;
         Ok((cfg, path.parent().unwrap_or(Path::new(".")).to_path_buf()))
     }
-}
-
-/// The VariSpec firmware emulated on a pseudo-terminal, driven by the
-/// serial driver, mirrored into `view`.
-pub fn emulated_varispec(
-    view: FilterView,
-    time_scale: f64,
-) -> Result<
-    (
-        ControllerTuner<crate::device::filter::VariSpec>,
-        lctf_firmware::emu::EmulatorHandle,
-    ),
-    FilterError,
-> {
-    use crate::device::filter::{FilterController, VariSpec, VariSpecOptions};
-    use lctf_firmware::emu::{spawn_pty, EmuConfig};
-    let scale = lctf_firmware::TimeScale::new(time_scale);
-    let h = spawn_pty(EmuConfig {
-        time_scale: scale,
-        ..EmuConfig::ready()
-    })
-    .map_err(|e| {
-        FilterError::Io(std::io::Error::new(
-            e.kind(),
-            format!("spawning the emulated filter controller: {e}"),
-        ))
-    })?;
-    let path = h.path().display().to_string();
-    let mut ctrl = VariSpec::open(&path, VariSpecOptions::default())?;
-    ctrl.ensure_ready(Duration::from_secs(10))?;
-    Ok((
-        ControllerTuner::new(ctrl, Some(view), time_scale, Duration::from_secs(2)),
-        h,
-    ))
 }
