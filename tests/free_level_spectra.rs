@@ -72,25 +72,39 @@ struct Row {
 /// them with `irid fit --level free`.
 fn fit_water(thick: &[f64], seed: u64) -> Vec<Row> {
     let n_spec = thick.len();
+    fit_rendered(thick, seed, |i, d, lam| {
+        let k = i as f64 / n_spec as f64;
+        let u = (lam - 600.0) / 200.0;
+        let lamp = (7.0 + 2.0 * k)
+            * (1.0
+                + (0.2 - 0.3 * k) * u
+                + 0.15 * (-((lam - 520.0 - 80.0 * k) / 50.0).powi(2)).exp());
+        let stray = 0.06 + 0.03 * u;
+        let sigma = 0.004 * (1.0 + 3.0 * (-(lam - 400.0) / 40.0).exp());
+        (stray + lamp * spotted(d, 0.004 + 0.006 * k, lam), sigma)
+    })
+}
+
+/// Renders spectrum `i` of thickness `d` at 400–800 nm (1 nm) as
+/// `render(i, d, λ) = (mean, noise σ)` plus noise, and fits them all with
+/// `irid fit --level free`.
+fn fit_rendered(
+    thick: &[f64],
+    seed: u64,
+    render: impl Fn(usize, f64, f64) -> (f64, f64),
+) -> Vec<Row> {
     let mut noise = Noise(seed);
     let mut text = String::from("wavelength_nm");
-    for i in 0..n_spec {
+    for i in 0..thick.len() {
         write!(text, ",film{i}").unwrap();
     }
     text.push('\n');
     for nm in 400..=800 {
         let lam = f64::from(nm);
-        let u = (lam - 600.0) / 200.0;
         write!(text, "{nm}").unwrap();
         for (i, &d) in thick.iter().enumerate() {
-            let k = i as f64 / n_spec as f64;
-            let lamp = (7.0 + 2.0 * k)
-                * (1.0
-                    + (0.2 - 0.3 * k) * u
-                    + 0.15 * (-((lam - 520.0 - 80.0 * k) / 50.0).powi(2)).exp());
-            let stray = 0.06 + 0.03 * u;
-            let sigma = 0.004 * (1.0 + 3.0 * (-(lam - 400.0) / 40.0).exp());
-            let v = stray + lamp * spotted(d, 0.004 + 0.006 * k, lam) + sigma * noise.next();
+            let (mean, sigma) = render(i, d, lam);
+            let v = mean + sigma * noise.next();
             write!(text, ",{v:.6}").unwrap();
         }
         text.push('\n');
@@ -207,4 +221,46 @@ fn few_fringe_films_are_read_by_their_shape_or_flagged() {
         "{read} of {} read:\n{table}",
         wide.len()
     );
+}
+
+/// Films too thin for a pair of fringes (50–190 nm: no extremum or one in
+/// 400–800 nm), divided by a lamp spectrum with a bump (10–30 %, centred
+/// from green to red, 50–90 nm wide), with noise seven times larger in the
+/// blue: the bump and the noise can pass for two or three extrema, which
+/// a thicker film's fringes would explain — but a film too thin for
+/// fringes explains the shape as well (with a straight scale, or one that
+/// may curve like the bump), so no thicker answer may stand. Before this
+/// was checked, 10 of 270 such spectra came out valid at 0.5–0.9 µm. One
+/// case stays beyond what a free level can tell: a 30 % bump centred on a
+/// first-order hump narrows it into a third-order one's shape (1 of the
+/// 540 here, and of 1 080 over four seeds), so at most one is allowed.
+#[test]
+fn a_lamp_bump_on_a_film_without_fringes_is_not_read_as_fringes() {
+    let mut thick = Vec::new();
+    let mut shapes = Vec::new();
+    for d in (50..200).step_by(10) {
+        for amp in [0.1, 0.2, 0.3] {
+            for centre in [520.0, 580.0, 650.0] {
+                for width in [50.0, 90.0] {
+                    thick.push(f64::from(d));
+                    shapes.push((amp, centre, width));
+                }
+            }
+        }
+    }
+    let mut wrong = Vec::new();
+    for seed in [3, 5] {
+        let rows = fit_rendered(&thick, seed, |i, d, lam| {
+            let (amp, centre, width) = shapes[i];
+            let u = (lam - 600.0) / 200.0;
+            let lamp = (1.0 + 0.1 * u) * (1.0 + amp * (-((lam - centre) / width).powi(2)).exp());
+            let sigma = 0.004 * (1.0 + 6.0 * (-(lam - 400.0) / 40.0).exp());
+            (0.03 + 6.0 * airy(d, lam) * lamp, sigma)
+        });
+        wrong.extend(
+            rows.into_iter()
+                .filter(|r| r.valid && (r.got / r.d - 1.0).abs() > 0.10),
+        );
+    }
+    assert!(wrong.len() <= 1, "valid and wrong:\n{}", report(&wrong));
 }

@@ -14,8 +14,15 @@
 //! must put as many extrema in the band as were found (a lamp's bump on a
 //! thin film mimics a fringe's shape, not its count); and from one
 //! extremum, the thickness must not move by more than σ when the offset's
-//! slope is dropped. Otherwise "ambiguous order": one broad hump moves
-//! with the envelope. Then, within one fringe order of what
+//! slope is dropped, and must win by the same margins when the scale may
+//! curve (a lamp's bump can narrow a hump into a higher order's shape).
+//! Otherwise "ambiguous order": one broad hump moves with the envelope.
+//! Whatever the positions say from at most four extrema, a film too thin
+//! for a pair of fringes must not explain the shape about as well
+//! (Δχ² < 25, scaled the same way), with a straight scale or a curved
+//! one: a lamp's bump and noise can pass for a few extrema — "ambiguous
+//! order" again. Then,
+//! within one fringe order of what
 //! the positions say, variable projection: for each trial thickness the
 //! linear coefficients are solved by least squares, the thickness searched
 //! on a grid of its profile, then refined by golden section; σ from the
@@ -200,13 +207,21 @@ impl Solver {
                     (fit.d, fit.sigma, fit.ambiguous) = (d, sigma, false);
                 }
             }
+            if !fit.ambiguous
+                && self.thinner_film_fits(prep, theta, &fringes, &u, scratch, &mut trial, fit.d)
+            {
+                fit.ambiguous = true;
+            }
             scratch.trial = trial;
             return self.fringe_estimate(prep, &fit, theta, rms);
         }
+        // A thinner film explains the shape as well: the extrema found may
+        // not be this film's fringes.
+        let thinner = self.thinner_film_fits(prep, theta, &fringes, &u, scratch, &mut trial, d);
         scratch.trial = trial;
         let mut reason = Reason::Ok;
         // Another fringe order about as good: ambiguous.
-        if (second - sse) / var < 9.0 {
+        if (second - sse) / var < 9.0 || thinner {
             reason = Reason::AmbiguousOrder;
         }
         if self.judging() && !self.fit_passes(chi2, n_ok, n_lin + 1) {
@@ -247,6 +262,21 @@ struct PixelFringes {
 }
 
 impl PixelFringes {
+    /// Each band's weight, the inverse of its noise variance (0 where the
+    /// band is missing or has no variance).
+    fn weights(&self, scratch: &Scratch) -> Vec<f64> {
+        (0..self.var.len())
+            .map(|k| {
+                let v = self.var[k];
+                if scratch.weight[k] > 0.0 && v > 0.0 {
+                    1.0 / v
+                } else {
+                    0.0
+                }
+            })
+            .collect()
+    }
+
     /// How many extrema a film of thickness `d` puts where the fringe
     /// analysis would find them: whole orders `4 d x = m` inside the band,
     /// short of its ends by the margin [`fringes::fit`] keeps there.
@@ -332,53 +362,12 @@ impl Solver {
         if cands.len() < 2 {
             return None;
         }
-        let w: Vec<f64> = (0..u.len())
-            .map(|k| {
-                let v = f.var[k];
-                if scratch.weight[k] > 0.0 && v > 0.0 {
-                    1.0 / v
-                } else {
-                    0.0
-                }
-            })
-            .collect();
+        let w = f.weights(scratch);
         let n_ok = w.iter().filter(|&&w| w > 0.0).count();
         let y = &scratch.spectrum;
-        let mut sse_at = |d: f64| {
-            prep.model.eval(d, theta, trial, false);
-            let r = &trial.r;
-            // The scale must be positive mid-band (a negative one turns
-            // maxima into minima: the neighbouring order).
-            match fringes::weighted_lsq::<4>(y, &w, |k| [1.0, u[k], r[k], r[k] * u[k]]) {
-                Some((sse, c)) if c[2] > 0.0 => sse,
-                _ => f64::INFINITY,
-            }
-        };
-        // Candidates are two orders apart; each is searched within half an
-        // order (a grid, then golden section on its best cell), short of
-        // the neighbouring order a sign-flipped scale would also fit.
+        let mut sse_at = |d: f64, curved: bool| shape_sse(prep, theta, y, &w, u, trial, d, curved);
         let half_order = 1.0 / (8.0 * f.x_mean);
-        let mut sse: Vec<(f64, usize, bool, f64)> = cands
-            .iter()
-            .enumerate()
-            .map(|(i, &(d0, _))| {
-                let (lo, hi) = (
-                    (d0 - half_order).max(self.d_min),
-                    (d0 + half_order).min(self.d_max),
-                );
-                let step = (hi - lo) / RESOLVE_GRID as f64;
-                let best = (0..=RESOLVE_GRID)
-                    .map(|j| lo + step * j as f64)
-                    .map(|d| (sse_at(d), d))
-                    .min_by(|a, b| a.0.total_cmp(&b.0))
-                    .map_or(lo, |b| b.1);
-                let (d, v) = golden((best - step).max(lo), (best + step).min(hi), &mut sse_at);
-                // A minimum at the window's edge belongs to no candidate.
-                let interior = d - lo > step && hi - d > step;
-                (v, i, interior, d)
-            })
-            .collect();
-        sse.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let sse = self.candidate_minima(&cands, half_order, &mut |d| sse_at(d, false));
         let birge = (sse[0].0 / n_ok.saturating_sub(5).max(1) as f64).max(1.0);
         // The loser's excess misfit must also exceed all the winner's: a
         // systematic misfit that large could tip the balance either way.
@@ -399,12 +388,24 @@ impl Solver {
         if f.fit.n_extrema > 1 {
             return Some((d_c, sigma_c));
         }
+        // One extremum: its order is read from the hump's width, which a
+        // lamp's bump can change. The same order must win, by the same
+        // margins, when the scale may curve too.
+        let curved = self.candidate_minima(&cands, half_order, &mut |d| sse_at(d, true));
+        let curved_margin = curved[1].0 - curved[0].0;
+        let curved_birge = (curved[0].0 / n_ok.saturating_sub(6).max(1) as f64).max(1.0);
+        if !(curved[0].1 == sse[0].1
+            && curved_margin / curved_birge >= RESOLVE_CHI2
+            && curved_margin >= curved[0].0)
+        {
+            return None;
+        }
         // One extremum: its position is pulled by the envelope, so the
         // shape's own minimum, σ from the profile's curvature (scaled as
         // the χ²), never below the extremum's.
         let d = sse[0].3;
         let h = 1e-3 * d.max(1.0);
-        let curv = (sse_at(d + h) + sse_at(d - h) - 2.0 * sse[0].0) / (h * h);
+        let curv = (sse_at(d + h, false) + sse_at(d - h, false) - 2.0 * sse[0].0) / (h * h);
         let sigma = if curv > 0.0 {
             (2.0 * birge / curv).sqrt().max(sigma_c * d / d_c)
         } else {
@@ -430,6 +431,104 @@ impl Solver {
         let shift = (d_flat - d).abs();
         let pinned = d_flat - lo < 1e-3 * sigma || hi - d_flat < 1e-3 * sigma;
         (v_flat.is_finite() && !pinned && shift <= sigma).then_some((d, sigma.max(shift)))
+    }
+
+    /// Each candidate's best fit under `sse_at`, best first, as
+    /// `(SSE, candidate, interior, d)`. Candidates are two orders apart;
+    /// each is searched within half an order (a grid, then golden section
+    /// on its best cell), short of the neighbouring order a sign-flipped
+    /// scale would also fit; a minimum at the window's edge (not interior)
+    /// belongs to no candidate.
+    fn candidate_minima(
+        &self,
+        cands: &[(f64, f64)],
+        half_order: f64,
+        sse_at: &mut impl FnMut(f64) -> f64,
+    ) -> Vec<(f64, usize, bool, f64)> {
+        let mut sse: Vec<(f64, usize, bool, f64)> = cands
+            .iter()
+            .enumerate()
+            .map(|(i, &(d0, _))| {
+                let (lo, hi) = (
+                    (d0 - half_order).max(self.d_min),
+                    (d0 + half_order).min(self.d_max),
+                );
+                let step = (hi - lo) / RESOLVE_GRID as f64;
+                let best = (0..=RESOLVE_GRID)
+                    .map(|j| lo + step * j as f64)
+                    .map(|d| (sse_at(d), d))
+                    .min_by(|a, b| a.0.total_cmp(&b.0))
+                    .map_or(lo, |b| b.1);
+                let (d, v) = golden((best - step).max(lo), (best + step).min(hi), &mut *sse_at);
+                let interior = d - lo > step && hi - d > step;
+                (v, i, interior, d)
+            })
+            .collect();
+        sse.sort_by(|a, b| a.0.total_cmp(&b.0));
+        sse
+    }
+
+    /// Whether a film without a pair of fringes in the band (at most one
+    /// extremum: a broad hump) explains the spectrum's shape about as well
+    /// as `d` does (the shape model of
+    /// [`resolve_orders`](Self::resolve_orders), `d` refined within half a
+    /// step): then the few extrema found may be a lamp's bump and noise on
+    /// a film too thin for fringes, and `d` cannot be trusted. (Films with
+    /// more extrema than one but fewer than found are not asked: their
+    /// positions were already weighed against the found ones.) Asked only
+    /// where at most [`MAX_CANDIDATES`](fringes::MAX_CANDIDATES) extrema
+    /// were found: more, standing out of the noise and spaced as one
+    /// film's fringes, no single hump can mimic.
+    fn thinner_film_fits(
+        &self,
+        prep: &Prepared,
+        theta: f64,
+        f: &PixelFringes,
+        u: &[f64],
+        scratch: &Scratch,
+        trial: &mut crate::estimate::model::ModelOut,
+        d: f64,
+    ) -> bool {
+        if f.fit.n_extrema > fringes::MAX_CANDIDATES {
+            return false;
+        }
+        let w = f.weights(scratch);
+        let n_ok = w.iter().filter(|&&w| w > 0.0).count();
+        let y = &scratch.spectrum;
+        let step_d = 1.0 / (4.0 * f.x_mean);
+        // Two whole orders span the band from here up.
+        let (x_lo, x_hi, _) = f.x_range;
+        let top = (d - step_d).min(1.0 / (2.0 * (x_hi - x_lo).max(1e-12)));
+        if top <= self.d_min {
+            return false;
+        }
+        // Grid of an eighth of a step, then golden section on the best cell.
+        let n = (((top - self.d_min) / (step_d / 8.0)).ceil() as usize).clamp(1, 4096);
+        let h = (top - self.d_min) / n as f64;
+        // With a straight scale, and with one that may curve (a lamp's
+        // bump): the thin film must lose by the margin under both.
+        [false, true].into_iter().any(|curved| {
+            let mut sse_at = |d: f64| shape_sse(prep, theta, y, &w, u, trial, d, curved);
+            let (_, here) = golden(
+                (d - 0.5 * step_d).max(self.d_min),
+                (d + 0.5 * step_d).min(self.d_max),
+                &mut sse_at,
+            );
+            let (best, v) = (0..=n)
+                .map(|i| self.d_min + h * i as f64)
+                .filter(|&x| f.extrema_expected(x) <= 1)
+                .map(|x| (x, sse_at(x)))
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+                .unwrap_or((self.d_min, f64::INFINITY));
+            let v = if v.is_finite() {
+                golden((best - h).max(self.d_min), (best + h).min(top), &mut sse_at).1
+            } else {
+                v
+            };
+            let dof = n_ok.saturating_sub(5 + usize::from(curved)).max(1);
+            let birge = (here / dof as f64).max(1.0);
+            !here.is_finite() || (v - here) / birge < RESOLVE_CHI2
+        })
     }
 
     /// A pixel's estimate from its fringe positions alone.
@@ -462,6 +561,37 @@ impl Solver {
             residual_rms,
             reason,
         }
+    }
+}
+
+/// Weighted residual sum of squares of the shape model
+/// `y ≈ (a₀ + a₁u) + R(d)·(c₀ + c₁u [+ c₂u²])` at thickness `d` (the
+/// scale `curved` or not); infinite where the scale is not positive
+/// mid-band (a negative one turns maxima into minima: the neighbouring
+/// order) or the fit is singular.
+#[allow(clippy::too_many_arguments)] // one model evaluation's inputs
+fn shape_sse(
+    prep: &Prepared,
+    theta: f64,
+    y: &[f64],
+    w: &[f64],
+    u: &[f64],
+    trial: &mut crate::estimate::model::ModelOut,
+    d: f64,
+    curved: bool,
+) -> f64 {
+    prep.model.eval(d, theta, trial, false);
+    let r = &trial.r;
+    let fit = if curved {
+        fringes::weighted_lsq::<5>(y, w, |k| [1.0, u[k], r[k], r[k] * u[k], r[k] * u[k] * u[k]])
+            .map(|(sse, c)| (sse, c[2] > 0.0))
+    } else {
+        fringes::weighted_lsq::<4>(y, w, |k| [1.0, u[k], r[k], r[k] * u[k]])
+            .map(|(sse, c)| (sse, c[2] > 0.0))
+    };
+    match fit {
+        Some((sse, true)) => sse,
+        _ => f64::INFINITY,
     }
 }
 
