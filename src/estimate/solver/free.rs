@@ -479,6 +479,7 @@ impl Solver {
     /// where at most [`MAX_CANDIDATES`](fringes::MAX_CANDIDATES) extrema
     /// were found: more, standing out of the noise and spaced as one
     /// film's fringes, no single hump can mimic.
+    #[allow(clippy::too_many_arguments)] // the pixel's fit state, as resolve_orders
     fn thinner_film_fits(
         &self,
         prep: &Prepared,
