@@ -310,11 +310,23 @@ fn the_command_draws_the_readme_and_refuses_a_file_without_a_table() {
     ok(&["render", "--noise", s(&readme), "--out", s(&out)]);
     let svg = std::fs::read_to_string(&out).unwrap();
     assert!(MODES.iter().all(|m| texts(&svg).iter().any(|t| t == m)));
+    // An existing picture is kept unless --force.
+    fails_with(
+        &["render", "--noise", s(&readme), "--out", s(&out)],
+        &["noise.svg", "exists", "--force"],
+    );
+    assert_eq!(std::fs::read_to_string(&out).unwrap(), svg);
+    ok(&["render", "--noise", s(&readme), "--out", s(&out), "--force"]);
     let empty = dir.path().join("notes.md");
     std::fs::write(&empty, "# notes\n\nno table\n").unwrap();
+    let fresh = dir.path().join("fresh.svg");
     fails_with(
-        &["render", "--noise", s(&empty), "--out", s(&out)],
+        &["render", "--noise", s(&empty), "--out", s(&fresh)],
         &["notes.md", "no noise-sweep table"],
+    );
+    assert!(
+        !fresh.exists(),
+        "nothing written for a file without a table"
     );
     fails_with(
         &[

@@ -62,6 +62,10 @@ pub struct RenderArgs {
     /// Scene TOML for --colour and --chart (media, polarisation).
     #[arg(long, value_name = "FILE")]
     pub scene: Option<PathBuf>,
+    /// Replace an existing output picture (without it, an existing one is
+    /// an error and is left untouched).
+    #[arg(long)]
+    pub force: bool,
     /// Scene overrides for --colour and --chart.
     #[command(flatten)]
     pub overrides: SceneOverrides,
@@ -69,6 +73,12 @@ pub struct RenderArgs {
 
 /// Run `irid render`.
 pub fn run(a: &RenderArgs) -> anyhow::Result<()> {
+    let overwrite = if a.force {
+        crate::io::atomic::Overwrite::Replace
+    } else {
+        crate::io::atomic::Overwrite::Refuse
+    };
+    crate::io::atomic::check_new(&a.out, overwrite)?;
     if let Some(table) = &a.trade {
         let title = "irid: thickness error against speed, per mode and scene (scene_matrix bench)";
         return table_chart(table, &a.out, title, trade::parse_table, trade::write_chart);

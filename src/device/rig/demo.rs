@@ -113,10 +113,10 @@ fn parse_size(s: &str) -> Result<(usize, usize), RigError> {
     let num = |v: &str| {
         v.trim()
             .parse::<usize>()
-            .map_err(|e| RigError::Size(e.to_string()))
+            .map_err(|e| RigError::Size(format!("--size {s}: {e}")))
     };
     let (w, h) = (num(w)?, num(h)?);
-    if w == 0 || h == 0 || w * h > 1 << 26 {
+    if w == 0 || h == 0 || w.checked_mul(h).is_none_or(|n| n > 1 << 26) {
         return Err(RigError::Size(format!("--size {s}: out of range")));
     }
     Ok((w, h))
@@ -217,4 +217,21 @@ pub fn emulated_varispec(
         ControllerTuner::new(ctrl, Some(view), time_scale, Duration::from_secs(2)),
         h,
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_size;
+
+    #[test]
+    fn sizes_are_bounded_without_overflow() {
+        assert_eq!(parse_size("1280x1024").unwrap(), (1280, 1024));
+        assert_eq!(parse_size("8192X8192").unwrap(), (8192, 8192));
+        // 2²⁶ + 1 pixels, and a product that overflows usize: both refused.
+        assert!(parse_size("8193x8192").is_err());
+        assert!(parse_size("4294967296x4294967296").is_err());
+        let e = parse_size("4x").unwrap_err().to_string();
+        assert!(e.contains("--size 4x"), "{e}");
+        assert!(parse_size("0x5").is_err());
+    }
 }

@@ -205,8 +205,13 @@ impl Solver {
                     pre: Some(px),
                     start: None,
                 };
-                let (est, sse) = self.solve_with(prep, job, scratch);
-                if est.is_valid() && sse.is_finite() {
+                let (_, sse) = self.solve_with(prep, job, scratch);
+                // Every pixel with a fit counts, flagged or not: which
+                // pixels pass the quality tests changes with the trial
+                // index, and at high noise a profile over the passing ones
+                // follows those flips, not the fit (σ = 0.03 on the
+                // paper's cylinder: n 1.312 ± 0.0004 for a true 1.37).
+                if sse.is_finite() {
                     let p = if th.is_some() { 1.0 } else { 2.0 };
                     let n = spec.iter().filter(|v| v.is_finite()).count();
                     (sse, n as f64, p, 1.0)
