@@ -1,9 +1,9 @@
 //! Seeded mutation tests of every parser irid exposes to files or devices:
-//! ENVI headers and data, spectrum tables, scene and line TOML, `.ircal`
-//! calibrations, refractiveindex.info YAML and the filter controller's
-//! serial replies. Valid inputs are mutated (bytes flipped, inserted,
-//! deleted, duplicated, truncated, numbers replaced by hostile ones) by a
-//! seeded generator, so every run sees the same cases.
+//! ENVI headers and data, spectrum tables, scene, recipe and line TOML, MCAP
+//! recordings, `.ircal` calibrations, refractiveindex.info YAML and the
+//! filter controller's serial replies. Valid inputs are mutated (bytes
+//! flipped, inserted, deleted, duplicated, truncated, numbers replaced by
+//! hostile ones) by a seeded generator, so every run sees the same cases.
 //!
 //! Each case must give a value or an error — no panic (caught and
 //! reported with the input) — finish (each parser's batch runs on a thread
@@ -202,6 +202,13 @@ fn fuzz(name: &'static str, seeds: Vec<Vec<u8>>, check: fn(&[u8])) {
                     std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| check(&input)))
                 });
                 let shown = String::from_utf8_lossy(&input[..input.len().min(400)]).into_owned();
+                // IRID_FUZZ_DUMP=DIR keeps the whole failing input.
+                if r.is_err() || peak > ALLOC_LIMIT {
+                    if let Some(dir) = std::env::var_os("IRID_FUZZ_DUMP") {
+                        let file = Path::new(&dir).join(format!("{name}-{case}"));
+                        let _ = std::fs::write(file, &input);
+                    }
+                }
                 if r.is_err() {
                     let _ = tx.send(Err(format!("{name}: case {case} panicked on {shown:?}")));
                     return;
@@ -296,6 +303,45 @@ fn scene_toml() {
         if let Ok(scene) = irid::scene::Scene::from_toml(&text, "t", &root().join("data/scenes")) {
             let _ = irid::synth::scene_bands(&scene);
         }
+    });
+}
+
+#[test]
+fn recipe_toml() {
+    let seeds = vec![std::fs::read(root().join("data/scenes/web-recipe.toml")).unwrap()];
+    fuzz("recipe toml", seeds, |b| {
+        let text = String::from_utf8_lossy(b);
+        if let Ok(r) = irid::line::recipe::Recipe::from_toml(&text, "t") {
+            for lane in 0..4 {
+                let _ = r.lane(lane);
+            }
+            let _ = irid::line::recipe::Alarms::new(r, 4);
+        }
+    });
+}
+
+#[test]
+fn recordings() {
+    // Real recordings (one sweep of an 8×4 demo image, lz4 and zstd
+    // chunks) as seeds: the mutants break chunks, CRCs, lengths and
+    // records; the damage-tolerant reader, the frame decoder and the
+    // session parser must report, never panic or allocate out of
+    // proportion (a size field once made the chunk reader ask for 1.7 GB).
+    let seeds = files("tests/fixtures/recording", "mcap");
+    assert_eq!(seeds.len(), 2);
+    fuzz("recording", seeds, |b| {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("r.mcap");
+        std::fs::write(&path, b).unwrap();
+        if let Ok(mut r) = irid::device::record::reader::RecordReader::open(&path) {
+            while let Some(m) = r.next_message() {
+                if let Ok(meta) = irid::device::record::decode_frame_meta(&m.data) {
+                    let mut px = vec![0u16; meta.len()];
+                    irid::device::record::decode_samples(&m.data, &mut px);
+                }
+            }
+        }
+        let _ = irid::device::record::replay::Recording::open(&path);
     });
 }
 

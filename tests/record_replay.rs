@@ -139,6 +139,36 @@ fn replay_is_bit_identical_threaded() {
 }
 
 #[test]
+fn replay_writes_png_previews_when_asked() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = record(dir.path(), 2, &["--single-thread"]);
+    let replay = dir.path().join("replay");
+    ok(&[
+        "replay",
+        s(&rec),
+        "--png",
+        "--single-thread",
+        "--out",
+        s(&replay),
+    ]);
+    let maps = sweep_files(&replay);
+    assert!(!maps.is_empty(), "no sweep mapped");
+    for map in &maps {
+        let png = map.with_extension("png");
+        let bytes = std::fs::read(&png)
+            .unwrap_or_else(|e| panic!("{}: no preview beside the map: {e}", png.display()));
+        let img = irid::render::canvas::decode_png(&bytes).unwrap();
+        // The 40×6 map, scaled up, plus a colour bar and a title.
+        assert!(
+            img.width > 40 && img.height > 6,
+            "{}×{}",
+            img.width,
+            img.height
+        );
+    }
+}
+
+#[test]
 fn replay_with_another_mode_and_the_inventory() {
     let dir = tempfile::tempdir().unwrap();
     let rec = record(dir.path(), 2, &["--single-thread"]);

@@ -146,6 +146,10 @@ pub struct ReplayArgs {
     /// One JSON object per sweep on stdout.
     #[arg(long)]
     pub json: bool,
+    /// Also write a PNG preview (thickness, colour bar, invalid pixels by
+    /// reason) beside each sweep's map.
+    #[arg(long, conflicts_with = "no_maps")]
+    pub png: bool,
     /// Solver mode (default: the recorded run's).
     #[arg(long, value_enum)]
     pub mode: Option<Mode>,
@@ -231,7 +235,7 @@ fn replay_sink(args: &ReplayArgs) -> anyhow::Result<CliSink> {
     Ok(CliSink {
         out,
         json: args.json,
-        png: false,
+        png: args.png,
         live: None,
     })
 }

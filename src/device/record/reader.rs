@@ -196,13 +196,10 @@ impl RecordReader {
         self.pos = at + 9 + rlen;
         match op {
             OP_CHUNK => self.chunk(at, &body),
-            OP_SCHEMA | OP_CHANNEL | OP_MESSAGE => {
-                let r = mcap::read::parse_record(op, &body).map(|r| r.into_owned());
-                match r {
-                    Ok(r) => self.take(r),
-                    Err(e) => self.note(at, format!("record 0x{op:02x}: {e}")),
-                }
-            }
+            OP_SCHEMA | OP_CHANNEL | OP_MESSAGE => match parse_checked(op, &body) {
+                Ok(r) => self.take(r),
+                Err(e) => self.note(at, format!("record 0x{op:02x}: {e}")),
+            },
             OP_FOOTER => self.after_footer(),
             OP_HEADER | OP_DATA_END => {}
             _ => {} // indexes, statistics, attachments, metadata: not needed
@@ -321,21 +318,147 @@ impl RecordReader {
 /// Decompress and check one chunk body, all or nothing.
 fn parse_chunk(body: &[u8]) -> Result<Vec<mcap::records::Record<'static>>, String> {
     use mcap::records::Record;
-    let (header, data) =
-        match mcap::read::parse_record(OP_CHUNK, body).map_err(|e| e.to_string())? {
-            Record::Chunk { header, data } => (header, data),
-            _ => return Err("not a chunk".into()),
-        };
+    let (header, data) = match parse_checked(OP_CHUNK, body)? {
+        Record::Chunk { header, data } => (header, data),
+        _ => return Err("not a chunk".into()),
+    };
     if !matches!(header.compression.as_str(), "" | "zstd" | "lz4") {
         return Err(format!("unknown compression {:?}", header.compression));
     }
     if header.uncompressed_size > MAX_RECORD {
         return Err(format!("implausible size {}", header.uncompressed_size));
     }
-    let reader = mcap::read::ChunkReader::new(header, &data).map_err(|e| e.to_string())?;
-    let mut out = Vec::new();
-    for r in reader {
-        out.push(r.map_err(|e| e.to_string())?.into_owned());
+    // Decompressed through a reader capped at the claimed size, into a
+    // buffer that grows with the data: a damaged size field costs nothing
+    // (mcap's own chunk reader allocates the claim up front — a mutated
+    // 35 kB file once asked for 1.7 GB).
+    let claimed = header.uncompressed_size;
+    let raw = match header.compression.as_str() {
+        "zstd" => read_capped(
+            zstd::stream::read::Decoder::new(&data[..]).map_err(|e| e.to_string())?,
+            claimed,
+        )?,
+        "lz4" => read_capped(
+            lz4::Decoder::new(&data[..]).map_err(|e| e.to_string())?,
+            claimed,
+        )?,
+        _ => read_capped(&data[..], claimed)?,
+    };
+    if raw.len() as u64 != claimed {
+        return Err(format!(
+            "chunk holds {} bytes, its header says {claimed}",
+            raw.len()
+        ));
     }
+    if header.uncompressed_crc != 0 && crc32fast::hash(&raw) != header.uncompressed_crc {
+        return Err("chunk CRC mismatch".into());
+    }
+    let mut out = Vec::new();
+    let mut at = 0usize;
+    while at < raw.len() {
+        let head = raw
+            .get(at..at + 9)
+            .ok_or_else(|| format!("record header cut at byte {at} of the chunk"))?;
+        let len = u64::from_le_bytes(head[1..9].try_into().expect("8 bytes"));
+        let end = usize::try_from(len)
+            .ok()
+            .and_then(|l| (at + 9).checked_add(l))
+            .filter(|&e| e <= raw.len())
+            .ok_or_else(|| format!("record at byte {at} runs past the chunk"))?;
+        // A chunk holds schemas, channels and messages; anything else is
+        // not needed (and not parsed).
+        if matches!(head[0], OP_SCHEMA | OP_CHANNEL | OP_MESSAGE) {
+            out.push(parse_checked(head[0], &raw[at + 9..end])?);
+        }
+        at = end;
+    }
+    Ok(out)
+}
+
+/// `mcap`'s parser for one record body, called only once every
+/// length-prefixed field of the record is seen to fit in the body: the
+/// parser reserves what a prefix claims before reading it, so a damaged
+/// prefix in a few kB once asked for 1.9 GB and aborted the process.
+fn parse_checked(op: u8, body: &[u8]) -> Result<mcap::records::Record<'static>, String> {
+    if !prefixes_fit(op, body) {
+        return Err(format!(
+            "a field's length runs past the record's {} bytes",
+            body.len()
+        ));
+    }
+    mcap::read::parse_record(op, body)
+        .map(|r| r.into_owned())
+        .map_err(|e| e.to_string())
+}
+
+/// Whether the length-prefixed fields of a schema, channel or chunk record
+/// (MCAP's layouts) each fit in what is left of `body`.
+fn prefixes_fit(op: u8, body: &[u8]) -> bool {
+    let mut at = 0usize;
+    // Skip `n` fixed bytes.
+    let fixed = |at: &mut usize, n: usize| -> bool {
+        *at = at.saturating_add(n);
+        *at <= body.len()
+    };
+    // A `u32` (or `u64`) length, then that many bytes.
+    let prefixed = |at: &mut usize, width: usize| -> bool {
+        let Some(raw) = body.get(*at..at.saturating_add(width)) else {
+            return false;
+        };
+        let mut le = [0u8; 8];
+        le[..width].copy_from_slice(raw);
+        let n = u64::from_le_bytes(le);
+        match usize::try_from(n)
+            .ok()
+            .and_then(|n| (*at + width).checked_add(n))
+        {
+            Some(end) if end <= body.len() => {
+                *at = end;
+                true
+            }
+            _ => false,
+        }
+    };
+    match op {
+        // id, name, encoding, data
+        OP_SCHEMA => {
+            fixed(&mut at, 2)
+                && prefixed(&mut at, 4)
+                && prefixed(&mut at, 4)
+                && prefixed(&mut at, 4)
+        }
+        // id, schema id, topic, message encoding, metadata map (u32 bytes
+        // of string pairs)
+        OP_CHANNEL => {
+            if !(fixed(&mut at, 4) && prefixed(&mut at, 4) && prefixed(&mut at, 4)) {
+                return false;
+            }
+            let map_start = at + 4;
+            if !prefixed(&mut at, 4) {
+                return false;
+            }
+            let map_end = at;
+            let mut p = map_start;
+            while p < map_end {
+                if !(prefixed(&mut p, 4) && prefixed(&mut p, 4)) || p > map_end {
+                    return false;
+                }
+            }
+            true
+        }
+        // start, end, uncompressed size, CRC, compression, records (u64)
+        OP_CHUNK => fixed(&mut at, 28) && prefixed(&mut at, 4) && prefixed(&mut at, 8),
+        _ => true,
+    }
+}
+
+/// Everything `r` yields, up to one byte past `claimed` (so a longer
+/// stream is seen as one), the buffer growing with what arrives.
+fn read_capped(r: impl std::io::Read, claimed: u64) -> Result<Vec<u8>, String> {
+    use std::io::Read as _;
+    let mut out = Vec::new();
+    r.take(claimed.saturating_add(1))
+        .read_to_end(&mut out)
+        .map_err(|e| format!("decompressing: {e}"))?;
     Ok(out)
 }
