@@ -139,6 +139,35 @@ fn replay_is_bit_identical_threaded() {
 }
 
 #[test]
+fn an_existing_recording_is_kept_unless_forced() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = record(dir.path(), 1, &["--single-thread"]);
+    let before = std::fs::read(&rec).unwrap();
+    for cmd in [
+        vec!["run", "--sweeps", "1", "--no-maps", "--record", s(&rec)],
+        vec!["record", s(&rec), "--sweeps", "1"],
+    ] {
+        let mut args = cmd.clone();
+        args.extend_from_slice(DEMO);
+        let out = irid(&args);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && err.contains("exists") && err.contains("--force"),
+            "{err}"
+        );
+        assert_eq!(
+            std::fs::read(&rec).unwrap(),
+            before,
+            "{cmd:?} touched the recording"
+        );
+    }
+    let mut args = vec!["record", s(&rec), "--sweeps", "1", "--force"];
+    args.extend_from_slice(DEMO);
+    ok(&args);
+    assert_ne!(std::fs::read(&rec).unwrap(), before, "--force replaced it");
+}
+
+#[test]
 fn replay_writes_png_previews_when_asked() {
     let dir = tempfile::tempdir().unwrap();
     let rec = record(dir.path(), 2, &["--single-thread"]);

@@ -56,6 +56,18 @@ fn scene_file_of(args: &RunArgs) -> anyhow::Result<(SceneFile, PathBuf)> {
 }
 
 /// Start recording `irid run` to `path` (after calibration).
+/// Refuse (before any capture) to replace an existing recording unless
+/// `force`: a recording of the line is not made again.
+pub(crate) fn refuse_existing(path: &Path, force: bool) -> anyhow::Result<()> {
+    let overwrite = if force {
+        crate::io::atomic::Overwrite::Replace
+    } else {
+        crate::io::atomic::Overwrite::Refuse
+    };
+    crate::io::atomic::check_new(path, overwrite)?;
+    Ok(())
+}
+
 pub(crate) fn start(
     path: &Path,
     args: &RunArgs,
@@ -590,6 +602,7 @@ pub fn record_only(args: &RecordArgs) -> anyhow::Result<()> {
         tracing::warn!("Ctrl-C handler not installed");
     }
     let run = &args.run;
+    refuse_existing(&args.file, run.force)?;
     let (mut rig, mode, cal) = super::run::rig_and_calibration(run)?;
     let recorder = start(&args.file, run, &rig, &cal, mode)?;
     let info = rig.source.info();

@@ -118,8 +118,9 @@ pub struct RunArgs {
     /// Print per-stage latency percentiles and throughput at exit.
     #[arg(long)]
     pub profile: bool,
-    /// With --config: write into an output folder that already holds sweep
-    /// maps, replacing them (the demo always replaces its own).
+    /// Replace an existing --record file; with --config, also write into an
+    /// output folder that already holds sweep maps, replacing them (the
+    /// demo always replaces its own maps).
     #[arg(long)]
     pub force: bool,
     /// Record what the line sees (raw frames, pairing, filter events,
@@ -295,6 +296,9 @@ pub(crate) fn rig_and_calibration(args: &RunArgs) -> anyhow::Result<(Rig, Mode, 
 
 /// Run `irid run`.
 pub fn run(args: &RunArgs) -> anyhow::Result<()> {
+    if let Some(p) = &args.record {
+        super::record::refuse_existing(p, args.force)?;
+    }
     let (profile, _chrome_guard) = init_tracing(args.trace.as_ref(), args.profile)?;
     // The first Ctrl-C stops cleanly; a second ends the process at once,
     // even if a stage is stuck (e.g. waiting on the controller).
