@@ -182,6 +182,22 @@ fn replay_writes_png_previews_when_asked() {
     ]);
     let maps = sweep_files(&replay);
     assert!(!maps.is_empty(), "no sweep mapped");
+    // A second replay into the same folder keeps the first's maps unless
+    // --force.
+    let first = std::fs::read(&maps[0]).unwrap();
+    let again = irid(&["replay", s(&rec), "--single-thread", "--out", s(&replay)]);
+    let err = String::from_utf8_lossy(&again.stderr);
+    assert!(!again.status.success() && err.contains("--force"), "{err}");
+    assert_eq!(std::fs::read(&maps[0]).unwrap(), first);
+    ok(&[
+        "replay",
+        s(&rec),
+        "--png",
+        "--single-thread",
+        "--force",
+        "--out",
+        s(&replay),
+    ]);
     for map in &maps {
         let png = map.with_extension("png");
         let bytes = std::fs::read(&png)

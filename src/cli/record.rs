@@ -162,6 +162,10 @@ pub struct ReplayArgs {
     /// reason) beside each sweep's map.
     #[arg(long, conflicts_with = "no_maps")]
     pub png: bool,
+    /// Write into an output folder that already holds sweep maps,
+    /// replacing them.
+    #[arg(long)]
+    pub force: bool,
     /// Solver mode (default: the recorded run's).
     #[arg(long, value_enum)]
     pub mode: Option<Mode>,
@@ -242,6 +246,9 @@ fn replay_sink(args: &ReplayArgs) -> anyhow::Result<CliSink> {
     } else {
         std::fs::create_dir_all(&args.out)
             .with_context(|| format!("creating {}", args.out.display()))?;
+        if !args.force {
+            crate::pipeline::output::refuse_earlier_maps(&args.out)?;
+        }
         Some(args.out.clone())
     };
     Ok(CliSink {
