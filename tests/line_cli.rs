@@ -43,3 +43,25 @@ fn web_demo_prints_the_limit_streams_json_and_alarms_on_the_defect() {
     let files = std::fs::read_dir(dir.path().join("line")).unwrap().count();
     assert_eq!(files, segments);
 }
+
+/// Static-pipeline options the web does not have yet are refused with
+/// their names, and nothing is written.
+#[test]
+fn web_mode_refuses_what_it_cannot_do() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join("web.mcap");
+    let out = Command::new(env!("CARGO_BIN_EXE_irid"))
+        .args(["run", "--scene", "web", "--sweeps", "1", "--png", "--record"])
+        .arg(&rec)
+        .arg("--out")
+        .arg(dir.path().join("out"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("--record, --png") && stderr.contains("does not support"),
+        "{stderr}"
+    );
+    assert!(!rec.exists() && !dir.path().join("out").exists());
+}

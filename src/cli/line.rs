@@ -28,6 +28,23 @@ pub fn wants_web(args: &RunArgs) -> bool {
 
 /// Run the moving-web demo.
 pub fn run(args: &RunArgs, stop: &AtomicBool) -> anyhow::Result<()> {
+    // Options of the static pipeline the moving web does not have yet:
+    // refused, never silently ignored (a recording asked for and not made
+    // is lost data).
+    let missing: Vec<&str> = [
+        (args.record.is_some(), "--record"),
+        (args.serve.is_some(), "--serve"),
+        (args.png, "--png"),
+    ]
+    .into_iter()
+    .filter_map(|(asked, name)| asked.then_some(name))
+    .collect();
+    if !missing.is_empty() {
+        anyhow::bail!(
+            "the moving web (--scene web) does not support {} yet; the static scene does",
+            missing.join(", ")
+        );
+    }
     let rig = match args.scene.as_deref() {
         Some(p) if p != Path::new("web") => WebRig::load(p)?,
         _ => WebRig::demo()?,
