@@ -51,7 +51,9 @@ fn web_mode_refuses_what_it_cannot_do() {
     let dir = tempfile::tempdir().unwrap();
     let rec = dir.path().join("web.mcap");
     let out = Command::new(env!("CARGO_BIN_EXE_irid"))
-        .args(["run", "--scene", "web", "--sweeps", "1", "--png", "--record"])
+        .args([
+            "run", "--scene", "web", "--sweeps", "1", "--png", "--record",
+        ])
         .arg(&rec)
         .arg("--out")
         .arg(dir.path().join("out"))
