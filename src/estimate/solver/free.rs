@@ -200,24 +200,28 @@ impl Solver {
             // open.
             let rms = (sse_at(deg_j, fringes.fit.d, &mut trial) / n_ok as f64).sqrt();
             let mut fit = fringes.fit;
-            if fit.ambiguous {
-                if let Some((d, sigma)) =
-                    self.resolve_orders(prep, theta, &fringes, &u, scratch, &mut trial)
-                {
-                    (fit.d, fit.sigma, fit.ambiguous) = (d, sigma, false);
+            if fit.ambiguous || fit.n_extrema <= fringes::MAX_CANDIDATES {
+                let shape = ShapeFit::new(prep, theta, &fringes, &u, scratch);
+                if fit.ambiguous {
+                    if let Some((d, sigma)) = self.resolve_orders(&shape, &mut trial) {
+                        (fit.d, fit.sigma, fit.ambiguous) = (d, sigma, false);
+                    }
                 }
-            }
-            if !fit.ambiguous
-                && self.thinner_film_fits(prep, theta, &fringes, &u, scratch, &mut trial, fit.d)
-            {
-                fit.ambiguous = true;
+                if !fit.ambiguous && self.thinner_film_fits(&shape, &mut trial, fit.d) {
+                    fit.ambiguous = true;
+                }
             }
             scratch.trial = trial;
             return self.fringe_estimate(prep, &fit, theta, rms);
         }
         // A thinner film explains the shape as well: the extrema found may
         // not be this film's fringes.
-        let thinner = self.thinner_film_fits(prep, theta, &fringes, &u, scratch, &mut trial, d);
+        let thinner = fringes.fit.n_extrema <= fringes::MAX_CANDIDATES
+            && self.thinner_film_fits(
+                &ShapeFit::new(prep, theta, &fringes, &u, scratch),
+                &mut trial,
+                d,
+            );
         scratch.trial = trial;
         let mut reason = Reason::Ok;
         // Another fringe order about as good: ambiguous.
@@ -345,13 +349,10 @@ impl Solver {
     /// [`RESOLVE_CHI2`]; `None` otherwise — the pixel stays ambiguous.
     fn resolve_orders(
         &self,
-        prep: &Prepared,
-        theta: f64,
-        f: &PixelFringes,
-        u: &[f64],
-        scratch: &Scratch,
+        shape: &ShapeFit,
         trial: &mut crate::estimate::model::ModelOut,
     ) -> Option<(f64, f64)> {
+        let f = shape.fringes;
         let cands: Vec<(f64, f64)> = f
             .fit
             .candidates
@@ -362,10 +363,8 @@ impl Solver {
         if cands.len() < 2 {
             return None;
         }
-        let w = f.weights(scratch);
-        let n_ok = w.iter().filter(|&&w| w > 0.0).count();
-        let y = &scratch.spectrum;
-        let mut sse_at = |d: f64, curved: bool| shape_sse(prep, theta, y, &w, u, trial, d, curved);
+        let n_ok = shape.n_ok;
+        let mut sse_at = |d: f64, curved: bool| shape.sse(trial, d, curved);
         let half_order = 1.0 / (8.0 * f.x_mean);
         let sse = self.candidate_minima(&cands, half_order, &mut |d| sse_at(d, false));
         let birge = (sse[0].0 / n_ok.saturating_sub(5).max(1) as f64).max(1.0);
@@ -414,11 +413,10 @@ impl Solver {
         // The answer must not hinge on the envelope: with a constant
         // offset instead of a sloped one, the minimum near it must stay
         // within σ (the difference then joins σ).
-        let w_ref = &w;
         let mut flat_at = |d: f64| {
-            prep.model.eval(d, theta, trial, false);
-            let r = &trial.r;
-            match fringes::weighted_lsq::<3>(y, w_ref, |k| [1.0, r[k], r[k] * u[k]]) {
+            shape.prep.model.eval(d, shape.theta, trial, false);
+            let (r, u) = (&trial.r, shape.u);
+            match fringes::weighted_lsq::<3>(shape.y, &shape.w, |k| [1.0, r[k], r[k] * u[k]]) {
                 Some((sse, c)) if c[1] > 0.0 => sse,
                 _ => f64::INFINITY,
             }
@@ -479,23 +477,16 @@ impl Solver {
     /// where at most [`MAX_CANDIDATES`](fringes::MAX_CANDIDATES) extrema
     /// were found: more, standing out of the noise and spaced as one
     /// film's fringes, no single hump can mimic.
-    #[allow(clippy::too_many_arguments)] // the pixel's fit state, as resolve_orders
     fn thinner_film_fits(
         &self,
-        prep: &Prepared,
-        theta: f64,
-        f: &PixelFringes,
-        u: &[f64],
-        scratch: &Scratch,
+        shape: &ShapeFit,
         trial: &mut crate::estimate::model::ModelOut,
         d: f64,
     ) -> bool {
+        let (f, n_ok) = (shape.fringes, shape.n_ok);
         if f.fit.n_extrema > fringes::MAX_CANDIDATES {
             return false;
         }
-        let w = f.weights(scratch);
-        let n_ok = w.iter().filter(|&&w| w > 0.0).count();
-        let y = &scratch.spectrum;
         let step_d = 1.0 / (4.0 * f.x_mean);
         // Two whole orders span the band from here up.
         let (x_lo, x_hi, _) = f.x_range;
@@ -509,7 +500,7 @@ impl Solver {
         // With a straight scale, and with one that may curve (a lamp's
         // bump): the thin film must lose by the margin under both.
         [false, true].into_iter().any(|curved| {
-            let mut sse_at = |d: f64| shape_sse(prep, theta, y, &w, u, trial, d, curved);
+            let mut sse_at = |d: f64| shape.sse(trial, d, curved);
             let (_, here) = golden(
                 (d - 0.5 * step_d).max(self.d_min),
                 (d + 0.5 * step_d).min(self.d_max),
@@ -565,34 +556,60 @@ impl Solver {
     }
 }
 
-/// Weighted residual sum of squares of the shape model
-/// `y ≈ (a₀ + a₁u) + R(d)·(c₀ + c₁u [+ c₂u²])` at thickness `d` (the
-/// scale `curved` or not); infinite where the scale is not positive
-/// mid-band (a negative one turns maxima into minima: the neighbouring
-/// order) or the fit is singular.
-#[allow(clippy::too_many_arguments)] // one model evaluation's inputs
-fn shape_sse(
-    prep: &Prepared,
+/// One pixel's spectrum, weights and fringe analysis, for the shape model
+/// `y ≈ (a₀ + a₁u) + R(d)·(c₀ + c₁u [+ c₂u²])` that settles the fringe
+/// order where the positions leave it open.
+struct ShapeFit<'a> {
+    prep: &'a Prepared,
     theta: f64,
-    y: &[f64],
-    w: &[f64],
-    u: &[f64],
-    trial: &mut crate::estimate::model::ModelOut,
-    d: f64,
-    curved: bool,
-) -> f64 {
-    prep.model.eval(d, theta, trial, false);
-    let r = &trial.r;
-    let fit = if curved {
-        fringes::weighted_lsq::<5>(y, w, |k| [1.0, u[k], r[k], r[k] * u[k], r[k] * u[k] * u[k]])
-            .map(|(sse, c)| (sse, c[2] > 0.0))
-    } else {
-        fringes::weighted_lsq::<4>(y, w, |k| [1.0, u[k], r[k], r[k] * u[k]])
-            .map(|(sse, c)| (sse, c[2] > 0.0))
-    };
-    match fit {
-        Some((sse, true)) => sse,
-        _ => f64::INFINITY,
+    fringes: &'a PixelFringes,
+    y: &'a [f64],
+    /// Each band's weight, the inverse of its noise variance.
+    w: Vec<f64>,
+    u: &'a [f64],
+    /// Bands with a weight.
+    n_ok: usize,
+}
+
+impl<'a> ShapeFit<'a> {
+    fn new(
+        prep: &'a Prepared,
+        theta: f64,
+        fringes: &'a PixelFringes,
+        u: &'a [f64],
+        scratch: &'a Scratch,
+    ) -> ShapeFit<'a> {
+        let w = fringes.weights(scratch);
+        let n_ok = w.iter().filter(|&&w| w > 0.0).count();
+        ShapeFit {
+            prep,
+            theta,
+            fringes,
+            y: &scratch.spectrum,
+            w,
+            u,
+            n_ok,
+        }
+    }
+
+    /// Weighted residual sum of squares of the shape model at thickness
+    /// `d` (the scale `curved` or not); infinite where the scale is not
+    /// positive mid-band (a negative one turns maxima into minima: the
+    /// neighbouring order) or the fit is singular.
+    fn sse(&self, trial: &mut crate::estimate::model::ModelOut, d: f64, curved: bool) -> f64 {
+        self.prep.model.eval(d, self.theta, trial, false);
+        let (r, u, y, w) = (&trial.r, self.u, self.y, &self.w);
+        let fit = if curved {
+            fringes::weighted_lsq::<5>(y, w, |k| [1.0, u[k], r[k], r[k] * u[k], r[k] * u[k] * u[k]])
+                .map(|(sse, c)| (sse, c[2] > 0.0))
+        } else {
+            fringes::weighted_lsq::<4>(y, w, |k| [1.0, u[k], r[k], r[k] * u[k]])
+                .map(|(sse, c)| (sse, c[2] > 0.0))
+        };
+        match fit {
+            Some((sse, true)) => sse,
+            _ => f64::INFINITY,
+        }
     }
 }
 
