@@ -13,6 +13,7 @@
 //! of a band is the weighted sum over its nodes.
 
 mod node;
+mod real;
 
 use super::fastmath::{sin_cos, sin_cos_bounded};
 use crate::optics::airy;
@@ -21,6 +22,7 @@ use crate::optics::dispersion::Dispersion;
 use crate::optics::{Complex64, Media, Polarization};
 use multiversion::multiversion;
 use node::NodeCoef;
+use real::{real_nodes_kernel, RealArgs, RealNodes};
 use std::f64::consts::PI;
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -176,6 +178,7 @@ fn uniform_kernel(w: &[f64], a: UniformArgs, r: &mut [f64], dd: &mut [f64], dth:
 /// Sine and cosine of an angle and of the angle one [`THETA_STEP`] beyond.
 #[derive(Clone, Copy, Debug)]
 struct AngleAt {
+    theta: f64,
     s: f64,
     c: f64,
     sh: f64,
@@ -186,7 +189,13 @@ impl AngleAt {
     fn new(theta: f64) -> Self {
         let (s, c) = sin_cos(theta);
         let (sh, ch) = sin_cos(theta + THETA_STEP);
-        AngleAt { s, c, sh, ch }
+        AngleAt {
+            theta,
+            s,
+            c,
+            sh,
+            ch,
+        }
     }
 }
 
@@ -235,6 +244,48 @@ impl Coeffs {
     }
 }
 
+/// The largest change of any reflectance for which a substrate's
+/// absorption is neglected: a fiftieth of the lowest noise level irid
+/// accepts (1e-4), a fifth of the thickness tables' interpolation
+/// tolerance. (A PET web, k ≈ 2e-6, changes R by up to ~7e-7.)
+const LOSSLESS_TOL: f64 = 2e-6;
+
+/// Whether dropping the substrate's extinction at this node changes the
+/// reflectance of either polarisation by less than [`LOSSLESS_TOL`], at
+/// every film phase (eight per period: the substrate's loss enters only
+/// through the film/substrate coefficient, not the phase) and angle (ten,
+/// from normal incidence to 88°), with a margin for what lies
+/// between the samples (twice the largest sampled change must stay within
+/// it). Always false for a film or ambient that absorbs.
+fn substrate_loss_negligible(n: &Node) -> bool {
+    let lossy = Media {
+        n1: n.n1,
+        n2: n.n2,
+        n3: n.n3,
+    };
+    let lossless = Media {
+        n3: Complex64::new(n.n3.re, 0.0),
+        ..lossy
+    };
+    for deg in [0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0, 80.0, 88.0f64] {
+        let th = deg.to_radians();
+        let q2 = airy::normal_component(n.n2, n.n1 * th.sin()).re;
+        if !(q2 > 0.0) {
+            return false;
+        }
+        for i in 0..8 {
+            let phase = (i as f64 + 0.5) * PI / 4.0;
+            let d = phase / (n.w * q2);
+            let a = airy::reflectance_sp(lossy, d, th, n.lambda);
+            let b = airy::reflectance_sp(lossless, d, th, n.lambda);
+            if (a.0 - b.0).abs().max((a.1 - b.1).abs()) * 2.0 > LOSSLESS_TOL {
+                return false;
+            }
+        }
+    }
+    true
+}
+
 /// Identity of each built model, so a scratch's cached coefficients are
 /// never reused for another model.
 static NEXT_MODEL_ID: AtomicU64 = AtomicU64::new(1);
@@ -271,6 +322,9 @@ pub struct FilmModel {
     real: bool,
     /// Every node has the same indices (no dispersion).
     uniform: bool,
+    /// The real path's per-node constants where the media are lossless
+    /// but disperse (empty otherwise).
+    real_nodes: RealNodes,
     s_weight: f64,
     /// Film index at the middle band (real part).
     n2_mid: f64,
@@ -292,6 +346,9 @@ pub struct ModelOut {
     coef: Vec<NodeCoef>,
     /// `(model id, angle bits)` the coefficients belong to.
     coef_key: (u64, u64),
+    /// Per-node values of the real dispersive path where a band has
+    /// several nodes (sized on first use).
+    node: [Vec<f64>; 3],
 }
 
 impl ModelOut {
@@ -303,6 +360,7 @@ impl ModelOut {
             dr_dth: vec![0.0; n],
             coef: Vec::new(),
             coef_key: (0, 0),
+            node: Default::default(),
         }
     }
 }
@@ -318,7 +376,7 @@ impl FilmModel {
         pol: Polarization,
         integrate: &[bool],
     ) -> Result<FilmModel, (&'static str, crate::optics::dispersion::OpticsError)> {
-        let mut nodes = Vec::new();
+        let mut nodes: Vec<Node> = Vec::new();
         for (i, band) in bands.iter().enumerate() {
             let pts: Vec<(f64, f64)> =
                 if integrate.get(i).copied().unwrap_or(false) && band.fwhm_nm > 0.0 {
@@ -338,6 +396,17 @@ impl FilmModel {
                 });
             }
         }
+        // A substrate whose absorption changes no reflectance by more than
+        // LOSSLESS_TOL (e.g. a polymer web, k ~ 1e-6) is taken as lossless:
+        // the exact real path then applies.
+        if nodes.iter().all(|n| n.n1.im == 0.0 && n.n2.im == 0.0)
+            && nodes.iter().any(|n| n.n3.im != 0.0)
+            && nodes.iter().all(substrate_loss_negligible)
+        {
+            for n in &mut nodes {
+                n.n3 = Complex64::new(n.n3.re, 0.0);
+            }
+        }
         let real = nodes
             .iter()
             .all(|n| n.n1.im == 0.0 && n.n2.im == 0.0 && n.n3.im == 0.0);
@@ -353,7 +422,13 @@ impl FilmModel {
             .iter()
             .map(|n| (n.n2.re / n.n1.re).min(n.n3.re / n.n1.re))
             .fold(f64::INFINITY, f64::min);
+        let real_nodes = if real && !uniform {
+            RealNodes::new(&nodes)
+        } else {
+            RealNodes::default()
+        };
         Ok(FilmModel {
+            real_nodes,
             grid: Default::default(),
             misses: Default::default(),
             id: NEXT_MODEL_ID.fetch_add(1, Ordering::Relaxed),
@@ -440,6 +515,10 @@ impl FilmModel {
         if real && self.uniform && self.nodes.len() == self.n_bands {
             // Overwrites every band: no clearing needed.
             self.eval_real_uniform(d, &a, out, with_derivative);
+            return;
+        }
+        if real && self.real_nodes.len() == self.nodes.len() {
+            self.eval_real_nodes(d, &a, out, with_derivative);
             return;
         }
         out.r[..self.n_bands].fill(0.0);
@@ -588,6 +667,54 @@ impl FilmModel {
         );
     }
 
+    /// Lossless dispersive media ([`real`]): every node exact at its own
+    /// indices, straight into the bands where each band is one node,
+    /// summed by weight where passbands are integrated.
+    fn eval_real_nodes(&self, d: f64, a: &AngleAt, out: &mut ModelOut, deriv: bool) {
+        let (sm, cm) = sin_cos(a.theta + 0.5 * THETA_STEP);
+        let args = RealArgs {
+            s: a.s,
+            c: a.c,
+            sm,
+            cm,
+            d,
+            ws: self.s_weight,
+            deriv,
+        };
+        let nb = self.n_bands;
+        if self.nodes.len() == nb && self.nodes.iter().enumerate().all(|(i, n)| n.band == i) {
+            let ModelOut {
+                r, dr_dd, dr_dth, ..
+            } = out;
+            real_nodes_kernel(
+                &self.real_nodes,
+                args,
+                &mut r[..nb],
+                &mut dr_dd[..nb],
+                &mut dr_dth[..nb],
+            );
+            return;
+        }
+        let nn = self.nodes.len();
+        for v in &mut out.node {
+            v.resize(nn, 0.0);
+        }
+        let [nr, ndd, ndth] = &mut out.node;
+        real_nodes_kernel(&self.real_nodes, args, nr, ndd, ndth);
+        out.r[..nb].fill(0.0);
+        if deriv {
+            out.dr_dd[..nb].fill(0.0);
+            out.dr_dth[..nb].fill(0.0);
+        }
+        for (i, n) in self.nodes.iter().enumerate() {
+            out.r[n.band] += n.weight * nr[i];
+            if deriv {
+                out.dr_dd[n.band] += n.weight * ndd[i];
+                out.dr_dth[n.band] += n.weight * ndth[i];
+            }
+        }
+    }
+
     /// The complex Airy summation per node: the reference the other paths
     /// are tested against.
     #[cfg(test)]
@@ -693,6 +820,108 @@ mod tests {
             for k in 0..31 {
                 let fd = (out2.r[k] - lo.r[k]) / 2e-4;
                 assert!((fd - out.dr_dth[k]).abs() < 1e-5, "{fd} {}", out.dr_dth[k]);
+            }
+        }
+    }
+
+    /// The real dispersive path against the complex Airy sum (a second
+    /// formulation): dispersive film and substrate, each polarisation,
+    /// point-sampled and integrated passbands, from normal incidence to
+    /// near the film's critical angle; dR/dd and dR/dθ against central
+    /// differences of the Airy sum.
+    #[test]
+    fn real_dispersive_path_matches_the_airy_sum() {
+        // λ in µm: n_film 1.475 → 1.467, n_sub 1.656 → 1.605 over the band.
+        let film = Dispersion::cauchy(1.46, 0.0036, 0.0, 0.0).unwrap();
+        let sub = Dispersion::cauchy(1.58, 0.0090, 1e-3, 0.0).unwrap();
+        let mut wide = bands();
+        for b in &mut wide {
+            b.fwhm_nm = 12.0;
+        }
+        for (bs, integrate) in [(bands(), false), (wide, true)] {
+            for pol in [Polarization::S, Polarization::P, Polarization::Unpolarized] {
+                let m = FilmModel::new(
+                    &bs,
+                    &Dispersion::constant(1.0),
+                    &film,
+                    &sub,
+                    pol,
+                    &[integrate; 31],
+                )
+                .unwrap();
+                assert_eq!(m.real_nodes.len(), m.nodes.len(), "the real path applies");
+                let mut out = ModelOut::new(31);
+                let (mut refr, mut hi, mut lo) =
+                    (ModelOut::new(31), ModelOut::new(31), ModelOut::new(31));
+                for (d, deg) in [(87.0, 0.0), (487.0, 12.5), (1312.0, 45.0), (3001.0, 80.0)] {
+                    let th = f64::to_radians(deg);
+                    m.eval(d, th, &mut out, true);
+                    refr.r.fill(0.0);
+                    m.eval_complex(d, th, &mut refr, false);
+                    for k in 0..31 {
+                        assert!((out.r[k] - refr.r[k]).abs() < 1e-13, "{deg}° band {k}");
+                    }
+                    let (e_d, e_t) = (1e-4, 1e-5);
+                    for (step, analytic, scale) in [
+                        ((e_d, 0.0), &out.dr_dd, 1e-7),
+                        ((0.0, e_t), &out.dr_dth, 1e-6),
+                    ] {
+                        hi.r.fill(0.0);
+                        lo.r.fill(0.0);
+                        m.eval_complex(d + step.0, th + step.1, &mut hi, false);
+                        m.eval_complex(d - step.0, (th - step.1).abs(), &mut lo, false);
+                        let h = 2.0 * (step.0 + step.1);
+                        for k in 0..31 {
+                            let fd = (hi.r[k] - lo.r[k]) / h;
+                            assert!(
+                                (fd - analytic[k]).abs() < scale * (1.0 + fd.abs()) * 10.0,
+                                "{pol:?} {deg}° band {k}: {fd} vs {}",
+                                analytic[k]
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// A substrate that barely absorbs (a polymer web, k ~ 1e-6) is taken
+    /// as lossless — the real path, within 1e-6 of the complex Airy sum
+    /// with its absorption — and one that absorbs (k = 0.01) is not.
+    #[test]
+    fn a_barely_absorbing_substrate_takes_the_real_path() {
+        let film = Dispersion::cauchy(1.46, 0.0036, 0.0, 0.0).unwrap();
+        for (k, real) in [(2e-6, true), (0.01, false)] {
+            let sub = Dispersion::cauchy(1.58, 0.0090, 1e-3, k).unwrap();
+            let m = FilmModel::new(
+                &bands(),
+                &Dispersion::constant(1.0),
+                &film,
+                &sub,
+                Polarization::Unpolarized,
+                &[false; 31],
+            )
+            .unwrap();
+            assert_eq!(m.real, real, "k = {k}");
+            let mut out = ModelOut::new(31);
+            for (d, deg) in [(150.0, 5.0), (777.0, 45.0), (4000.0, 75.0)] {
+                let th = f64::to_radians(deg);
+                m.eval(d, th, &mut out, false);
+                for (kb, band) in bands().iter().enumerate() {
+                    let media = Media {
+                        n1: Complex64::new(1.0, 0.0),
+                        n2: film.index_at(band.center_nm).unwrap(),
+                        n3: sub.index_at(band.center_nm).unwrap(),
+                    };
+                    let exact =
+                        airy::reflectance(media, d, th, band.center_nm, Polarization::Unpolarized);
+                    let tol = if real { LOSSLESS_TOL / 2.0 } else { 1e-8 };
+                    assert!(
+                        (out.r[kb] - exact).abs() < tol,
+                        "k {k} {deg}°: {} vs {exact}",
+                        out.r[kb]
+                    );
+                }
             }
         }
     }
