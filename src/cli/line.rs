@@ -70,7 +70,7 @@ pub fn run(args: &RunArgs, stop: &AtomicBool) -> anyhow::Result<()> {
     if let Some(d) = &out_dir {
         std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
     }
-    let mut pubs: Vec<Box<dyn Publisher>> = vec![Box::new(JsonLines(std::io::stdout()))];
+    let mut pubs: Vec<Box<dyn Publisher + Send>> = vec![Box::new(JsonLines(std::io::stdout()))];
     if let Some(addr) = &rig.file.line.mqtt {
         let (host, port) = addr
             .rsplit_once(':')

@@ -1,0 +1,107 @@
+//! The row stage: finished web rows → solved rows → the row sink, with the
+//! latency of every row measured from the read of the frame that finished
+//! it to the moment the sink returned from it.
+//!
+//! The same stage runs inline (in the capture loop) or on its own thread
+//! behind a bounded channel ([`super::run::Threading`]); it sees the same
+//! rows in the same order either way, so the emitted rows are identical.
+//! On its thread it takes every batch waiting at once and solves their
+//! rows together in parallel (each row by one thread, results in web
+//! order), which is how it catches up after a slow moment.
+
+use super::accumulate::FinishedRow;
+use super::run::WebRowSink;
+use super::solve::RowSolver;
+use std::time::Instant;
+
+/// The rows one frame finished, with the moment that frame was read.
+pub(super) struct Batch {
+    /// Finished rows, in web order.
+    pub rows: Vec<FinishedRow>,
+    /// When the frame that finished them was read from the camera.
+    pub t_read: Instant,
+}
+
+/// What the row stage did.
+#[derive(Clone, Copy, Debug, Default)]
+pub(super) struct StageReport {
+    /// Rows handed to the sink.
+    pub rows_emitted: u64,
+    /// Sum, count and largest of the row latencies, ms.
+    pub latency_sum_ms: f64,
+    /// Rows whose latency was measured (complete rows after the warm-up).
+    pub latency_n: u64,
+    /// Largest latency, ms.
+    pub latency_max_ms: f64,
+}
+
+/// Solves rows and hands them to the sink.
+pub(super) struct RowStage<'s> {
+    solver: RowSolver,
+    sink: &'s mut (dyn WebRowSink + Send),
+    report: StageReport,
+    rows: Vec<FinishedRow>,
+    reads: Vec<Instant>,
+}
+
+impl<'s> RowStage<'s> {
+    pub fn new(solver: RowSolver, sink: &'s mut (dyn WebRowSink + Send)) -> RowStage<'s> {
+        RowStage {
+            solver,
+            sink,
+            report: StageReport::default(),
+            rows: Vec::new(),
+            reads: Vec::new(),
+        }
+    }
+
+    /// Solve and emit the rows of `batches` (in order); finished rows'
+    /// buffers go to `recycle`.
+    pub fn push(
+        &mut self,
+        batches: &mut Vec<Batch>,
+        recycle: &mut dyn FnMut(FinishedRow),
+    ) -> Result<(), String> {
+        for b in batches.drain(..) {
+            self.reads.extend(std::iter::repeat(b.t_read).take(b.rows.len()));
+            self.rows.extend(b.rows);
+        }
+        if self.rows.is_empty() {
+            return Ok(());
+        }
+        // Before the noise level is known, rows wait (warm-up) and come out
+        // later, not one for one: their latency is not measured.
+        let was_ready = self.solver.ready();
+        let mut solved = Vec::with_capacity(self.rows.len());
+        self.solver.push_all(&mut self.rows, &mut |out, buf| {
+            solved.push(out);
+            recycle(buf);
+        });
+        let mut reads = std::mem::take(&mut self.reads).into_iter();
+        for row in solved {
+            let t_read = reads.next();
+            self.sink.on_row(&row)?;
+            self.report.rows_emitted += 1;
+            if let (true, true, Some(t)) = (was_ready, row.complete, t_read) {
+                let l = t.elapsed().as_secs_f64() * 1e3;
+                self.report.latency_sum_ms += l;
+                self.report.latency_n += 1;
+                self.report.latency_max_ms = self.report.latency_max_ms.max(l);
+            }
+        }
+        Ok(())
+    }
+
+    /// The run ended: solve the rows still waiting for the warm-up, emit
+    /// them, finish the sink.
+    pub fn finish(mut self) -> Result<StageReport, String> {
+        let mut solved = Vec::new();
+        self.solver.flush(&mut |out, _| solved.push(out));
+        for row in solved {
+            self.sink.on_row(&row)?;
+            self.report.rows_emitted += 1;
+        }
+        self.sink.finish()?;
+        Ok(self.report)
+    }
+}
