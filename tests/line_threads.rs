@@ -108,7 +108,10 @@ fn threaded_runner_emits_what_the_inline_runner_emits() {
     let strip = |r: &LineReport| LineReport {
         latency_ms_max: 0.0,
         latency_ms_mean: 0.0,
+        latency_ms_p99: 0.0,
         capture_waits: 0,
+        warmup_wait_rows: 0,
+        warmup_wait_ms_max: 0.0,
         ..r.clone()
     };
     assert_eq!(strip(&reference.rep), strip(&threaded.rep));

@@ -6,7 +6,7 @@
 //! Threads ([`Threading::Split`], the default):
 //!
 //! ```text
-//!  capture + calibrate + register + accumulate ──bounded(64 frames) rows──▶ solve + sink (stats, alarms)
+//!  capture + calibrate + register + accumulate ──bounded(16 frames) rows──▶ solve + sink (stats, alarms)
 //!          ▲ ◀────────────── bounded free row buffers ──────────────────────┘        │ bounded(segments)
 //!                                                       EXR segment writer + publishers ◀┘ (super::output)
 //! ```
@@ -15,7 +15,7 @@
 //! [`Threading::Inline`] (every stage in the capture loop), and each row is
 //! solved by one thread, so the rows, segments and alarms do not depend on
 //! the threading or the thread count (tested). Backpressure: when the row
-//! thread is 64 frames' rows behind, capture waits for it (counted in
+//! thread is 16 frames' rows behind, capture waits for it (counted in
 //! [`LineReport::capture_waits`]); a real camera loses frames meanwhile,
 //! which are counted as dropped and whose rows come out flagged "missing
 //! bands". Memory stays bounded either way.
@@ -31,7 +31,9 @@
 //! written by the output's own thread and are not on this path). It
 //! includes calibration, accumulation, any wait in the queue to the row
 //! thread, solving and the sink. Rows of the warm-up are not counted (they
-//! wait for the noise level, see [`super::solve`]).
+//! wait for the noise level, see [`super::solve`]), nor rows read while the
+//! warm-up was being solved (they wait for it): those are reported apart
+//! ([`LineReport::warmup_wait_rows`], [`LineReport::warmup_wait_ms_max`]).
 
 use super::accumulate::{Accumulator, RowCounts};
 use super::geometry::{first_row, LineGeometry, Motion, Registration};
@@ -129,10 +131,19 @@ pub struct LineReport {
     pub band_rate_hz: f64,
     /// Measured web speed, rows per second of frame time.
     pub speed_rows_per_s: f64,
-    /// Largest latency of a row after its last band, ms (warm-up excluded).
+    /// Largest latency of a row after its last band, ms: from the return
+    /// of the camera's read of the frame that brought the row's last band
+    /// to the return of the sink from the row (warm-up excluded).
     pub latency_ms_max: f64,
     /// Mean of that latency, ms.
     pub latency_ms_mean: f64,
+    /// 99th percentile of that latency, ms (to the 1 ms bin above).
+    pub latency_ms_p99: f64,
+    /// Complete rows read while the warm-up's rows were being solved: they
+    /// waited for that one-off start-up work and are counted apart.
+    pub warmup_wait_rows: u64,
+    /// The largest latency among them, ms.
+    pub warmup_wait_ms_max: f64,
     /// Frames whose finished rows found the row thread's queue full: the
     /// capture waited for the solver (a real camera loses frames meanwhile,
     /// counted in `frames_dropped`; rows that miss a band are flagged).
@@ -156,7 +167,7 @@ pub enum Threading {
 
 /// Frames' worth of finished rows the solve thread may have waiting before
 /// capture waits for it.
-const ROW_QUEUE_FRAMES: usize = 64;
+const ROW_QUEUE_FRAMES: usize = 16;
 
 enum Msg {
     Rows(Batch),
@@ -261,6 +272,9 @@ impl Front<'_> {
         }
         rep.rows_emitted = stage.rows_emitted;
         rep.latency_ms_max = stage.latency_max_ms;
+        rep.latency_ms_p99 = stage.latency_hist.quantile(0.99);
+        rep.warmup_wait_rows = stage.warmup_wait_rows;
+        rep.warmup_wait_ms_max = stage.warmup_wait_max_ms;
         rep.latency_ms_mean = if stage.latency_n > 0 {
             stage.latency_sum_ms / stage.latency_n as f64
         } else {

@@ -22,8 +22,43 @@ pub(super) struct Batch {
     pub t_read: Instant,
 }
 
+/// Row latencies in 1 ms bins (the last bin: 2 s and more): percentiles
+/// of a run of any length in fixed memory.
+#[derive(Clone, Debug)]
+pub(super) struct Histogram(Vec<u64>);
+
+impl Default for Histogram {
+    fn default() -> Self {
+        Histogram(vec![0; 2001])
+    }
+}
+
+impl Histogram {
+    fn add(&mut self, ms: f64) {
+        let i = (ms.max(0.0) as usize).min(self.0.len() - 1);
+        self.0[i] += 1;
+    }
+
+    /// The upper edge of the bin holding the `q` quantile, ms (0: empty).
+    pub fn quantile(&self, q: f64) -> f64 {
+        let n: u64 = self.0.iter().sum();
+        if n == 0 {
+            return 0.0;
+        }
+        let want = ((q * n as f64).ceil() as u64).clamp(1, n);
+        let mut seen = 0;
+        for (i, c) in self.0.iter().enumerate() {
+            seen += c;
+            if seen >= want {
+                return (i + 1) as f64;
+            }
+        }
+        self.0.len() as f64
+    }
+}
+
 /// What the row stage did.
-#[derive(Clone, Copy, Debug, Default)]
+#[derive(Clone, Debug, Default)]
 pub(super) struct StageReport {
     /// Rows handed to the sink.
     pub rows_emitted: u64,
@@ -33,6 +68,13 @@ pub(super) struct StageReport {
     pub latency_n: u64,
     /// Largest latency, ms.
     pub latency_max_ms: f64,
+    /// Their distribution.
+    pub latency_hist: Histogram,
+    /// Complete rows whose last frame was read while the warm-up was being
+    /// solved (they waited for it; not in the latency above).
+    pub warmup_wait_rows: u64,
+    /// Largest latency among them, ms.
+    pub warmup_wait_max_ms: f64,
 }
 
 /// Solves rows and hands them to the sink.
@@ -42,6 +84,8 @@ pub(super) struct RowStage<'s> {
     report: StageReport,
     rows: Vec<FinishedRow>,
     reads: Vec<Instant>,
+    /// When the rows waiting for the warm-up had been solved.
+    ready_at: Option<Instant>,
 }
 
 impl<'s> RowStage<'s> {
@@ -52,6 +96,7 @@ impl<'s> RowStage<'s> {
             report: StageReport::default(),
             rows: Vec::new(),
             reads: Vec::new(),
+            ready_at: None,
         }
     }
 
@@ -77,17 +122,29 @@ impl<'s> RowStage<'s> {
             solved.push(out);
             recycle(buf);
         });
+        if !was_ready && self.solver.ready() {
+            self.ready_at = Some(Instant::now());
+        }
         let mut reads = std::mem::take(&mut self.reads).into_iter();
         for row in solved {
             let t_read = reads.next();
             self.sink.on_row(&row)?;
             self.report.rows_emitted += 1;
-            if let (true, true, Some(t)) = (was_ready, row.complete, t_read) {
-                let l = t.elapsed().as_secs_f64() * 1e3;
-                self.report.latency_sum_ms += l;
-                self.report.latency_n += 1;
-                self.report.latency_max_ms = self.report.latency_max_ms.max(l);
+            let Some(t) = t_read.filter(|_| was_ready && row.complete) else {
+                continue;
+            };
+            let l = t.elapsed().as_secs_f64() * 1e3;
+            if self.ready_at.is_some_and(|r| t < r) {
+                // Read while the warm-up was being solved: it waited for
+                // the warm-up, a start-up delay reported apart.
+                self.report.warmup_wait_rows += 1;
+                self.report.warmup_wait_max_ms = self.report.warmup_wait_max_ms.max(l);
+                continue;
             }
+            self.report.latency_sum_ms += l;
+            self.report.latency_n += 1;
+            self.report.latency_max_ms = self.report.latency_max_ms.max(l);
+            self.report.latency_hist.add(l);
         }
         Ok(())
     }
@@ -103,5 +160,24 @@ impl<'s> RowStage<'s> {
         }
         self.sink.finish()?;
         Ok(self.report)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Histogram;
+
+    #[test]
+    fn quantiles_are_the_upper_edge_of_their_bin() {
+        let mut h = Histogram::default();
+        assert_eq!(h.quantile(0.99), 0.0);
+        for i in 0..100 {
+            h.add(f64::from(i) + 0.5);
+        }
+        assert_eq!(h.quantile(0.5), 50.0);
+        assert_eq!(h.quantile(0.99), 99.0);
+        assert_eq!(h.quantile(1.0), 100.0);
+        h.add(1e9);
+        assert_eq!(h.quantile(1.0), 2001.0);
     }
 }
