@@ -132,7 +132,10 @@ fn threaded_runner_emits_what_the_inline_runner_emits() {
             .map(|(t, p)| (t.clone(), p.replace(&d.display().to_string(), "DIR")))
             .collect()
     };
-    assert_eq!(norm(&reference, d_ref.path()), norm(&threaded, d_thr.path()));
+    assert_eq!(
+        norm(&reference, d_ref.path()),
+        norm(&threaded, d_thr.path())
+    );
     assert_eq!(reference.alarms, threaded.alarms);
     // Segment files: the same names, the same channels and header.
     assert!(reference.files.len() > 20);
@@ -141,7 +144,10 @@ fn threaded_runner_emits_what_the_inline_runner_emits() {
         assert_eq!(a.file_name(), b.file_name());
         let (ca, cb) = (read_channels(a).unwrap(), read_channels(b).unwrap());
         assert_eq!((ca.width, ca.height), (cb.width, cb.height));
-        assert_eq!(format!("{:?}", ca.attributes), format!("{:?}", cb.attributes));
+        assert_eq!(
+            format!("{:?}", ca.attributes),
+            format!("{:?}", cb.attributes)
+        );
         for (name, va) in &ca.channels {
             let vb = cb.channel(name).unwrap();
             assert!(

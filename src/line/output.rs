@@ -201,7 +201,10 @@ impl LineOutput {
             "file": null,
             "lanes": lanes,
         });
-        let rows = std::mem::replace(&mut self.seg, Vec::with_capacity(self.cfg.segment_rows.max(1)));
+        let rows = std::mem::replace(
+            &mut self.seg,
+            Vec::with_capacity(self.cfg.segment_rows.max(1)),
+        );
         let topic = self.topic("segment");
         self.writer.submit(Job::Segment {
             index: self.seg_index,

@@ -35,12 +35,11 @@
 //! warm-up was being solved (they wait for it): those are reported apart
 //! ([`LineReport::warmup_wait_rows`], [`LineReport::warmup_wait_ms_max`]).
 
+use super::accumulate::FinishedRow;
 use super::accumulate::{Accumulator, RowCounts};
 use super::geometry::{first_row, LineGeometry, Motion, Registration};
-use super::accumulate::FinishedRow;
 use super::solve::{RowSolver, WebRowOut};
 use super::stage::{Batch, RowStage, StageReport};
-use crossbeam_channel::{Receiver, Sender, TrySendError};
 use super::LineError;
 use crate::device::camera::{CameraError, Frame, FrameSource};
 use crate::estimate::Mode;
@@ -48,6 +47,7 @@ use crate::optics::band::Band;
 use crate::pipeline::calibration::Calibrator;
 use crate::pipeline::sequencer::{BandTuner, Discard, SeqMode, Sequencer, Verdict};
 use crate::scene::Scene;
+use crossbeam_channel::{Receiver, Sender, TrySendError};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
@@ -201,9 +201,16 @@ impl Front<'_> {
 
     /// Read and take in one frame; the rows it finished go to `finished`.
     /// `Ok(false)`: the source ended.
-    fn step(&mut self, limits: &LineLimits, finished: &mut Vec<FinishedRow>) -> Result<bool, LineError> {
+    fn step(
+        &mut self,
+        limits: &LineLimits,
+        finished: &mut Vec<FinishedRow>,
+    ) -> Result<bool, LineError> {
         let rep = &mut self.rep;
-        match self.source.next_frame(&mut self.frame, limits.frame_timeout) {
+        match self
+            .source
+            .next_frame(&mut self.frame, limits.frame_timeout)
+        {
             Ok(()) => {}
             Err(CameraError::Ended) => return Ok(false),
             Err(CameraError::BadFrame { seq, message }) => {

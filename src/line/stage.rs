@@ -108,7 +108,8 @@ impl<'s> RowStage<'s> {
         recycle: &mut dyn FnMut(FinishedRow),
     ) -> Result<(), String> {
         for b in batches.drain(..) {
-            self.reads.extend(std::iter::repeat(b.t_read).take(b.rows.len()));
+            self.reads
+                .extend(std::iter::repeat_n(b.t_read, b.rows.len()));
             self.rows.extend(b.rows);
         }
         if self.rows.is_empty() {

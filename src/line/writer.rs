@@ -174,7 +174,7 @@ impl Writer {
                     }
                     Err(TrySendError::Disconnected(_)) => Err(()),
                 };
-                sent.or_else(|()| Err(Self::stopped(failed)))
+                sent.map_err(|()| Self::stopped(failed))
             }
         }
     }
