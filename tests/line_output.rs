@@ -8,17 +8,16 @@ use irid::line::recipe::Recipe;
 use irid::line::rig::WebRig;
 use irid::line::run::{run_line, LineLimits};
 use irid::line::stats::Lanes;
-use std::cell::RefCell;
-use std::rc::Rc;
 use std::sync::atomic::AtomicBool;
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 /// Shares what a publisher got with the test.
-struct Shared(Rc<RefCell<Collected>>);
+struct Shared(Arc<Mutex<Collected>>);
 
 impl Publisher for Shared {
     fn publish(&mut self, topic: &str, payload: &str) {
-        self.0.borrow_mut().publish(topic, payload);
+        self.0.lock().unwrap().publish(topic, payload);
     }
 }
 
@@ -29,7 +28,7 @@ fn demo_recipe_alarms_on_the_defect_and_segments_round_trip() {
     let built = rig.build(rig.camera_config(), Mode::Balanced).unwrap();
     let (mut cam, mut tuner, setup) = (built.camera, built.tuner, built.setup);
     let dir = tempfile::tempdir().unwrap();
-    let got = Rc::new(RefCell::new(Collected::default()));
+    let got = Arc::new(Mutex::new(Collected::default()));
     let width = rig.file.camera.width as usize;
     let cfg = OutputConfig {
         segment_rows: 64,
@@ -73,7 +72,7 @@ fn demo_recipe_alarms_on_the_defect_and_segments_round_trip() {
     assert_eq!(cleared.len(), 1);
     assert_eq!(cleared[0].at_row, 240);
     // Messages: every segment, in order, and the two alarm events.
-    let msgs = got.borrow();
+    let msgs = got.lock().unwrap();
     let segs: Vec<serde_json::Value> = msgs
         .0
         .iter()

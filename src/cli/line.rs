@@ -70,7 +70,7 @@ pub fn run(args: &RunArgs, stop: &AtomicBool) -> anyhow::Result<()> {
     if let Some(d) = &out_dir {
         std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
     }
-    let mut pubs: Vec<Box<dyn Publisher>> = vec![Box::new(JsonLines(std::io::stdout()))];
+    let mut pubs: Vec<Box<dyn Publisher + Send>> = vec![Box::new(JsonLines(std::io::stdout()))];
     if let Some(addr) = &rig.file.line.mqtt {
         let (host, port) = addr
             .rsplit_once(':')
@@ -94,7 +94,7 @@ pub fn run(args: &RunArgs, stop: &AtomicBool) -> anyhow::Result<()> {
     let rep = run_line(&mut cam, &mut tuner, setup, &limits, &mut out, stop)?;
     eprintln!(
         "irid line: {} rows emitted ({} complete, {} missing bands, {} skipped), {} segments, {} alarm events; \
-         band rate {:.1}/s, web {:.1} rows/s; row latency after its last band: mean {:.2} ms, max {:.2} ms",
+         band rate {:.1}/s, web {:.1} rows/s; row latency after its last band: mean {:.2} ms, 99 % ≤ {:.0} ms, max {:.2} ms",
         rep.rows_emitted,
         rep.rows.complete,
         rep.rows.missing_bands,
@@ -104,7 +104,15 @@ pub fn run(args: &RunArgs, stop: &AtomicBool) -> anyhow::Result<()> {
         rep.band_rate_hz,
         rep.speed_rows_per_s,
         rep.latency_ms_mean,
+        rep.latency_ms_p99,
         rep.latency_ms_max
     );
+    if rep.capture_waits > 0 || out.output_waits() > 0 {
+        eprintln!(
+            "irid line: capture waited for the solver {} times, rows for the output worker {} times (the CPU or the disk fell behind)",
+            rep.capture_waits,
+            out.output_waits()
+        );
+    }
     Ok(())
 }

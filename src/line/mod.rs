@@ -10,10 +10,14 @@
 //!   a row is finished, in web order, as soon as it holds every band, or
 //!   when it leaves the view without them (flagged "missing bands");
 //! - [`solve`]: each finished row solved as a one-row cube;
-//! - [`run`]: the line runner (deterministic);
+//! - [`run`]: the line runner: capture on one thread, solving on another
+//!   (deterministic: the same rows as all on one thread);
+//! - `stage`: the row stage (solve, sink, latency);
 //! - [`rig`]: the synthetic line (moving-web camera, emulated filter);
 //! - [`stats`], [`recipe`], [`output`]: lane statistics, trend, Cp/Cpk,
 //!   alarms, EXR strip segments, JSON messages to publishers;
+//! - [`writer`]: the output worker (segment files and messages off the
+//!   row path);
 //! - [`mqtt`]: the MQTT publisher (bounded queue, delivery after reconnect).
 //!
 //! The layer sits beside [`crate::pipeline`] and reuses its pieces (the
@@ -30,7 +34,9 @@ pub mod recipe;
 pub mod rig;
 pub mod run;
 pub mod solve;
+mod stage;
 pub mod stats;
+pub mod writer;
 
 /// Errors of the line layer.
 #[derive(Debug, thiserror::Error)]
@@ -68,6 +74,9 @@ pub enum LineError {
     /// A row sink failed (writing, publishing).
     #[error("output: {0}")]
     Sink(String),
+    /// A thread of the line died.
+    #[error("line: the {0} thread panicked")]
+    Panicked(String),
     /// The estimator could not be set up.
     #[error("estimator: {0}")]
     Estimate(crate::estimate::EstimateError),

@@ -15,14 +15,16 @@
 //!   sent as soon as the row that raises or clears it is emitted.
 //!
 //! A segment file is written to a temporary name in the same directory and
-//! renamed: a reader never sees half a segment.
+//! renamed: a reader never sees half a segment. Files and messages are
+//! written by the output worker ([`super::writer`]), on its own thread by
+//! default, in the order the rows produced them: a row handed to this
+//! sink never waits for a file write.
 
 use super::recipe::{Alarm, Alarms, Recipe};
 use super::run::WebRowSink;
 use super::solve::WebRowOut;
 use super::stats::{lane_stats, row_stats, LaneTracker, Lanes};
-use crate::estimate::ParamMaps;
-use crate::io::exr_maps::{map_attributes, write_channels, Channels};
+use super::writer::{Job, Writer};
 use serde_json::json;
 use std::path::PathBuf;
 
@@ -72,7 +74,7 @@ pub struct OutputConfig {
 }
 
 /// The line's output sink.
-pub struct LineOutput<'a> {
+pub struct LineOutput {
     cfg: OutputConfig,
     recipe: Option<Recipe>,
     alarms: Option<Alarms>,
@@ -81,22 +83,42 @@ pub struct LineOutput<'a> {
     seg_index: u64,
     events: Vec<Alarm>,
     active: Vec<bool>,
-    publishers: Vec<Box<dyn Publisher + 'a>>,
+    writer: Writer,
     /// Every alarm event so far.
     pub alarm_log: Vec<Alarm>,
     /// Segments finished.
     pub segments: u64,
-    /// Segment files written.
+    /// Segment files written (known once the run has finished).
     pub files: Vec<PathBuf>,
 }
 
-impl<'a> LineOutput<'a> {
-    /// An output; `recipe` gives limits and alarms (without: statistics only).
+impl LineOutput {
+    /// An output; `recipe` gives limits and alarms (without: statistics
+    /// only). Files and messages are written by a worker thread.
     pub fn new(
         cfg: OutputConfig,
         recipe: Option<Recipe>,
-        publishers: Vec<Box<dyn Publisher + 'a>>,
-    ) -> LineOutput<'a> {
+        publishers: Vec<Box<dyn Publisher + Send>>,
+    ) -> LineOutput {
+        Self::with_writer(cfg, recipe, publishers, true)
+    }
+
+    /// As [`LineOutput::new`], files and messages written inline, in the
+    /// row path (the reference the threaded output is checked against).
+    pub fn inline(
+        cfg: OutputConfig,
+        recipe: Option<Recipe>,
+        publishers: Vec<Box<dyn Publisher + Send>>,
+    ) -> LineOutput {
+        Self::with_writer(cfg, recipe, publishers, false)
+    }
+
+    fn with_writer(
+        cfg: OutputConfig,
+        recipe: Option<Recipe>,
+        publishers: Vec<Box<dyn Publisher + Send>>,
+        background: bool,
+    ) -> LineOutput {
         let n = cfg.lanes.len();
         let (cap_rows, trend_rows) = recipe
             .as_ref()
@@ -109,7 +131,7 @@ impl<'a> LineOutput<'a> {
             seg_index: 0,
             events: Vec::new(),
             active: vec![false; n],
-            publishers,
+            writer: Writer::new(cfg.out_dir.clone(), publishers, background),
             alarm_log: Vec::new(),
             segments: 0,
             files: Vec::new(),
@@ -117,59 +139,19 @@ impl<'a> LineOutput<'a> {
         }
     }
 
-    fn publish(&mut self, kind: &str, payload: &str) {
-        let topic = format!("{}/{kind}", self.cfg.topic);
-        for p in &mut self.publishers {
-            p.publish(&topic, payload);
-        }
+    /// Segment jobs and messages that found the output worker's queue
+    /// full and waited (the disk or a publisher fell behind).
+    pub fn output_waits(&self) -> u64 {
+        self.writer.waits()
     }
 
-    fn write_segment(&self) -> Result<Option<PathBuf>, String> {
-        let Some(dir) = &self.cfg.out_dir else {
-            return Ok(None);
-        };
-        let (w, h) = (self.seg[0].estimates.len(), self.seg.len());
-        let mut maps = ParamMaps::new(w, h);
-        for (y, r) in self.seg.iter().enumerate() {
-            for (x, e) in r.estimates.iter().enumerate() {
-                maps.set(x, y, e);
-            }
-        }
-        let (first, last) = (&self.seg[0], &self.seg[h - 1]);
-        let mut attributes = map_attributes(&maps.meta);
-        attributes.extend([
-            ("irid.segment".to_string(), self.seg_index.to_string()),
-            ("irid.web_first_row".to_string(), first.index.to_string()),
-            ("irid.web_rows".to_string(), h.to_string()),
-            ("irid.time_first_ns".to_string(), first.time_ns.to_string()),
-            ("irid.time_last_ns".to_string(), last.time_ns.to_string()),
-        ]);
-        let data = Channels {
-            width: w,
-            height: h,
-            channels: maps
-                .channels()
-                .iter()
-                .map(|(n, v)| (n.to_string(), v.to_vec()))
-                .collect(),
-            attributes,
-        };
-        let name = format!("strip-{:06}.exr", self.seg_index);
-        let tmp = dir.join(format!(".{name}.tmp"));
-        let path = dir.join(name);
-        write_channels(&tmp, &data).map_err(|e| e.to_string())?;
-        std::fs::rename(&tmp, &path)
-            .map_err(|e| format!("renaming {} to {}: {e}", tmp.display(), path.display()))?;
-        Ok(Some(path))
+    fn topic(&self, kind: &str) -> String {
+        format!("{}/{kind}", self.cfg.topic)
     }
 
     fn end_segment(&mut self) -> Result<(), String> {
         if self.seg.is_empty() {
             return Ok(());
-        }
-        let file = self.write_segment()?;
-        if let Some(f) = &file {
-            self.files.push(f.clone());
         }
         let lanes: Vec<serde_json::Value> = self
             .cfg
@@ -215,18 +197,28 @@ impl<'a> LineOutput<'a> {
             "t_first_ns": first.time_ns,
             "t_last_ns": last.time_ns,
             "rows_missing_bands": self.seg.iter().filter(|r| !r.complete).count(),
-            "file": file.map(|f| f.display().to_string()),
+            // Filled in by the worker once the file is written.
+            "file": null,
             "lanes": lanes,
         });
-        self.publish("segment", &msg.to_string());
-        self.seg.clear();
+        let rows = std::mem::replace(
+            &mut self.seg,
+            Vec::with_capacity(self.cfg.segment_rows.max(1)),
+        );
+        let topic = self.topic("segment");
+        self.writer.submit(Job::Segment {
+            index: self.seg_index,
+            rows,
+            topic,
+            msg,
+        })?;
         self.seg_index += 1;
         self.segments += 1;
         Ok(())
     }
 }
 
-impl WebRowSink for LineOutput<'_> {
+impl WebRowSink for LineOutput {
     fn on_row(&mut self, row: &WebRowOut) -> Result<(), String> {
         let stats = row_stats(row, &self.cfg.lanes);
         if row.complete {
@@ -241,7 +233,11 @@ impl WebRowSink for LineOutput<'_> {
             }
             let mut v = serde_json::to_value(&e).map_err(|e| e.to_string())?;
             v["type"] = json!("alarm");
-            self.publish("alarm", &v.to_string());
+            let topic = self.topic("alarm");
+            self.writer.submit(Job::Publish {
+                topic,
+                payload: v.to_string(),
+            })?;
             self.alarm_log.push(e);
         }
         self.seg.push(row.clone());
@@ -253,9 +249,7 @@ impl WebRowSink for LineOutput<'_> {
 
     fn finish(&mut self) -> Result<(), String> {
         self.end_segment()?;
-        for p in &mut self.publishers {
-            p.flush();
-        }
+        self.files = self.writer.finish()?;
         Ok(())
     }
 }

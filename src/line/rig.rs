@@ -287,6 +287,7 @@ impl WebRig {
             allow_over_speed: false,
             mode,
             warmup_rows: 16,
+            threading: super::run::Threading::default(),
         };
         Ok(Built {
             camera,
