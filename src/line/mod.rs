@@ -12,6 +12,9 @@
 //! - [`solve`]: each finished row solved as a one-row cube;
 //! - [`run`]: the line runner (deterministic);
 //! - [`rig`]: the synthetic line (moving-web camera, emulated filter);
+//! - [`recorded`]: the line configuration a recording stores, and the
+//!   set-up rebuilt from it for a replay (the recording is then the frame
+//!   source and the filter of [`run::run_line`]);
 //! - [`stats`], [`recipe`], [`output`]: lane statistics, trend, Cp/Cpk,
 //!   alarms, EXR strip segments, JSON messages to publishers;
 //! - [`mqtt`]: the MQTT publisher (bounded queue, delivery after reconnect).
@@ -27,6 +30,7 @@ pub mod geometry;
 pub mod mqtt;
 pub mod output;
 pub mod recipe;
+pub mod recorded;
 pub mod rig;
 pub mod run;
 pub mod solve;

@@ -21,6 +21,7 @@ use crate::device::camera::{CameraError, Frame, FrameSource};
 use crate::estimate::Mode;
 use crate::optics::band::Band;
 use crate::pipeline::calibration::Calibrator;
+use crate::pipeline::runner::CaptureTap;
 use crate::pipeline::sequencer::{BandTuner, Discard, SeqMode, Sequencer, Verdict};
 use crate::scene::Scene;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -115,12 +116,29 @@ struct Pending {
 }
 
 /// Run the line until the limits, the end of the source or the stop flag.
+///
+/// The source is anything that delivers frames (the live camera, a
+/// recording replayed), the tuner anything that steps the filter.
 pub fn run_line(
     source: &mut dyn FrameSource,
     tuner: &mut dyn BandTuner,
     setup: LineSetup,
     limits: &LineLimits,
     sink: &mut dyn WebRowSink,
+    stop: &AtomicBool,
+) -> Result<LineReport, LineError> {
+    run_line_tapped(source, tuner, setup, limits, sink, None, stop)
+}
+
+/// [`run_line`] with a tap that sees every frame read and the sequencer's
+/// verdict on it (the recorder, `irid run --scene web --record`).
+pub fn run_line_tapped(
+    source: &mut dyn FrameSource,
+    tuner: &mut dyn BandTuner,
+    setup: LineSetup,
+    limits: &LineLimits,
+    sink: &mut dyn WebRowSink,
+    mut tap: Option<&mut dyn CaptureTap>,
     stop: &AtomicBool,
 ) -> Result<LineReport, LineError> {
     if !setup.allow_over_speed {
@@ -183,8 +201,15 @@ pub fn run_line(
         last_seq = Some(last_seq.map_or(m.seq, |l| l.max(m.seq)));
         let valid = frame.pixels().is_ok() && (m.width, m.height) == (info.width, info.height);
         let verdict = seq
-            .on_frame(&m, valid, tuner, &mut |_| {})
+            .on_frame(&m, valid, tuner, &mut |x| {
+                if let Some(t) = tap.as_deref_mut() {
+                    t.on_missing(x.sweep, x.band);
+                }
+            })
             .map_err(|e| LineError::Sequencer(e.to_string()))?;
+        if let Some(t) = tap.as_deref_mut() {
+            t.on_frame(&frame, Some(verdict));
+        }
         // The web moves whether or not the frame is used.
         let pos = reg.position(m.encoder, m.timestamp_ns)?;
         match span {
