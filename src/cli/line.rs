@@ -400,6 +400,20 @@ pub fn replay(args: &ReplayArgs, rec: Recording, stop: &AtomicBool) -> anyhow::R
     if args.png {
         anyhow::bail!("the moving web (a line recording) does not support --png yet");
     }
+    let threads = if args.single_thread {
+        Some(1)
+    } else {
+        args.threads
+    };
+    if let Some(n) = threads {
+        // Before anything uses the pool. The rows a frame finishes are
+        // solved each by one thread, so the result does not depend on
+        // this (the runner's own guarantee).
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(n.max(1))
+            .build_global()
+            .context("setting the solver's thread count")?;
+    }
     let raw = rec.line.as_deref().unwrap_or_default();
     let line = LineRecord::from_json(raw).with_context(|| args.file.display().to_string())?;
     let (setup, mut out) = replay_setup(args, &rec, &line)?;
@@ -413,19 +427,6 @@ pub fn replay(args: &ReplayArgs, rec: Recording, stop: &AtomicBool) -> anyhow::R
         frames: args.sweeps.map(|n| n * line.frames_per_sweep_unit),
         frame_timeout: Duration::from_secs(2),
     };
-    let threads = if args.single_thread {
-        Some(1)
-    } else {
-        args.threads
-    };
-    if let Some(n) = threads {
-        // The rows a frame finishes are solved each by one thread, so the
-        // result does not depend on this (the runner's own guarantee).
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(n.max(1))
-            .build_global()
-            .context("setting the solver's thread count")?;
-    }
     let started = std::time::Instant::now();
     let rep = run_line(&mut source, &mut tuner, setup, &limits, &mut out, stop)?;
     let st = rec.stats();
