@@ -156,12 +156,21 @@ fn a_recorded_line_replays_to_identical_messages_and_strips() {
     let text = String::from_utf8_lossy(&ok(&["inspect", s(&rec)]).stdout).into_owned();
     assert!(text.contains("production-line recording"), "{text}");
 
-    // Default threads, then one thread: the same as live both times.
-    for (i, extra) in [&[][..], &["--single-thread"][..]].iter().enumerate() {
+    // Default threads, then one thread (traced and profiled): the same as
+    // live both times.
+    let trace = dir.path().join("trace.json");
+    let traced = ["--single-thread", "--trace", s(&trace), "--profile"];
+    for (i, extra) in [&[][..], &traced[..]].iter().enumerate() {
         let out_dir = dir.path().join(format!("replay{i}"));
         let mut args = vec!["replay", s(&rec), "--out", s(&out_dir)];
         args.extend_from_slice(extra);
         let out = ok(&args);
+        if i == 1 {
+            let err = String::from_utf8_lossy(&out.stderr);
+            let frames = err.lines().find(|l| l.starts_with("line.frame"));
+            let count = frames.and_then(|l| l.split_whitespace().nth(1));
+            assert_eq!(count, Some("400"), "{err}");
+        }
         let replayed = messages(&out.stdout);
         assert_eq!(replayed.len(), live.len(), "{replayed:?}");
         for (a, b) in live.iter().zip(&replayed) {
@@ -169,6 +178,12 @@ fn a_recorded_line_replays_to_identical_messages_and_strips() {
         }
         assert_same_strips(&dir.path().join("live/line"), &out_dir.join("line"));
     }
+    // The profile counts the line's frames; the trace holds their reads.
+    let t = std::fs::read_to_string(&trace).unwrap();
+    assert!(
+        t.contains("\"line.read\""),
+        "no line.read span in the trace"
+    );
     // An existing recording is kept unless --force.
     let again = irid(&[
         "run",

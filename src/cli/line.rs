@@ -38,6 +38,49 @@ use std::time::Duration;
 /// Frames per `--sweeps` unit: 4 s of the demo's 10 ms frames.
 const FRAMES_PER_UNIT: u64 = 400;
 
+/// A frame source seen by `--trace` and `--profile`: a `line.read` span
+/// around each read and a `line.frame` span from a frame's delivery to
+/// the next read — everything the line runner does with that frame
+/// (calibrate, register, accumulate, solve the rows it finishes, emit) —
+/// so the line runner itself needs no spans. Live and replay show the same.
+struct Spanned<'a> {
+    inner: &'a mut dyn FrameSource,
+    frame: Option<tracing::Span>,
+}
+
+impl<'a> Spanned<'a> {
+    fn new(inner: &'a mut dyn FrameSource) -> Self {
+        Spanned { inner, frame: None }
+    }
+}
+
+impl FrameSource for Spanned<'_> {
+    fn info(&self) -> crate::device::camera::CameraInfo {
+        self.inner.info()
+    }
+
+    fn next_frame(&mut self, out: &mut Frame, timeout: Duration) -> Result<(), CameraError> {
+        self.frame = None;
+        let r = tracing::info_span!("line.read").in_scope(|| self.inner.next_frame(out, timeout));
+        if r.is_ok() {
+            self.frame = Some(tracing::info_span!("line.frame", seq = out.meta.seq));
+        }
+        r
+    }
+
+    fn set_exposure(&mut self, exposure_us: u32) -> Result<u32, CameraError> {
+        self.inner.set_exposure(exposure_us)
+    }
+
+    fn set_gain(&mut self, gain: f32) -> Result<f32, CameraError> {
+        self.inner.set_gain(gain)
+    }
+
+    fn set_target(&mut self, target: crate::device::camera::Target) -> Result<bool, CameraError> {
+        self.inner.set_target(target)
+    }
+}
+
 /// Whether `--scene` asks for the moving web (`web`, or a web file).
 pub fn wants_web(args: &RunArgs) -> bool {
     args.scene.as_deref().is_some_and(|s| {
@@ -251,6 +294,7 @@ pub fn run(args: &RunArgs, stop: &AtomicBool) -> anyhow::Result<()> {
         setup,
         ..
     } = line.built;
+    let mut camera = Spanned::new(&mut camera);
     let rep = match &recorder {
         Some(r) => run_line_tapped(
             &mut camera,
@@ -428,7 +472,14 @@ pub fn replay(args: &ReplayArgs, rec: Recording, stop: &AtomicBool) -> anyhow::R
         frame_timeout: Duration::from_secs(2),
     };
     let started = std::time::Instant::now();
-    let rep = run_line(&mut source, &mut tuner, setup, &limits, &mut out, stop)?;
+    let rep = run_line(
+        &mut Spanned::new(&mut source),
+        &mut tuner,
+        setup,
+        &limits,
+        &mut out,
+        stop,
+    )?;
     let st = rec.stats();
     let secs = started.elapsed().as_secs_f64();
     print_report(&format!("replayed {}: ", args.file.display()), &rep, &out);
