@@ -45,14 +45,23 @@ fn web_demo_prints_the_limit_streams_json_and_alarms_on_the_defect() {
 }
 
 /// Static-pipeline options the web does not have yet are refused with
-/// their names, and nothing is written.
+/// their names, and nothing is written (not even the recording asked for
+/// beside them); `--record` itself is supported (tests/line_record.rs).
 #[test]
 fn web_mode_refuses_what_it_cannot_do() {
     let dir = tempfile::tempdir().unwrap();
     let rec = dir.path().join("web.mcap");
     let out = Command::new(env!("CARGO_BIN_EXE_irid"))
         .args([
-            "run", "--scene", "web", "--sweeps", "1", "--png", "--record",
+            "run",
+            "--scene",
+            "web",
+            "--sweeps",
+            "1",
+            "--png",
+            "--serve",
+            "127.0.0.1:0",
+            "--record",
         ])
         .arg(&rec)
         .arg("--out")
@@ -62,8 +71,42 @@ fn web_mode_refuses_what_it_cannot_do() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{stderr}");
     assert!(
-        stderr.contains("--record, --png") && stderr.contains("does not support"),
+        stderr.contains("--serve, --png") && stderr.contains("does not support"),
         "{stderr}"
     );
+    assert!(!stderr.contains("--record"), "{stderr}");
     assert!(!rec.exists() && !dir.path().join("out").exists());
+}
+
+/// `--record` in line mode records: a file irid inspect calls a line
+/// recording.
+#[test]
+fn web_mode_records() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join("web.mcap");
+    let irid = env!("CARGO_BIN_EXE_irid");
+    let out = Command::new(irid)
+        .args([
+            "run",
+            "--scene",
+            "web",
+            "--unpaced",
+            "--sweeps",
+            "1",
+            "--no-maps",
+            "--record",
+        ])
+        .arg(&rec)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(stderr.contains("irid: recorded"), "{stderr}");
+    let inv = Command::new(irid)
+        .arg("inspect")
+        .arg(&rec)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&inv.stdout);
+    assert!(text.contains("production-line recording"), "{text}");
 }

@@ -10,8 +10,8 @@ use crate::device::record::reader::RecordReader;
 use crate::device::record::replay::Recording;
 use crate::device::record::writer::{Compression, RecordOptions, RecordStats, Recorder};
 use crate::device::record::{
-    ircal_bytes, RecorderEvent, SeqEvent, Session, TOPIC_FRAME, TOPIC_RECORDER, TOPIC_SEQUENCER,
-    TOPIC_SESSION,
+    ircal_bytes, RecorderEvent, SeqEvent, Session, TOPIC_FRAME, TOPIC_LINE, TOPIC_RECORDER,
+    TOPIC_SEQUENCER, TOPIC_SESSION,
 };
 use crate::device::rig::{demo_scene_file, LineConfig, Rig};
 use crate::estimate::Mode;
@@ -98,15 +98,20 @@ pub(crate) fn start(
         filter: rig.tuner.describe(),
         sweeps: (args.sweeps > 0).then_some(args.sweeps),
     };
-    let opts = RecordOptions {
-        compression: match args.record_compression {
+    let opts = record_options(args.record_compression);
+    Ok(Recorder::create(path, &session, &ircal_bytes(cal), &opts)?)
+}
+
+/// The recorder's options for `--record-compression`.
+pub(crate) fn record_options(c: RecordCompression) -> RecordOptions {
+    RecordOptions {
+        compression: match c {
             RecordCompression::Lz4 => Compression::Lz4,
             RecordCompression::Zstd => Compression::Zstd,
             RecordCompression::None => Compression::None,
         },
         ..Default::default()
-    };
-    Ok(Recorder::create(path, &session, &ircal_bytes(cal), &opts)?)
+    }
 }
 
 /// Close the recording and say what it cost.
@@ -175,13 +180,18 @@ pub struct ReplayArgs {
     /// Calibration `.ircal` (default: the recorded one).
     #[arg(long, value_name = "FILE")]
     pub calibration: Option<PathBuf>,
+    /// A line recording: judge the rows against this recipe instead of the
+    /// recorded one.
+    #[arg(long, value_name = "FILE")]
+    pub recipe: Option<PathBuf>,
     /// Pace frames by their recorded timestamps (real time).
     #[arg(long, conflicts_with = "speed")]
     pub realtime: bool,
     /// Pace frames at this many times real time.
     #[arg(long, value_name = "X")]
     pub speed: Option<f64>,
-    /// Stop after this many sweeps (default: the whole recording).
+    /// Stop after this many sweeps (default: the whole recording; a line
+    /// recording: this many units of `irid run --sweeps`).
     #[arg(long)]
     pub sweeps: Option<u64>,
     /// Solver threads (default: all cores).
@@ -200,7 +210,7 @@ pub struct ReplayArgs {
 
 static STOP: AtomicBool = AtomicBool::new(false);
 
-fn progress_bar(file: &Path) -> crate::device::record::replay::Progress {
+pub(crate) fn progress_bar(file: &Path) -> crate::device::record::replay::Progress {
     let len = std::fs::metadata(file).map_or(0, |m| m.len());
     let bar = super::progress::bytes_bar(len, &format!("replay {}", file.display()));
     Box::new(move |pos, len| {
@@ -269,16 +279,21 @@ pub fn replay(args: &ReplayArgs) -> anyhow::Result<()> {
         return replay_cube(args);
     }
     let rec = Recording::open(&args.file)?;
-    let s = rec.session.clone();
-    let scene = match &args.scene {
-        Some(p) => Scene::load(p)?,
-        None => {
-            let f: SceneFile = serde_json::from_value(s.scene.clone())
-                .with_context(|| format!("{}: recorded scene", args.file.display()))?;
-            Scene::resolve(&f, Path::new(&s.scene_base))
-                .map_err(|e| anyhow::anyhow!("{}: recorded scene: {e}", args.file.display()))?
+    if rec.line.is_some() {
+        super::line::replay(args, rec, &STOP)?;
+        if let Some(p) = profile {
+            eprint!("{}", p.report());
         }
-    };
+        return Ok(());
+    }
+    if args.recipe.is_some() {
+        anyhow::bail!(
+            "{}: --recipe applies to a production-line recording (irid run --scene web --record); this one is of a static scene",
+            args.file.display()
+        );
+    }
+    let s = rec.session.clone();
+    let scene = recorded_scene(args, &s)?;
     let cal = calibration_for(&rec, &args.file, args.calibration.as_deref())?;
     let mode = match args.mode {
         Some(m) => m,
@@ -331,25 +346,44 @@ pub fn replay(args: &ReplayArgs) -> anyhow::Result<()> {
             }
         );
     }
-    if !st.closed {
-        eprintln!(
-            "irid: {}: not closed properly (crash or cut)",
-            args.file.display()
-        );
-    }
-    for d in &st.damage {
-        eprintln!(
-            "irid: {}: damage at byte {}: {}",
-            args.file.display(),
-            d.offset,
-            d.message
-        );
-    }
+    report_damage(&args.file, &st);
     if let Some(p) = profile {
         eprint!("{}", p.report());
     }
     drop(_chrome_guard);
     Ok(())
+}
+
+/// The scene of a replay: `--scene`, or the one recorded in the session.
+pub(crate) fn recorded_scene(args: &ReplayArgs, s: &Session) -> anyhow::Result<Scene> {
+    Ok(match &args.scene {
+        Some(p) => Scene::load(p)?,
+        None => {
+            let f: SceneFile = serde_json::from_value(s.scene.clone())
+                .with_context(|| format!("{}: recorded scene", args.file.display()))?;
+            Scene::resolve(&f, Path::new(&s.scene_base))
+                .map_err(|e| anyhow::anyhow!("{}: recorded scene: {e}", args.file.display()))?
+        }
+    })
+}
+
+/// Say on stderr that a replayed file was not closed, and where it is
+/// damaged.
+pub(crate) fn report_damage(file: &Path, st: &crate::device::record::replay::ReplayStats) {
+    if !st.closed {
+        eprintln!(
+            "irid: {}: not closed properly (crash or cut)",
+            file.display()
+        );
+    }
+    for d in &st.damage {
+        eprintln!(
+            "irid: {}: damage at byte {}: {}",
+            file.display(),
+            d.offset,
+            d.message
+        );
+    }
 }
 
 /// An ENVI header (by its extension or its first line) rather than a
@@ -470,6 +504,8 @@ pub struct Inventory {
     pub chunks: u64,
     /// Damage found.
     pub damage: Vec<crate::device::record::reader::Damage>,
+    /// A production-line recording: the web it saw (None: a static scene).
+    pub line: Option<super::line::LineInventory>,
 }
 
 /// Read a whole recording and list what is in it.
@@ -478,12 +514,21 @@ pub fn inventory(path: &Path) -> anyhow::Result<Inventory> {
     let mut inv = Inventory::default();
     let mut last_seq: Option<u64> = None;
     let mut bands: BTreeMap<u64, usize> = BTreeMap::new();
+    let mut census: Option<super::line::LineCensus> = None;
+    let mut line_recording = false;
     while let Some(m) = r.next_message() {
         *inv.channels.entry(m.topic.clone()).or_default() += 1;
         match m.topic.as_str() {
             TOPIC_SESSION => inv.session = serde_json::from_slice(&m.data).ok(),
+            TOPIC_LINE => {
+                line_recording = true;
+                census = super::line::LineCensus::new(&m.data);
+            }
             TOPIC_FRAME => {
                 if let Ok(meta) = crate::device::record::decode_frame_meta(&m.data) {
+                    if let Some(c) = census.as_mut() {
+                        c.frame(&meta);
+                    }
                     inv.frames += 1;
                     if let Some(l) = last_seq.filter(|&l| meta.seq > l.saturating_add(1)) {
                         inv.seq_gaps = inv.seq_gaps.saturating_add(meta.seq - l - 1);
@@ -526,6 +571,11 @@ pub fn inventory(path: &Path) -> anyhow::Result<Inventory> {
             inv.incomplete_sweeps.push(s);
         }
     }
+    inv.line = match census {
+        Some(c) => Some(c.finish()),
+        None if line_recording => Some(super::line::LineInventory::default()),
+        None => None,
+    };
     inv.closed = r.closed();
     inv.chunks = r.chunks();
     inv.damage = r.damage().to_vec();
@@ -555,6 +605,24 @@ pub fn inspect(args: &InspectArgs) -> anyhow::Result<()> {
             s.mode,
             s.filter
         );
+    }
+    if let Some(l) = &inv.line {
+        println!(
+            "  a production-line recording (moving web): {} rows in view, {} bands, nominal {:.2} rows/s{}",
+            l.rows_in_view,
+            l.bands,
+            l.nominal_speed_rows_per_s,
+            if l.recipe { ", with its recipe" } else { "" }
+        );
+        match l.first_rows {
+            Some((a, b)) => println!(
+                "  web: rows {a}..{} seen ({} web rows), {} frames not registrable",
+                b + l.rows_in_view as i64,
+                l.web_rows,
+                l.unregistered_frames
+            ),
+            None => println!("  web: no frame registered"),
+        }
     }
     println!("  channels:");
     for (t, k) in &inv.channels {
@@ -610,6 +678,9 @@ pub fn record_only(args: &RecordArgs) -> anyhow::Result<()> {
     }
     let run = &args.run;
     refuse_existing(&args.file, run.force)?;
+    if run.config.is_none() && super::line::wants_web(run) {
+        return super::line::record_only(&args.file, run, &STOP);
+    }
     let (mut rig, mode, cal) = super::run::rig_and_calibration(run)?;
     let recorder = start(&args.file, run, &rig, &cal, mode)?;
     let info = rig.source.info();

@@ -313,7 +313,11 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         tracing::warn!("Ctrl-C handler not installed");
     }
     if args.config.is_none() && super::line::wants_web(args) {
-        return super::line::run(args, &STOP);
+        super::line::run(args, &STOP)?;
+        if let Some(p) = profile {
+            eprint!("{}", p.report());
+        }
+        return Ok(());
     }
 
     let (mut rig, mode, calibration) = rig_and_calibration(args)?;

@@ -23,7 +23,8 @@
 use super::LineError;
 
 /// How the web's position is known.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
 pub enum Motion {
     /// An encoder count per frame (frame metadata), `rows_per_count` web rows
     /// per count (the camera's calibration).
@@ -39,7 +40,8 @@ pub enum Motion {
 }
 
 /// The optics and the sweep, as far as the line speed is concerned.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct LineGeometry {
     /// Sensor rows that see the web (the field of view along the web).
     pub rows_in_view: usize,

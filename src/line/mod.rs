@@ -14,6 +14,9 @@
 //!   (deterministic: the same rows as all on one thread);
 //! - `stage`: the row stage (solve, sink, latency);
 //! - [`rig`]: the synthetic line (moving-web camera, emulated filter);
+//! - [`recorded`]: the line configuration a recording stores, and the
+//!   set-up rebuilt from it for a replay (the recording is then the frame
+//!   source and the filter of [`run::run_line`]);
 //! - [`stats`], [`recipe`], [`output`]: lane statistics, trend, Cp/Cpk,
 //!   alarms, EXR strip segments, JSON messages to publishers;
 //! - [`writer`]: the output worker (segment files and messages off the
@@ -31,6 +34,7 @@ pub mod geometry;
 pub mod mqtt;
 pub mod output;
 pub mod recipe;
+pub mod recorded;
 pub mod rig;
 pub mod run;
 pub mod solve;

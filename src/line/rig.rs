@@ -17,7 +17,7 @@ use super::LineError;
 use crate::device::camera::synthetic::{FilterView, SensorModel};
 use crate::device::camera::web::{WebCamera, WebCameraConfig, WebFilm};
 use crate::estimate::Mode;
-use crate::pipeline::calibration::Calibrator;
+use crate::pipeline::calibration::{CalMeta, Calibration, Calibrator};
 use crate::pipeline::sequencer::EmulatedTuner;
 use crate::scene::{AngleKnowledge, FilmKnowledge, Scene};
 use serde::Deserialize;
@@ -141,6 +141,10 @@ pub struct Built {
     pub camera: WebCamera,
     /// The emulated filter.
     pub tuner: EmulatedTuner,
+    /// The references the set-up's calibrator was built from (what a
+    /// recording stores; its creation time is left 0 — the rig reads no
+    /// clock).
+    pub calibration: Calibration,
     /// The set-up for [`super::run::run_line`].
     pub setup: LineSetup,
 }
@@ -202,8 +206,12 @@ impl WebRig {
 
     /// The embedded demo.
     pub fn demo() -> Result<WebRig, LineError> {
-        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/scenes");
-        WebRig::load(&dir.join("web.toml"))
+        WebRig::load(&WebRig::demo_path())
+    }
+
+    /// The embedded demo's file.
+    pub fn demo_path() -> PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("data/scenes/web.toml")
     }
 
     /// The camera configuration (for tests to add speed changes, jumps).
@@ -275,7 +283,28 @@ impl WebRig {
         let n = self.file.camera.width as usize * self.file.camera.rows_in_view as usize;
         let flags = vec![0u8; dark.len()];
         let exposure_us = (self.file.camera.exposure_ms * 1e3) as u32;
-        let calibrator = Calibrator::from_planes(n, dark, white, &flags, 1.0, exposure_us);
+        debug_assert_eq!(dark.len(), n * bands.len());
+        let info = crate::device::camera::FrameSource::info(&camera);
+        let calibration = Calibration {
+            meta: CalMeta {
+                version: 1,
+                width: info.width,
+                height: info.height,
+                bands_nm: bands.iter().map(|b| b.center_nm).collect(),
+                exposure_us,
+                gain: info.gain,
+                format: info.format,
+                camera_id: info.id,
+                created_unix_s: 0,
+                white_reflectance: 1.0,
+                frames: 1,
+                noise: None,
+            },
+            dark,
+            white,
+            flags,
+        };
+        let calibrator = Calibrator::from_calibration(calibration.clone());
         let setup = LineSetup {
             scene: self.scene.clone(),
             order: (0..bands.len()).collect(),
@@ -292,6 +321,7 @@ impl WebRig {
         Ok(Built {
             camera,
             tuner,
+            calibration,
             setup,
         })
     }

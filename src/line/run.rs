@@ -45,6 +45,7 @@ use crate::device::camera::{CameraError, Frame, FrameSource};
 use crate::estimate::Mode;
 use crate::optics::band::Band;
 use crate::pipeline::calibration::Calibrator;
+use crate::pipeline::runner::CaptureTap;
 use crate::pipeline::sequencer::{BandTuner, Discard, SeqMode, Sequencer, Verdict};
 use crate::scene::Scene;
 use crossbeam_channel::{Receiver, Sender, TrySendError};
@@ -191,6 +192,8 @@ struct Front<'a> {
     info_wh: (u32, u32),
     /// When the last frame was read: a row's latency starts here.
     t_read: Instant,
+    /// Sees every frame read and the sequencer's verdict (the recorder).
+    tap: Option<&'a mut dyn CaptureTap>,
 }
 
 impl Front<'_> {
@@ -231,10 +234,18 @@ impl Front<'_> {
         }
         self.last_seq = Some(self.last_seq.map_or(m.seq, |l| l.max(m.seq)));
         let valid = self.frame.pixels().is_ok() && (m.width, m.height) == self.info_wh;
+        let tap = &mut self.tap;
         let verdict = self
             .seq
-            .on_frame(&m, valid, self.tuner, &mut |_| {})
+            .on_frame(&m, valid, self.tuner, &mut |x| {
+                if let Some(t) = tap.as_deref_mut() {
+                    t.on_missing(x.sweep, x.band);
+                }
+            })
             .map_err(|e| LineError::Sequencer(e.to_string()))?;
+        if let Some(t) = self.tap.as_deref_mut() {
+            t.on_frame(&self.frame, Some(verdict));
+        }
         // The web moves whether or not the frame is used.
         let pos = self.reg.position(m.encoder, m.timestamp_ns)?;
         match self.span {
@@ -300,6 +311,20 @@ pub fn run_line(
     sink: &mut (dyn WebRowSink + Send),
     stop: &AtomicBool,
 ) -> Result<LineReport, LineError> {
+    run_line_tapped(source, tuner, setup, limits, sink, None, stop)
+}
+
+/// [`run_line`] with a tap that sees every frame read and the sequencer's
+/// verdict on it (the recorder, `irid run --scene web --record`).
+pub fn run_line_tapped<'a>(
+    source: &'a mut dyn FrameSource,
+    tuner: &'a mut dyn BandTuner,
+    setup: LineSetup,
+    limits: &LineLimits,
+    sink: &mut (dyn WebRowSink + Send),
+    tap: Option<&'a mut dyn CaptureTap>,
+    stop: &AtomicBool,
+) -> Result<LineReport, LineError> {
     if !setup.allow_over_speed {
         setup.geometry.check_speed(setup.nominal_speed)?;
     }
@@ -337,6 +362,7 @@ pub fn run_line(
         span: None,
         info_wh: (info.width, info.height),
         t_read: Instant::now(),
+        tap,
     };
     let stage = RowStage::new(solver, sink);
     match setup.threading {

@@ -14,6 +14,7 @@
 //! | 4 | `/irid/sequencer` | `json` | the sequencer's verdict on each frame, missing bands, abandoned sweeps |
 //! | 5 | `/irid/filter` | `json` | each command to the filter: band, time, settled time or error |
 //! | 6 | `/irid/recorder` | `json` | frames the recorder itself dropped (disk behind), and its counts at the end |
+//! | 7 | `/irid/line` | `json` | a production-line recording only: the moving-web configuration (web file, recipe, registration, geometry, output): one message, between the session and the calibration |
 //!
 //! The `json` channels carry a JSON Schema (schema encoding `jsonschema`).
 //! Log and publish times are the frames' clock (ns).
@@ -68,13 +69,14 @@ pub enum RecordError {
 }
 
 /// The channels, in id order (id = index + 1).
-pub const TOPICS: [&str; 6] = [
+pub const TOPICS: [&str; 7] = [
     TOPIC_SESSION,
     TOPIC_CALIBRATION,
     TOPIC_FRAME,
     TOPIC_SEQUENCER,
     TOPIC_FILTER,
     TOPIC_RECORDER,
+    TOPIC_LINE,
 ];
 /// Session description.
 pub const TOPIC_SESSION: &str = "/irid/session";
@@ -88,15 +90,32 @@ pub const TOPIC_SEQUENCER: &str = "/irid/sequencer";
 pub const TOPIC_FILTER: &str = "/irid/filter";
 /// The recorder's own drops and counts.
 pub const TOPIC_RECORDER: &str = "/irid/recorder";
+/// The production line's configuration (line recordings only).
+pub const TOPIC_LINE: &str = "/irid/line";
 
-/// Bytes before the samples of a frame message.
+/// Bytes before the samples of a frame message without an encoder count.
 ///
 /// Layout (little-endian): `seq` u64 @0, `timestamp_ns` u64 @8,
 /// `exposure_us` u32 @16, `gain` f32 @20, `width` u32 @24, `height` u32 @28,
 /// `format` u8 @32 (0 grey8, 1 y10, 2 y12, 3 y16), `has_trigger` u8 @33,
-/// reserved u16 @34, `trigger` u64 @36, then `width × height` u16 samples
-/// row-major @44.
+/// `has_encoder` u8 @34, reserved u8 @35, `trigger` u64 @36, then
+/// `width × height` u16 samples row-major @44 — or, when `has_encoder` is
+/// 1 (a moving web: the count the line registers the frame by), the
+/// encoder count i64 @44 and the samples @52 ([`FRAME_HEADER_LEN_ENCODER`]).
+/// Recordings made before the encoder was recorded have 0 @34.
 pub const FRAME_HEADER_LEN: usize = 44;
+
+/// Bytes before the samples of a frame message with an encoder count.
+pub const FRAME_HEADER_LEN_ENCODER: usize = 52;
+
+/// Where a checked frame message's samples start.
+fn samples_offset(data: &[u8]) -> usize {
+    if data.get(34) == Some(&1) {
+        FRAME_HEADER_LEN_ENCODER
+    } else {
+        FRAME_HEADER_LEN
+    }
+}
 
 /// What `/irid/session` says (JSON).
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -153,7 +172,7 @@ impl Session {
 /// Encode a frame message into `out` (cleared first).
 pub fn encode_frame(meta: &FrameMeta, samples: &[u16], out: &mut Vec<u8>) {
     out.clear();
-    out.reserve(FRAME_HEADER_LEN + 2 * samples.len());
+    out.reserve(FRAME_HEADER_LEN_ENCODER + 2 * samples.len());
     out.extend_from_slice(&meta.seq.to_le_bytes());
     out.extend_from_slice(&meta.timestamp_ns.to_le_bytes());
     out.extend_from_slice(&meta.exposure_us.to_le_bytes());
@@ -168,8 +187,12 @@ pub fn encode_frame(meta: &FrameMeta, samples: &[u16], out: &mut Vec<u8>) {
     };
     out.push(format);
     out.push(u8::from(meta.trigger.is_some()));
-    out.extend_from_slice(&[0, 0]);
+    out.push(u8::from(meta.encoder.is_some()));
+    out.push(0);
     out.extend_from_slice(&meta.trigger.unwrap_or(0).to_le_bytes());
+    if let Some(e) = meta.encoder {
+        out.extend_from_slice(&e.to_le_bytes());
+    }
     for s in samples {
         out.extend_from_slice(&s.to_le_bytes());
     }
@@ -192,6 +215,12 @@ pub fn decode_frame_meta(data: &[u8]) -> Result<FrameMeta, String> {
         3 => PixelFormat::Y16,
         f => return Err(format!("unknown pixel format code {f}")),
     };
+    let header = match data[34] {
+        0 => FRAME_HEADER_LEN,
+        1 if data.len() >= FRAME_HEADER_LEN_ENCODER => FRAME_HEADER_LEN_ENCODER,
+        1 => return Err("frame message too short for its encoder count".into()),
+        f => return Err(format!("unknown encoder flag {f}")),
+    };
     let meta = FrameMeta {
         seq: u64_at(0),
         timestamp_ns: u64_at(8),
@@ -201,14 +230,12 @@ pub fn decode_frame_meta(data: &[u8]) -> Result<FrameMeta, String> {
         height: u32_at(28),
         format,
         trigger: (data[33] != 0).then(|| u64_at(36)),
-        // The moving web's encoder count is not recorded yet (the line
-        // mode has no --record).
-        encoder: None,
+        encoder: (header == FRAME_HEADER_LEN_ENCODER).then(|| u64_at(44) as i64),
     };
     let want = (meta.width as u64)
         .saturating_mul(meta.height as u64)
         .saturating_mul(2)
-        .saturating_add(FRAME_HEADER_LEN as u64);
+        .saturating_add(header as u64);
     if data.len() as u64 != want {
         return Err(format!(
             "frame {}: {}×{} needs {want} bytes, the message has {}",
@@ -224,7 +251,10 @@ pub fn decode_frame_meta(data: &[u8]) -> Result<FrameMeta, String> {
 /// Copy a checked frame message's samples into `out` (`decode_frame_meta`
 /// first: it guarantees the length).
 pub fn decode_samples(data: &[u8], out: &mut [u16]) {
-    for (o, c) in out.iter_mut().zip(data[FRAME_HEADER_LEN..].chunks_exact(2)) {
+    for (o, c) in out
+        .iter_mut()
+        .zip(data[samples_offset(data)..].chunks_exact(2))
+    {
         *o = u16::from_le_bytes([c[0], c[1]]);
     }
 }
@@ -321,6 +351,9 @@ pub fn json_schema(topic: &str) -> &'static str {
         TOPIC_SEQUENCER => {
             r#"{"type":"object","title":"irid.SequencerEvent","required":["kind"],"properties":{"kind":{"enum":["frame","missing","abandoned"]},"seq":{"type":"integer"},"verdict":{"enum":["accept","settling","stale","abandoned","bad","done","pool_empty"]},"sweep":{"type":"integer"},"band":{"type":"integer"}}}"#
         }
+        TOPIC_LINE => {
+            r#"{"type":"object","title":"irid.LineConfig","required":["web_toml","motion","geometry"],"properties":{"web_toml":{"type":"string"},"web_path":{"type":"string"},"recipe_toml":{"type":["string","null"]},"recipe_path":{"type":["string","null"]},"motion":{"type":"object"},"geometry":{"type":"object"},"nominal_speed_rows_per_s":{"type":"number"},"allow_over_speed":{"type":"boolean"},"warmup_rows":{"type":"integer"},"segment_rows":{"type":"integer"},"lanes":{"type":"integer"},"frames_per_sweep_unit":{"type":"integer"}}}"#
+        }
         TOPIC_FILTER => {
             r#"{"type":"object","title":"irid.FilterEvent","required":["nm","now_ns"],"properties":{"nm":{"type":"number"},"now_ns":{"type":"integer"},"settled_ns":{"type":["integer","null"]},"error":{"type":"string"}}}"#
         }
@@ -358,6 +391,40 @@ mod tests {
         assert!(decode_frame_meta(&buf[..buf.len() - 1]).is_err());
         assert!(decode_frame_meta(&buf[..10]).is_err());
         buf[32] = 9;
+        assert!(decode_frame_meta(&buf).is_err());
+    }
+
+    #[test]
+    fn an_encoder_count_round_trips_and_old_headers_still_read() {
+        let meta = FrameMeta {
+            seq: 3,
+            timestamp_ns: 99,
+            exposure_us: 500,
+            gain: 1.0,
+            format: PixelFormat::Y16,
+            width: 2,
+            height: 1,
+            trigger: None,
+            encoder: Some(-1234567),
+        };
+        let mut buf = Vec::new();
+        encode_frame(&meta, &[10, 20], &mut buf);
+        assert_eq!(buf.len(), FRAME_HEADER_LEN_ENCODER + 4);
+        assert_eq!(decode_frame_meta(&buf).unwrap(), meta);
+        let mut out = [0u16; 2];
+        decode_samples(&buf, &mut out);
+        assert_eq!(out, [10, 20]);
+        // Without the count: the 44-byte header of earlier recordings.
+        let plain = FrameMeta {
+            encoder: None,
+            ..meta
+        };
+        encode_frame(&plain, &[10, 20], &mut buf);
+        assert_eq!(buf.len(), FRAME_HEADER_LEN + 4);
+        assert_eq!(decode_frame_meta(&buf).unwrap(), plain);
+        buf[34] = 1;
+        assert!(decode_frame_meta(&buf).is_err(), "flag without the count");
+        buf[34] = 7;
         assert!(decode_frame_meta(&buf).is_err());
     }
 }

@@ -17,7 +17,7 @@
 
 use super::reader::{Damage, RawMsg, RecordReader};
 use super::{decode_frame_meta, decode_samples, RecordError, Session, TuneEvent};
-use super::{TOPIC_CALIBRATION, TOPIC_FILTER, TOPIC_FRAME, TOPIC_SESSION};
+use super::{TOPIC_CALIBRATION, TOPIC_FILTER, TOPIC_FRAME, TOPIC_LINE, TOPIC_SESSION};
 use crate::device::camera::{CameraError, CameraInfo, Frame, FrameSource};
 use crate::pipeline::sequencer::{BandTuner, TuneError};
 use std::collections::VecDeque;
@@ -76,6 +76,9 @@ pub struct Recording {
     pub session: Session,
     /// The calibration's `.ircal` bytes.
     pub calibration: Vec<u8>,
+    /// A production-line recording's `/irid/line` message (JSON; written
+    /// before the calibration), None for a static scene.
+    pub line: Option<Vec<u8>>,
     cursor: Arc<Mutex<Cursor>>,
 }
 
@@ -85,14 +88,14 @@ fn lock(c: &Mutex<Cursor>) -> std::sync::MutexGuard<'_, Cursor> {
 
 impl Recording {
     /// Open `path` and read its session and calibration (the first two
-    /// messages).
+    /// messages; a line recording's configuration is between them).
     pub fn open(path: &Path) -> Result<Recording, RecordError> {
         let mut reader = RecordReader::open(path)?;
         let fmt = |message: String| RecordError::Format {
             path: path.display().to_string(),
             message,
         };
-        let (mut session, mut calibration) = (None, None);
+        let (mut session, mut calibration, mut line) = (None, None, None);
         let mut early = VecDeque::new();
         while session.is_none() || calibration.is_none() {
             let Some(m) = reader.next_message() else {
@@ -120,6 +123,7 @@ impl Recording {
                     )
                 }
                 TOPIC_CALIBRATION => calibration = Some(m.data),
+                TOPIC_LINE => line = Some(m.data),
                 _ if early.len() < 64 => early.push_back(m),
                 _ => {}
             }
@@ -155,6 +159,7 @@ impl Recording {
         Ok(Recording {
             session,
             calibration: calibration.expect("set above"),
+            line,
             cursor: Arc::new(Mutex::new(cursor)),
         })
     }

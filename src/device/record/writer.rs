@@ -13,7 +13,8 @@
 
 use super::{
     encode_frame, json_schema, RecordError, RecorderEvent, SeqEvent, Session, TuneEvent, TOPICS,
-    TOPIC_CALIBRATION, TOPIC_FILTER, TOPIC_FRAME, TOPIC_RECORDER, TOPIC_SEQUENCER, TOPIC_SESSION,
+    TOPIC_CALIBRATION, TOPIC_FILTER, TOPIC_FRAME, TOPIC_LINE, TOPIC_RECORDER, TOPIC_SEQUENCER,
+    TOPIC_SESSION,
 };
 use crate::device::camera::Frame;
 use crate::pipeline::runner::CaptureTap;
@@ -154,6 +155,18 @@ impl Recorder {
         calibration: &[u8],
         opts: &RecordOptions,
     ) -> Result<Recorder, RecordError> {
+        Recorder::create_with_line(path, session, None, calibration, opts)
+    }
+
+    /// [`Recorder::create`] for a production line: `line` (the `/irid/line`
+    /// message, JSON) is written between the session and the calibration.
+    pub fn create_with_line(
+        path: &Path,
+        session: &Session,
+        line: Option<&[u8]>,
+        calibration: &[u8],
+        opts: &RecordOptions,
+    ) -> Result<Recorder, RecordError> {
         let io = |source| RecordError::Io {
             path: path.display().to_string(),
             source,
@@ -182,6 +195,7 @@ impl Recorder {
                         TOPIC_SESSION => "irid.Session",
                         TOPIC_SEQUENCER => "irid.SequencerEvent",
                         TOPIC_FILTER => "irid.FilterEvent",
+                        TOPIC_LINE => "irid.LineConfig",
                         _ => "irid.RecorderEvent",
                     };
                     let id = w
@@ -219,6 +233,9 @@ impl Recorder {
         };
         let session_json = serde_json::to_vec(session).expect("session serialises");
         out.write(TOPIC_SESSION, 0, &session_json)?;
+        if let Some(line) = line {
+            out.write(TOPIC_LINE, 0, line)?;
+        }
         out.write(TOPIC_CALIBRATION, 0, calibration)?;
         out.flush()?;
 
