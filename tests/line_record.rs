@@ -7,27 +7,18 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 
+mod cli_common;
+
+use cli_common::{ok, s};
+
 const IRID: &str = env!("CARGO_BIN_EXE_irid");
 
+/// `irid`, which must not panic whatever it returns.
 fn irid(args: &[&str]) -> Output {
-    let out = Command::new(IRID).args(args).output().expect("irid runs");
+    let out = cli_common::irid(args);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!err.contains("panicked"), "irid {args:?} panicked: {err}");
     out
-}
-
-fn ok(args: &[&str]) -> Output {
-    let out = irid(args);
-    assert!(
-        out.status.success(),
-        "irid {args:?} failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    out
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().expect("utf-8 temp path")
 }
 
 fn messages(stdout: &[u8]) -> Vec<serde_json::Value> {

@@ -167,7 +167,7 @@ fn start_recorder(
         fwhm_nm: setup.bands.iter().map(|b| b.fwhm_nm).collect(),
         order: setup.order.clone(),
         seq_mode: SeqMode::Stepped,
-        mode: format!("{:?}", setup.mode).to_ascii_lowercase(),
+        mode: setup.mode.name().to_string(),
         camera_id: info.id,
         width: info.width,
         height: info.height,

@@ -326,6 +326,8 @@ pub struct FilmModel {
     /// The real path's per-node constants where the media are lossless
     /// but disperse (empty otherwise).
     real_nodes: RealNodes,
+    /// Node `i` is band `i`'s only node (every band point-sampled).
+    one_node_per_band: bool,
     s_weight: f64,
     /// Film index at the middle band (real part).
     n2_mid: f64,
@@ -428,8 +430,11 @@ impl FilmModel {
         } else {
             RealNodes::default()
         };
+        let one_node_per_band =
+            nodes.len() == bands.len() && nodes.iter().enumerate().all(|(i, n)| n.band == i);
         Ok(FilmModel {
             real_nodes,
+            one_node_per_band,
             grid: Default::default(),
             misses: Default::default(),
             id: NEXT_MODEL_ID.fetch_add(1, Ordering::Relaxed),
@@ -683,7 +688,7 @@ impl FilmModel {
             deriv,
         };
         let nb = self.n_bands;
-        if self.nodes.len() == nb && self.nodes.iter().enumerate().all(|(i, n)| n.band == i) {
+        if self.one_node_per_band {
             let ModelOut {
                 r, dr_dd, dr_dth, ..
             } = out;
