@@ -99,6 +99,22 @@ fn the_live_page_its_events_and_the_map_update() {
             viridis > png.width * png.height / 10,
             "{viridis} viridis pixels"
         );
+        // Open pages hold event streams; more of them than the server has
+        // request threads (8) must not shut the page out.
+        let held: Vec<TcpStream> = (0..12)
+            .map(|_| {
+                let mut s = TcpStream::connect(&addr).unwrap();
+                write!(s, "GET /events HTTP/1.1\r\nHost: {addr}\r\n\r\n").unwrap();
+                s
+            })
+            .collect();
+        std::thread::sleep(Duration::from_millis(300));
+        let page = String::from_utf8(get(&addr, "/")).unwrap();
+        assert!(
+            page.contains("id=\"trend\""),
+            "page served beside 12 streams"
+        );
+        drop(held);
         let hist: serde_json::Value = serde_json::from_slice(&get(&addr, "/history.json")).unwrap();
         let hist = hist.as_array().unwrap();
         assert!(hist.len() >= 2);
@@ -122,7 +138,8 @@ fn the_live_page_its_events_and_the_map_update() {
 
 /// A screenshot of the page in headless Chromium, taken 8 s after it
 /// opened (the page loads its history, then follows the events).
-fn screenshot(addr: &str) -> irid::render::canvas::RgbImage {
+/// Also Chromium's stderr, to say why a screenshot is missing or blank.
+fn screenshot(addr: &str) -> (Option<irid::render::canvas::RgbImage>, String) {
     let dir = tempfile::tempdir().unwrap();
     let shot = dir.path().join("shot.png");
     let mut c = Command::new("chromium")
@@ -136,7 +153,7 @@ fn screenshot(addr: &str) -> irid::render::canvas::RgbImage {
         .arg(format!("--screenshot={}", shot.display()))
         .arg(format!("http://{addr}/"))
         .stdout(Stdio::null())
-        .stderr(Stdio::null())
+        .stderr(std::fs::File::create(dir.path().join("stderr.txt")).unwrap())
         .spawn()
         .unwrap();
     let t0 = Instant::now();
@@ -147,7 +164,11 @@ fn screenshot(addr: &str) -> irid::render::canvas::RgbImage {
         }
         std::thread::sleep(Duration::from_millis(100));
     }
-    irid::render::canvas::decode_png(&std::fs::read(&shot).unwrap()).unwrap()
+    let img = std::fs::read(&shot)
+        .ok()
+        .and_then(|b| irid::render::canvas::decode_png(&b).ok());
+    let log = std::fs::read_to_string(dir.path().join("stderr.txt")).unwrap_or_default();
+    (img, log)
 }
 
 fn count(img: &irid::render::canvas::RgbImage, f: impl Fn(&[u8]) -> bool) -> usize {
@@ -176,15 +197,23 @@ fn browser_check(addr: &str) {
     // deadline: up to four tries each.
     let shoot = || {
         let mut last = (0, 0, 0);
+        let mut why = String::new();
         for _ in 0..4 {
-            let shot = screenshot(addr);
+            let (shot, log) = screenshot(addr);
+            let Some(shot) = shot else {
+                why = format!("no screenshot; chromium said:\n{log}");
+                continue;
+            };
             last = drawn(&shot);
             if ok(last) {
                 return shot;
             }
+            // The page's own answer at that moment, beside Chromium's log.
+            let page = get(addr, "/").len();
+            why = format!("GET / gave {page} bytes; chromium said:\n{log}");
         }
         let (purple, yellow, band) = last;
-        panic!("map: {purple} purple, {yellow} yellow pixels; trend band: {band} pixels");
+        panic!("map: {purple} purple, {yellow} yellow pixels; trend band: {band} pixels; {why}");
     };
     let first = shoot();
     let second = shoot();

@@ -6,18 +6,28 @@
 //! It never slows the pipeline: the run's sink hands each finished map to
 //! a renderer thread through a one-slot channel with `try_send` (a map
 //! arriving while the previous one is still being drawn is skipped), and
-//! the HTTP threads only read the latest picture and summaries.
+//! the HTTP threads only read the latest picture and summaries. Each open
+//! page's event stream runs on its own thread (at most [`MAX_STREAMS`]), so
+//! open pages never take the threads that serve the page and the map.
 
 use crate::estimate::ParamMaps;
 use crate::pipeline::output::SweepSummary;
 use crate::render::map::{render_map, MapStyle};
 use crossbeam_channel::{bounded, Sender, TrySendError};
 use std::io::Write;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::Duration;
 
 /// Summaries kept for the trend.
 pub const HISTORY: usize = 600;
+
+/// Event streams served at once (each holds a thread while its page is
+/// open).
+pub const MAX_STREAMS: usize = 64;
+
+/// Event streams open now.
+static STREAMS: AtomicUsize = AtomicUsize::new(0);
 
 #[derive(Default)]
 struct State {
@@ -130,11 +140,33 @@ fn respond(req: tiny_http::Request, shared: &Shared) {
             )
         }
         "/events" => {
-            // Written straight to the socket and flushed per event (a
-            // chunked response would sit in the encoder's buffer).
-            let mut w = req.into_writer();
-            stream_events(&mut *w, shared);
-            Ok(())
+            // Each stream on its own thread, so that open pages never take
+            // the threads that serve the page and the map (a closed page's
+            // stream ends at its next write: ≤ 15 s). At most
+            // `MAX_STREAMS` at once; beyond, 503.
+            if STREAMS.fetch_add(1, Ordering::SeqCst) >= MAX_STREAMS {
+                STREAMS.fetch_sub(1, Ordering::SeqCst);
+                req.respond(
+                    tiny_http::Response::from_string("too many event streams")
+                        .with_status_code(503),
+                )
+            } else {
+                let shared = shared.clone();
+                let spawned = std::thread::Builder::new()
+                    .name("live-events".into())
+                    .spawn(move || {
+                        // Written straight to the socket and flushed per
+                        // event (a chunked response would sit in the
+                        // encoder's buffer).
+                        let mut w = req.into_writer();
+                        stream_events(&mut *w, &shared);
+                        STREAMS.fetch_sub(1, Ordering::SeqCst);
+                    });
+                if spawned.is_err() {
+                    STREAMS.fetch_sub(1, Ordering::SeqCst);
+                }
+                Ok(())
+            }
         }
         _ => req.respond(tiny_http::Response::from_string("not found").with_status_code(404)),
     };
