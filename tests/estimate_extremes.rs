@@ -82,9 +82,14 @@ fn wrong_pixels(n2: f64, pol: &str, known: bool, modes: &[Mode]) -> Vec<String> 
         }
         eprintln!("n2 {n2} {pol} angle known {known} {mode:?}: {valid} of {n} valid");
         // Most of the domain is measurable: flagging everything would pass
-        // the check above. At least half the pixels stay valid.
+        // the check above. At least half the pixels stay valid; in p light
+        // with the angle unknown, a third (around Brewster's angle, ~58° on
+        // 1.6, the film's interfaces reflect next to nothing in p, so rows
+        // of angles carry no fringe to fit, and a free angle finds the
+        // same level on either side of it).
+        let min_valid = if pol == "p" && !known { 1.0 / 3.0 } else { 0.5 };
         assert!(
-            2 * valid >= n,
+            valid as f64 >= min_valid * n as f64,
             "n2 {n2} {pol} {known} {mode:?}: {valid} of {n} valid"
         );
     }
@@ -93,35 +98,33 @@ fn wrong_pixels(n2: f64, pol: &str, known: bool, modes: &[Mode]) -> Vec<String> 
 
 const ALL: [Mode; 3] = [Mode::Fast, Mode::Balanced, Mode::Accurate];
 
+/// The whole sweep: four film indices, s, p and unpolarised light, the
+/// angle known and unknown, every mode (but one case, below).
 #[test]
 fn noise_free_extremes_are_never_valid_and_wrong() {
     let mut wrong = vec![];
     for n2 in [1.01, 1.2, 1.37, 1.59] {
-        for known in [true, false] {
-            wrong.extend(wrong_pixels(n2, "s", known, &ALL));
-            // Unpolarised with the angle unknown: see the ignored sweep.
-            if known {
-                wrong.extend(wrong_pixels(n2, "u", known, &ALL));
+        for pol in ["s", "p", "u"] {
+            for known in [true, false] {
+                let modes: &[Mode] = if pol == "u" && !known {
+                    &ALL[1..]
+                } else {
+                    &ALL
+                };
+                wrong.extend(wrong_pixels(n2, pol, known, modes));
             }
         }
-    }
-    for n2 in [1.01, 1.2, 1.37] {
-        wrong.extend(wrong_pixels(n2, "p", true, &ALL));
     }
     assert!(wrong.is_empty(), "valid and wrong:\n{}", wrong.join("\n"));
 }
 
-/// The whole sweep, the open cases included.
+/// The one open case: unpolarised light with the angle unknown in `fast`.
 #[test]
-#[ignore = "open: p light near Brewster's angle with the angle unknown (7–9 pixels at n2 1.01 and 1.37), a film index-matched to its substrate in p light (n2 1.59: 3 pixels past 2.4 µm at 55° with the angle known; ~110 with it unknown, where the auto level takes the gain–angle trade for a calibration error), unpolarised with the angle unknown in fast mode (1 pixel at 3.5σ)"]
-fn noise_free_extremes_every_case() {
+#[ignore = "open: unpolarised with the angle unknown in fast mode, 1 pixel (n2 1.2, 1200 nm at 49.7°) at 3.5σ"]
+fn noise_free_extremes_unpolarised_free_angle_fast() {
     let mut wrong = vec![];
     for n2 in [1.01, 1.2, 1.37, 1.59] {
-        for pol in ["s", "p", "u"] {
-            for known in [true, false] {
-                wrong.extend(wrong_pixels(n2, pol, known, &ALL));
-            }
-        }
+        wrong.extend(wrong_pixels(n2, "u", false, &[Mode::Fast]));
     }
     assert!(wrong.is_empty(), "valid and wrong:\n{}", wrong.join("\n"));
 }

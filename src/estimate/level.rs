@@ -212,6 +212,8 @@ pub struct LevelPixel {
     pub d: f64,
     /// See [`LevelPixel::id`].
     pub sigma_d: f64,
+    /// The fitted angle, radians (see [`LevelPixel::id`]).
+    pub theta: f64,
 }
 
 /// Result of one Gauss–Newton step of the level.
@@ -578,6 +580,7 @@ mod tests {
                 id: 0,
                 d: 0.0,
                 sigma_d: 0.0,
+                theta: 0.0,
             })
             .collect();
         let wn = (0..nb).map(|k| 1.0 / (400.0 + 10.0 * k as f64)).collect();

@@ -200,6 +200,26 @@ impl Solver {
         } else {
             (basis, chi2_scaled)
         };
+        // Absolute at its best: each pixel also refined from its fit under
+        // the level. Where a fresh absolute search had left a pixel in a
+        // wrong basin (p light near Brewster's angle, a film index-matched
+        // to its substrate), the level must not be credited with the
+        // better basin its refits found.
+        let scaled_px = self.level_pixels(sample, &level);
+        if unknown_index {
+            self.set_film_index(est_abs.clone())?;
+        }
+        let ids: std::collections::BTreeSet<usize> = abs.iter().map(|p| p.id).collect();
+        let abs: Vec<LevelPixel> = self
+            .level_pixels_from(sample, &identity, &scaled_px)
+            .into_iter()
+            .filter(|p| ids.contains(&p.id))
+            .collect();
+        if unknown_index {
+            self.set_film_index(est.clone())?;
+        }
+        let chi2_abs = level_step(&abs, &identity, tested.0, &wn, &var)
+            .map_or(chi2_abs, |s| s.chi2.min(chi2_abs));
         let threshold = chi2_upper_quantile(tested.0.n_params(nb) as f64, AUTO_PROBABILITY);
         let significant = chi2_abs - tested.1 > threshold || basis == LevelBasis::PerBand;
         let delta = chi2_abs - chi2_scaled;
@@ -210,7 +230,7 @@ impl Solver {
         // angle and the index) than the bias it removes.
         // Or the misfit it removes is large enough to fail pixels' own χ²
         // tests: on average more than one unit of χ² per pixel.
-        let shift = median_shift(&abs, &self.level_pixels(sample, &level));
+        let shift = median_shift(&abs, &scaled_px);
         let per_pixel = delta / abs.len() as f64;
         let significant =
             significant && (shift > MIN_MEDIAN_SHIFT || per_pixel > MIN_CHI2_PER_PIXEL);
@@ -394,6 +414,20 @@ impl Solver {
     /// Each sample pixel fitted on its spectrum corrected by `level`, as
     /// the level fit needs it: raw values, model and model derivatives.
     fn level_pixels(&self, sample: &[SamplePixel], level: &Level) -> Vec<LevelPixel> {
+        self.level_pixels_from(sample, level, &[])
+    }
+
+    /// As [`Solver::level_pixels`], each pixel also refined from the fit in
+    /// `starts` with its id (a fit found under another level), and the
+    /// better of the two kept: a level is then credited with what it
+    /// corrects, never with a better basin it happened to lead a pixel's
+    /// search into.
+    fn level_pixels_from(
+        &self,
+        sample: &[SamplePixel],
+        level: &Level,
+        starts: &[LevelPixel],
+    ) -> Vec<LevelPixel> {
         let Some(prep) = &self.prepared else {
             return Vec::new();
         };
@@ -437,7 +471,14 @@ impl Solver {
                         pre: None,
                         start: None,
                     };
-                    let (est, _) = self.solve_with(prep, job, scratch);
+                    let (mut est, sse) = self.solve_with(prep, job, scratch);
+                    let st = starts.binary_search_by_key(&id, |p| p.id).ok();
+                    if let Some(st) = st.map(|i| &starts[i]) {
+                        let (alt, alt_sse) = self.refit_from(prep, corr, px.theta, st, scratch);
+                        if alt.is_valid() && (!est.is_valid() || alt_sse < sse) {
+                            est = alt;
+                        }
+                    }
                     if !est.is_valid() {
                         return None;
                     }
@@ -467,6 +508,7 @@ impl Solver {
                         id,
                         d: est.thickness_nm,
                         sigma_d: est.sigma_thickness_nm,
+                        theta: th,
                         y: px.spectrum.clone(),
                         r: out.r[..nb].to_vec(),
                         jac,
@@ -476,6 +518,47 @@ impl Solver {
             )
             .flatten()
             .collect()
+    }
+
+    /// One sample pixel's spectrum (already corrected) refined from
+    /// another fit's thickness and angle, judged as the sample's own fits
+    /// are (no noise model: the level test weighs χ² itself).
+    fn refit_from(
+        &self,
+        prep: &super::Prepared,
+        spectrum: &[f64],
+        theta_known: Option<f64>,
+        start: &LevelPixel,
+        scratch: &mut Scratch,
+    ) -> (crate::estimate::PixelEstimate, f64) {
+        let nb = self.bands.len();
+        scratch.ensure(nb);
+        let mut n_ok = 0;
+        for (k, &v) in spectrum.iter().enumerate() {
+            let ok = v.is_finite();
+            scratch.spectrum[k] = if ok { v } else { 0.0 };
+            scratch.weight[k] = if ok { 1.0 } else { 0.0 };
+            n_ok += usize::from(ok);
+        }
+        let n_par = if theta_known.is_some() { 1 } else { 2 };
+        if n_ok < nb.div_ceil(2).max(n_par + 3) {
+            return (
+                crate::estimate::PixelEstimate::invalid(crate::estimate::Reason::MissingBands),
+                f64::NAN,
+            );
+        }
+        let theta0 = theta_known.unwrap_or(start.theta);
+        let iters = Effort::INDEX_SEARCH.iters;
+        let fit = self.refine(
+            &prep.model,
+            start.d,
+            theta0,
+            theta_known.is_none(),
+            iters,
+            scratch,
+        );
+        let lam_min = self.table.sorted.first().map_or(400.0, |b| b.1);
+        self.finish(&[fit], n_ok, theta_known, None, prep, lam_min, scratch)
     }
 
     /// Correct a cube by the level in force (nothing to do for the

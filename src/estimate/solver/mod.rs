@@ -45,6 +45,7 @@
 //!   the physical thickness range and the search bounds.
 //! - `linalg.rs`: 3×3 linear algebra.
 
+mod alternatives;
 mod bands;
 mod closed_form;
 mod free;

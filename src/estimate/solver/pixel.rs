@@ -107,6 +107,14 @@ impl Solver {
                                 && self.fit_passes(chi2, n_ok, n_par)
                                 && self.bound_reason(prep, d, th, theta_known).is_none()
                             {
+                                // The closed form is not the best fit: a
+                                // χ² above its degrees of freedom is its
+                                // own misfit, which σ then carries (the
+                                // Birge ratio; never narrowed).
+                                let birge = (chi2 / (n_ok - n_par).max(1) as f64).max(1.0).sqrt();
+                                let mut fe = fe;
+                                fe.sigma_thickness_nm *= birge;
+                                fe.sigma_theta_deg *= birge;
                                 return (fe, f64::NAN);
                             }
                         }
@@ -288,8 +296,24 @@ impl Solver {
         scratch: &mut Scratch,
     ) -> (PixelEstimate, f64) {
         let n_par = if theta_known.is_some() { 1 } else { 2 };
-        let mut order = [0usize, 1, 2];
-        let order = &mut order[..fits.len().min(3)];
+        // With the angle free, fits a fresh search never looks at compete
+        // too (see `alternatives`).
+        let mut all = [Fit::default(); 7];
+        let n_all = fits.len().min(3);
+        all[..n_all].copy_from_slice(&fits[..n_all]);
+        let n_all = n_all
+            + self.alternative_fits(
+                fits,
+                n_ok,
+                theta_known,
+                noise,
+                prep,
+                scratch,
+                &mut all[n_all..],
+            );
+        let fits = &all[..n_all];
+        let mut order = [0usize, 1, 2, 3, 4, 5, 6];
+        let order = &mut order[..n_all];
         order.sort_by(|&a, &b| fits[a].sse.total_cmp(&fits[b].sse));
         let Some(best) = order.first().map(|&i| fits[i]) else {
             return (PixelEstimate::invalid(Reason::PoorFit), f64::NAN);
@@ -402,7 +426,7 @@ impl Solver {
         if reason == Reason::Ok
             && (sig_d.is_nan()
                 || sig_d >= span
-                || (judging && self.film_invisible(prep, best.theta, n_ok, noise_var)))
+                || (judging && self.film_invisible(prep, best.theta, n_ok, n_par, noise_var)))
         {
             reason = Reason::NoFringe;
         }

@@ -1,0 +1,280 @@
+//! Alternative fits with the angle free: the basins a fresh search never
+//! looks at, weighed against its best fit like a second fringe order (the
+//! better one wins; if both fit alike, the order is ambiguous).
+//!
+//! - **Mirror angles** (p light): an interface's p reflection vanishes at
+//!   its Brewster angle and grows again beyond it, so an angle on one side
+//!   and its mirror image on the other (equal |r_p|) give nearly the same
+//!   level, and the film's optical thickness takes up the rest. The angle
+//!   start comes from the level, so the search sees only one side.
+//! - **Weak fringes** (any light): where the fringes carry little more
+//!   signal than the χ² test lets pass, a local fit at a thickness far off
+//!   passes the test. There, the whole thickness range is scanned at the
+//!   fitted angle (and the mirror angles).
+//! - **Below the first fringe** (any light): a film's phase hardly changes
+//!   across the bands, so a thicker or thinner sub-fringe film differs by
+//!   little more than a level, which the angle absorbs (a bare substrate
+//!   at 74.6° passed for a 101 nm film). The sub-fringe range is scanned.
+//!
+//! On noise-free extremes (film index 1.01–1.59 on 1.60, p light, 0–89.5°)
+//! these turned wrong valid fits of 0.1–3 µm error into right ones or
+//! flags; on ordinary scenes the weak-fringe scan never runs (the fringes
+//! carry thousands of noise variances) and the mirror check costs one
+//! short scan and one refinement per mirror angle, p light only.
+
+use super::refine::sse;
+use super::{Fit, Prepared, Scratch, Solver};
+use crate::estimate::model::FilmModel;
+
+/// Fringes below this many χ² thresholds of signal are "weak": the whole
+/// range is scanned for another basin.
+const WEAK_FRINGES: f64 = 10.0;
+
+/// Refinement iterations for an alternative start.
+const ITERS: usize = 25;
+
+impl Solver {
+    /// The alternatives to the best of `fits` (angle free, judged pixels
+    /// only), into `out`; returns how many.
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn alternative_fits(
+        &self,
+        fits: &[Fit],
+        n_ok: usize,
+        theta_known: Option<f64>,
+        noise: Option<f64>,
+        prep: &Prepared,
+        scratch: &mut Scratch,
+        out: &mut [Fit],
+    ) -> usize {
+        let Some(sigma) = noise.filter(|_| theta_known.is_none() && self.judging()) else {
+            return 0;
+        };
+        let Some(best) = fits
+            .iter()
+            .filter(|f| f.sse.is_finite() && f.d.is_finite() && f.theta.is_finite())
+            .min_by(|a, b| a.sse.total_cmp(&b.sse))
+        else {
+            return 0;
+        };
+        let model = match (&prep.integrated, best.integrated) {
+            (Some(m), true) => m,
+            _ => &prep.model,
+        };
+        let weak = {
+            let (h, q) = prep.envelopes_at(best.theta);
+            let c = (h - q).abs();
+            let energy = n_ok as f64 * c * c / (8.0 * sigma * sigma);
+            energy < WEAK_FRINGES * self.chi2.threshold(n_ok.saturating_sub(2).max(1))
+        };
+        let step = 0.125 / self.table.sigma_center;
+        let g0 = best.d * prep.model.q2_mid(best.theta);
+        let g_max = self.d_max * prep.model.q2_mid(best.theta);
+        let (lam_min, lam_max) = (
+            self.table.sorted.first().map_or(400.0, |b| b.1),
+            self.table.sorted.last().map_or(700.0, |b| b.1),
+        );
+        let thin = g0 < 0.5 * lam_max;
+        let mut n = 0;
+        let mut push = |n: &mut usize, start: Option<(f64, f64)>, scratch: &mut Scratch| {
+            let Some((d, th)) = start else { return };
+            if *n >= out.len() {
+                return;
+            }
+            let mut f = self.refine(model, d, th, true, ITERS, scratch);
+            f.integrated = best.integrated;
+            if f.sse.is_finite() {
+                out[*n] = f;
+                *n += 1;
+            }
+        };
+        if self.scene.polarization.s_weight() < 0.5 {
+            let (n1, n3) = prep.model.ambient_substrate_mid();
+            let (n1, n2, n3) = (n1.re, prep.model.n2_mid(), n3.re);
+            // Ambient–film, film–substrate.
+            for (ni, nj) in [(n1, n2), (n2, n3)] {
+                let Some(tm) = mirror_angle(n1, ni, nj, best.theta, self.theta_range) else {
+                    continue;
+                };
+                if (tm - best.theta).abs() < 1f64.to_radians() {
+                    continue;
+                }
+                // Across the Brewster angle the interface's reflection
+                // changes sign, which shifts the fringes by half a period (a
+                // quarter wave of optical thickness): a few optical
+                // thicknesses around the same one, up to 3/8 wave off; from
+                // zero for a film below its first fringe (whose own fit may
+                // be a sub-fringe stand-in); the whole range where the
+                // fringes are weak.
+                let span = if weak {
+                    (0.0, g_max)
+                } else if thin {
+                    (0.0, 0.5 * lam_max + 3.0 * step)
+                } else {
+                    (g0 - 3.0 * step, g0 + 3.0 * step)
+                };
+                let start = self.scan_start(model, tm, span, step, None, scratch);
+                push(&mut n, start, scratch);
+            }
+        }
+        if weak {
+            // The same side, away from the fitted basin.
+            let start = self.scan_start(
+                model,
+                best.theta,
+                (0.0, g_max),
+                step,
+                Some((g0, 2.0 * step)),
+                scratch,
+            );
+            push(&mut n, start, scratch);
+        }
+        if thin {
+            // A film below its first fringe: its phase hardly changes
+            // across the bands, so a thicker or thinner one differs by
+            // little more than a level, which the angle absorbs. The
+            // sub-fringe range at twice the density, away from the fit by
+            // what counts as another order.
+            let start = self.scan_start(
+                model,
+                best.theta,
+                (0.0, 0.5 * lam_max),
+                0.5 * step,
+                Some((g0, 0.125 * lam_min)),
+                scratch,
+            );
+            push(&mut n, start, scratch);
+        }
+        n
+    }
+
+    /// The best start on a grid of optical thickness (`span`, in `step`s)
+    /// at angle `theta`, each point judged with the angle moved to its best
+    /// to first order (a mirror angle is approximate, and far from normal
+    /// incidence the level is steep in the angle); grid points within
+    /// `exclude` = (g, half-width) are skipped. Returns (d, θ).
+    fn scan_start(
+        &self,
+        model: &FilmModel,
+        theta: f64,
+        span: (f64, f64),
+        step: f64,
+        exclude: Option<(f64, f64)>,
+        scratch: &mut Scratch,
+    ) -> Option<(f64, f64)> {
+        let (lo, hi) = self.theta_range;
+        let q = model.q2_mid(theta);
+        let mut best = (f64::NAN, f64::NAN, f64::INFINITY);
+        let k0 = (span.0.max(0.0) / step).ceil() as i64;
+        let k1 = (span.1 / step).floor() as i64;
+        for k in k0..=k1 {
+            let g = k as f64 * step;
+            if exclude.is_some_and(|(g0, w)| (g - g0).abs() < w) {
+                continue;
+            }
+            let d = g / q;
+            if !(self.d_min..=self.d_max).contains(&d) {
+                continue;
+            }
+            model.eval(d, theta, &mut scratch.trial, true);
+            let (mut ej, mut jj) = (0.0, 0.0);
+            for b in 0..scratch.spectrum.len() {
+                let (w, j) = (scratch.weight[b], scratch.trial.dr_dth[b]);
+                ej += w * (scratch.spectrum[b] - scratch.trial.r[b]) * j;
+                jj += w * j * j;
+            }
+            let e2 = sse(&scratch.spectrum, &scratch.weight, &scratch.trial.r);
+            let (e, dt) = if jj > 0.0 {
+                (e2 - ej * ej / jj, (ej / jj).clamp(-0.05, 0.05))
+            } else {
+                (e2, 0.0)
+            };
+            if e < best.2 {
+                best = (d, (theta + dt).clamp(lo, hi), e);
+            }
+        }
+        best.0.is_finite().then_some((best.0, best.1))
+    }
+}
+
+/// |r_p| of the interface from index `ni` to `nj`, seen at external angle
+/// `theta` from an ambient of index `n1` (lossless, mid-band).
+fn rp_abs(n1: f64, ni: f64, nj: f64, theta: f64) -> f64 {
+    let kx = n1 * theta.sin();
+    let ci = (1.0 - (kx / ni).powi(2)).max(0.0).sqrt();
+    let cj = (1.0 - (kx / nj).powi(2)).max(0.0).sqrt();
+    ((nj * ci - ni * cj) / (nj * ci + ni * cj)).abs()
+}
+
+/// The external angle on the other side of the interface's Brewster angle
+/// (within `range`) at which |r_p| equals its value at `theta`, by
+/// bisection (|r_p| rises away from the Brewster angle on either side);
+/// `None` if there is none.
+fn mirror_angle(n1: f64, ni: f64, nj: f64, theta: f64, range: (f64, f64)) -> Option<f64> {
+    // Brewster: tan θ_i = nj / ni inside medium i; outside, by Snell.
+    let sb = ni * nj / (n1 * (ni * ni + nj * nj).sqrt());
+    if !(sb.is_finite() && sb < 1.0 && theta.is_finite()) {
+        return None;
+    }
+    let tb = sb.asin();
+    let target = rp_abs(n1, ni, nj, theta);
+    let f = |t: f64| rp_abs(n1, ni, nj, t) - target;
+    // From the Brewster angle (f < 0) to the far end of the other side.
+    let (mut near, mut far) = if theta < tb {
+        (tb, range.1.min(std::f64::consts::FRAC_PI_2 - 1e-9))
+    } else {
+        (tb, range.0.max(0.0))
+    };
+    if (far - near).abs() < 1e-12 || f(far) < 0.0 {
+        return None;
+    }
+    for _ in 0..60 {
+        let mid = 0.5 * (near + far);
+        if f(mid) < 0.0 {
+            near = mid;
+        } else {
+            far = mid;
+        }
+    }
+    Some(0.5 * (near + far))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The Brewster angle from the Fresnel formula itself (|r_p| = 0) and
+    /// the mirror image against a direct evaluation on both sides.
+    #[test]
+    fn mirror_angles_have_equal_p_reflection() {
+        for (n1, ni, nj) in [
+            (1.0, 1.0, 1.5),
+            (1.0, 1.37, 1.6),
+            (1.0, 1.01, 1.6),
+            (1.33, 1.33, 1.5),
+        ] {
+            let sb = ni * nj / (n1 * (ni * ni + nj * nj).sqrt());
+            if sb >= 1.0 {
+                continue;
+            }
+            let tb = sb.asin();
+            assert!(rp_abs(n1, ni, nj, tb) < 1e-12, "{n1} {ni} {nj}");
+            for dt in [-0.4, -0.2, -0.05, 0.05, 0.2] {
+                let t = tb + dt;
+                let range = (0.0, 89.5f64.to_radians());
+                if let Some(m) = mirror_angle(n1, ni, nj, t, range) {
+                    // The other side, and the same |r_p|.
+                    assert!((m - tb) * dt < 0.0, "{t} → {m}");
+                    let (a, b) = (rp_abs(n1, ni, nj, t), rp_abs(n1, ni, nj, m));
+                    assert!((a - b).abs() < 1e-9, "{a} {b}");
+                } else {
+                    // None only when the other side never reaches it.
+                    let end = if dt < 0.0 { range.1 } else { 0.0 };
+                    assert!(rp_abs(n1, ni, nj, end) < rp_abs(n1, ni, nj, t));
+                }
+            }
+        }
+        // Index-matched interfaces have no Brewster angle seen from air.
+        assert!(mirror_angle(1.0, 1.59, 1.6, 0.5, (0.0, 1.5)).is_none());
+    }
+}
