@@ -141,7 +141,12 @@ fn a_spread_of_angles_is_modelled_per_band_and_without_it_the_rows_are_biased() 
     // Jacobians at the bands' angles — 15 % is a generous bound that the
     // uncorrected run fails by far.
     assert!(on.valid > 0.97, "{on:?}");
-    assert!(on.mae <= 1.15 * base.mae, "MAE {} vs {} without spread", on.mae, base.mae);
+    assert!(
+        on.mae <= 1.15 * base.mae,
+        "MAE {} vs {} without spread",
+        on.mae,
+        base.mae
+    );
     assert!((0.9..=0.99).contains(&on.cover), "2σ coverage {}", on.cover);
     // Every complete row right: σ is ~0.5 nm per pixel.
     assert!(on.worst_row <= 2.0, "{on:?}");
@@ -180,16 +185,25 @@ fn a_spread_below_the_rule_is_left_alone_and_stays_accurate() {
 fn angles_per_sensor_row_are_checked() {
     let mut r = WebRig::demo().unwrap();
     r.file.camera.angles_deg = Some(vec![30.0; 5]);
-    let e = WebRig::resolve(r.file.clone(), r.base.clone()).unwrap_err().to_string();
-    assert!(e.contains("5 values") && e.contains("rows_in_view is 32"), "{e}");
+    let e = WebRig::resolve(r.file.clone(), r.base.clone())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("5 values") && e.contains("rows_in_view is 32"),
+        "{e}"
+    );
     r.file.camera.angle_deg_per_row = Some(0.1);
     r.file.camera.angles_deg = Some(vec![30.0; 32]);
-    let e = WebRig::resolve(r.file.clone(), r.base.clone()).unwrap_err().to_string();
+    let e = WebRig::resolve(r.file.clone(), r.base.clone())
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("not both"), "{e}");
     // A slope that tips the view's edge past 90°.
     r.file.camera.angles_deg = None;
     r.file.camera.angle_deg_per_row = Some(5.0);
-    let e = WebRig::resolve(r.file.clone(), r.base.clone()).unwrap_err().to_string();
+    let e = WebRig::resolve(r.file.clone(), r.base.clone())
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("outside 0–90°"), "{e}");
     // An explicit list is taken as given, in radians.
     r.file.camera.angle_deg_per_row = None;
@@ -205,7 +219,10 @@ fn angles_per_sensor_row_are_checked() {
     // A slope: the middle of the view at the scene's 30°.
     r.file.camera.angles_deg = None;
     r.file.camera.angle_deg_per_row = Some(0.2);
-    let a = WebRig::resolve(r.file, r.base).unwrap().sensor_angles.unwrap();
+    let a = WebRig::resolve(r.file, r.base)
+        .unwrap()
+        .sensor_angles
+        .unwrap();
     assert!((a[0].to_degrees() - (30.0 - 15.5 * 0.2)).abs() < 1e-9);
     assert!((((a[15] + a[16]) / 2.0).to_degrees() - 30.0).abs() < 1e-9);
 }

@@ -427,14 +427,15 @@ fn replay_setup(
             .recipe()
             .with_context(|| format!("{}: recorded recipe", args.file.display()))?,
     };
-    let setup = line.setup(
-        scene,
-        s.bands(),
-        s.order.clone(),
-        Calibrator::from_calibration(cal),
-        mode,
-    )
-    .with_context(|| args.file.display().to_string())?;
+    let setup = line
+        .setup(
+            scene,
+            s.bands(),
+            s.order.clone(),
+            Calibrator::from_calibration(cal),
+            mode,
+        )
+        .with_context(|| args.file.display().to_string())?;
     let out_dir = (!args.no_maps).then(|| args.out.join("line"));
     if let Some(d) = &out_dir {
         refuse_earlier_strips(d, args.force)?;

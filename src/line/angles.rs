@@ -194,9 +194,7 @@ impl SensorAngles {
             if dt == 0.0 {
                 continue;
             }
-            let g = (b0..=b1)
-                .map(|i| self.g[i * nb + b])
-                .fold(0.0, f64::max);
+            let g = (b0..=b1).map(|i| self.g[i * nb + b]).fold(0.0, f64::max);
             sum += g * g * dt * dt;
         }
         sum.sqrt()
@@ -250,12 +248,11 @@ impl SensorAngles {
             return false;
         }
         if self.mode == Correction::Auto {
-            let (lo, hi) = sc
-                .d
-                .iter()
-                .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &d| {
-                    (a.min(d), b.max(d))
-                });
+            let (lo, hi) =
+                sc.d.iter()
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &d| {
+                        (a.min(d), b.max(d))
+                    });
             let sigma = solver.noise().map(|n| n.typical_sigma(0.05));
             if sigma.is_some_and(|s| self.bound(&sc.row, lo - BIN_NM, hi + BIN_NM) <= THRESHOLD * s)
             {
@@ -425,7 +422,10 @@ mod tests {
         // misfit, which must itself be large (else the test shows nothing).
         eprintln!("misfit error {worst:e}, misfit up to {largest:e}");
         assert!(largest > 5e-3, "the spread barely matters: {largest}");
-        assert!(worst < 1e-12, "misfit error {worst:e} (misfit up to {largest:e})");
+        assert!(
+            worst < 1e-12,
+            "misfit error {worst:e} (misfit up to {largest:e})"
+        );
     }
 
     #[test]
@@ -447,7 +447,10 @@ mod tests {
             // different thicknesses, so it is above the worst misfit by
             // at most ~√2 — 3× leaves room and still fails a wrong bound.
             eprintln!("{lo}: bound {bound:e}, worst {worst:e}");
-            assert!(bound >= worst && bound < 3.0 * worst, "{lo}: {bound} vs {worst}");
+            assert!(
+                bound >= worst && bound < 3.0 * worst,
+                "{lo}: {bound} vs {worst}"
+            );
         }
         // Every band at the centre row's angle: nothing to correct.
         let centre = vec![u32::MAX; 31];
@@ -463,8 +466,8 @@ mod tests {
     fn the_fixed_point_contracts_fast() {
         use crate::estimate::Mode;
         use crate::scene::Scene;
-        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("data/scenes/web-film.toml");
+        let path =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/scenes/web-film.toml");
         let scene = Scene::load(&path).unwrap();
         let bands = scene.bands.clone().unwrap();
         let solver = Solver::new(&scene, &bands, Mode::Balanced).unwrap();
@@ -497,12 +500,11 @@ mod tests {
             assert!(fit_thicknesses(&est, &scratch, &mut sc.d));
             sc.row = ra.clone();
             a.iterate(&solver, model, &mut c, &mut est, &mut scratch, &mut sc, n);
-            let worst = sc
-                .d
-                .iter()
-                .zip(&truth)
-                .map(|(d, t)| (d - t).abs())
-                .fold(0.0, f64::max);
+            let worst =
+                sc.d.iter()
+                    .zip(&truth)
+                    .map(|(d, t)| (d - t).abs())
+                    .fold(0.0, f64::max);
             if n > 0 {
                 // At the fixed point the model explains the data: valid.
                 assert!(est.iter().all(|e| e.is_valid()), "{n}: {est:?}");
@@ -517,7 +519,10 @@ mod tests {
         // angle's few-% share of the film's phase: measured 0.84 → 0.013 →
         // 0.0003 nm. Each step must gain ≥ 10×, and two leave a bias under
         // 2 % of σ.
-        assert!(errs[1] < 0.1 * errs[0] && errs[2] < 0.1 * errs[1], "{errs:?}");
+        assert!(
+            errs[1] < 0.1 * errs[0] && errs[2] < 0.1 * errs[1],
+            "{errs:?}"
+        );
         assert!(errs[2] < 0.01, "{errs:?}");
     }
 
@@ -525,8 +530,8 @@ mod tests {
     fn refuses_angles_outside_the_quadrant() {
         let b = bands();
         let m = model(&b);
-        let e = SensorAngles::new(0.5, vec![0.5, 1.7], &m, (0.0, 100.0), Correction::Auto)
-            .unwrap_err();
+        let e =
+            SensorAngles::new(0.5, vec![0.5, 1.7], &m, (0.0, 100.0), Correction::Auto).unwrap_err();
         assert!(e.to_string().contains("0–90°"), "{e}");
     }
 }

@@ -188,7 +188,10 @@ mod tests {
         use super::super::rig::WebRig;
         let demo = WebRig::demo_path();
         let text = std::fs::read_to_string(&demo).unwrap();
-        let with = text.replace("exposure_ms = 5.0", "exposure_ms = 5.0\nangle_deg_per_row = 0.25");
+        let with = text.replace(
+            "exposure_ms = 5.0",
+            "exposure_ms = 5.0\nangle_deg_per_row = 0.25",
+        );
         assert_ne!(with, text);
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("web.toml");
@@ -206,12 +209,20 @@ mod tests {
         r.web_toml = with;
         r.geometry = live.geometry;
         let cal = crate::pipeline::calibration::Calibrator::from_calibration(
-            live.build(live.camera_config(), Mode::Fast).unwrap().calibration,
+            live.build(live.camera_config(), Mode::Fast)
+                .unwrap()
+                .calibration,
         );
         let bands = live.scene.bands.clone().unwrap();
         let order: Vec<usize> = (0..bands.len()).collect();
         let setup = r
-            .setup(live.scene.clone(), bands.clone(), order.clone(), cal.clone(), Mode::Fast)
+            .setup(
+                live.scene.clone(),
+                bands.clone(),
+                order.clone(),
+                cal.clone(),
+                Mode::Fast,
+            )
             .unwrap();
         assert_eq!(setup.sensor_angles.as_deref(), Some(&want[..]));
         // Re-judged at another scene angle: the slope moves with it.
@@ -227,7 +238,9 @@ mod tests {
         }
         // The demo's own file: no angles.
         r.web_toml = text;
-        let none = r.setup(live.scene.clone(), bands, order, cal, Mode::Fast).unwrap();
+        let none = r
+            .setup(live.scene.clone(), bands, order, cal, Mode::Fast)
+            .unwrap();
         assert!(none.sensor_angles.is_none());
     }
 }

@@ -367,8 +367,7 @@ pub fn run_line_tapped<'a>(
             )));
         }
     }
-    let mut solver =
-        RowSolver::new(&setup.scene, &setup.bands, setup.mode, w, setup.warmup_rows)?;
+    let mut solver = RowSolver::new(&setup.scene, &setup.bands, setup.mode, w, setup.warmup_rows)?;
     if let Some(a) = setup.sensor_angles {
         solver.set_sensor_angles(a, setup.angle_correction)?;
     }

@@ -258,13 +258,15 @@ impl WebCamera {
         let mut angles: Vec<f64> = Vec::new();
         let row_angle: Vec<usize> = row_deg
             .iter()
-            .map(|&t| match angles.iter().position(|a| a.to_bits() == t.to_bits()) {
-                Some(i) => i,
-                None => {
-                    angles.push(t);
-                    angles.len() - 1
-                }
-            })
+            .map(
+                |&t| match angles.iter().position(|a| a.to_bits() == t.to_bits()) {
+                    Some(i) => i,
+                    None => {
+                        angles.push(t);
+                        angles.len() - 1
+                    }
+                },
+            )
             .collect();
         let mut band_nodes = Vec::with_capacity(bands.len());
         for b in bands {
@@ -460,7 +462,10 @@ impl FrameSource for WebCamera {
             .enumerate()
         {
             let base = self.row_angle[y] * nb;
-            let (ta, tb) = (a.map(|i| &self.tables[base + i]), b.map(|i| &self.tables[base + i]));
+            let (ta, tb) = (
+                a.map(|i| &self.tables[base + i]),
+                b.map(|i| &self.tables[base + i]),
+            );
             for (o, &d) in orow.iter_mut().zip(drow) {
                 let ra = ta.map_or(0.0, |t| f64::from(t.at(d)));
                 let rb = tb.map_or(0.0, |t| f64::from(t.at(d)));
@@ -564,5 +569,79 @@ mod tests {
             let want = airy::reflectance(m, d, 20f64.to_radians(), 500.0, Polarization::S);
             assert!((f64::from(cam.tables[0].at(d)) - want).abs() < 2e-7, "{d}");
         }
+    }
+
+    #[test]
+    fn each_sensor_row_is_rendered_at_its_own_angle() {
+        let film = WebFilm {
+            base_nm: 300.0,
+            edge_nm: 0.0,
+            streaks: vec![],
+            drift_nm: 0.0,
+            drift_period_rows: 1000.0,
+            defect: None,
+        };
+        let air = Dispersion::constant(1.0);
+        let f = Dispersion::constant(1.45);
+        let sub = Dispersion::constant(1.6);
+        let bands = vec![
+            Band::new(450.0, 0.0).unwrap(),
+            Band::new(600.0, 0.0).unwrap(),
+        ];
+        let rows = vec![20.0, 25.0, 20.0, 35.0];
+        let cfg = WebCameraConfig {
+            width: 2,
+            rows_in_view: 4,
+            speed_rows_per_s: 0.0,
+            speed_changes: vec![],
+            jumps: vec![],
+            rows_per_count: 1.0,
+            jitter_rows: 0.0,
+            noise_sigma: 0.0,
+            sensor: SensorModel::default(),
+            theta_deg: 30.0,
+            row_theta_deg: rows.clone(),
+            polarization: Polarization::Unpolarized,
+            seed: 1,
+            realtime_speed: 0.0,
+        };
+        let cam = WebCamera::new(
+            cfg.clone(),
+            film.clone(),
+            [&air, &f, &sub],
+            &bands,
+            FilterView::new(),
+        )
+        .unwrap();
+        // Rows at the same angle share a table.
+        assert_eq!(cam.tables.len(), 3 * bands.len());
+        let m = Media::real(1.0, 1.45, 1.6);
+        for (y, &deg) in rows.iter().enumerate() {
+            for (b, band) in bands.iter().enumerate() {
+                let t = &cam.tables[cam.row_angle[y] * bands.len() + b];
+                let want = airy::reflectance(
+                    m,
+                    300.0,
+                    deg.to_radians(),
+                    band.center_nm,
+                    Polarization::Unpolarized,
+                );
+                assert!(
+                    (f64::from(t.at(300.0)) - want).abs() < 2e-7,
+                    "row {y} band {b}"
+                );
+            }
+        }
+        // A list of the wrong length is refused.
+        let mut bad = cfg;
+        bad.row_theta_deg = vec![20.0; 3];
+        let e = WebCamera::new(bad, film, [&air, &f, &sub], &bands, FilterView::new())
+            .err()
+            .unwrap();
+        assert!(
+            e.to_string()
+                .contains("3 incidence angles for 4 sensor rows"),
+            "{e}"
+        );
     }
 }
