@@ -55,8 +55,16 @@ pub enum Correction {
     Always,
 }
 
-/// Fixed-point iterations of a corrected row.
-pub const ITERATIONS: usize = 2;
+/// Solves of a corrected row after its first (each from thicknesses
+/// refined on the per-band model, see `SensorAngles::iterate`).
+pub const ITERATIONS: usize = 1;
+
+/// Gauss–Newton steps per pixel on the per-band model.
+const NEWTON_STEPS: usize = 8;
+
+/// Largest Gauss–Newton step, nm (a fraction of a fringe: the first solve
+/// found the order).
+const MAX_STEP_NM: f64 = 10.0;
 
 /// The correction is applied where the bound on ‖e‖₂ exceeds this fraction
 /// of the noise σ (the bias it leaves is then below this fraction of σ_d).
@@ -105,6 +113,9 @@ pub struct AngleScratch {
     d: Vec<f64>,
     e: Vec<f64>,
     buf: Vec<f64>,
+    /// One pixel's spectrum.
+    y: Vec<f64>,
+    table: RowTable,
 }
 
 impl SensorAngles {
@@ -263,8 +274,14 @@ impl SensorAngles {
         true
     }
 
-    /// The fixed-point iteration from the thicknesses in `sc.d`: the row's
-    /// spectra less e(d̂), solved again, `iterations` times.
+    /// The correction from the thicknesses in `sc.d`: per pixel, the
+    /// thickness refined by Gauss–Newton on the model with each band at its
+    /// own angle (cheap: no search, the first solve found the fringe
+    /// order), then the row's spectra less e at it, solved again by the
+    /// solver (its flags and σ on the corrected spectra) — `solves` times.
+    /// The per-band model comes from the row's table ([`RowTable`]) where
+    /// the row's thicknesses span less than [`TABLE_MAX_NM`], else from
+    /// the model itself.
     #[allow(clippy::too_many_arguments)]
     fn iterate(
         &self,
@@ -274,15 +291,39 @@ impl SensorAngles {
         est: &mut [PixelEstimate],
         scratch: &mut Scratch,
         sc: &mut AngleScratch,
-        iterations: usize,
+        solves: usize,
     ) {
         let w = cube.width;
         let nb = cube.bands.len();
         sc.base.clear();
         sc.base.extend_from_slice(&cube.data[..w * nb]);
-        for _ in 0..iterations {
+        for _ in 0..solves {
+            let (lo, hi) = range(&sc.d);
+            let tabled = sc.table.build(
+                model,
+                &sc.row.at,
+                &self.centre,
+                (lo - TABLE_MARGIN_NM, hi + TABLE_MARGIN_NM),
+                nb,
+            );
             for x in 0..w {
-                self.misfit(model, &sc.row, sc.d[x], &mut sc.e, &mut sc.buf);
+                sc.y.clear();
+                sc.y.extend((0..nb).map(|b| f64::from(sc.base[b * w + x])));
+                let table = tabled.then_some(&sc.table);
+                let d = self.refine(
+                    model,
+                    &sc.row,
+                    table,
+                    &sc.y,
+                    sc.d[x],
+                    &mut sc.e,
+                    &mut sc.buf,
+                );
+                sc.d[x] = d;
+                match table.filter(|t| t.covers(d)) {
+                    Some(t) => t.misfit(d, &mut sc.e),
+                    None => self.misfit(model, &sc.row, d, &mut sc.e, &mut sc.buf),
+                }
                 for (b, &eb) in sc.e.iter().enumerate() {
                     let i = b * w + x;
                     let v = sc.base[i];
@@ -295,6 +336,172 @@ impl SensorAngles {
             }
         }
     }
+
+    /// Gauss–Newton on `‖y − R(d, θ_b)‖²` from `d0` (steps of at most
+    /// [`MAX_STEP_NM`], until one is below 1e-6 nm or [`NEWTON_STEPS`]).
+    #[allow(clippy::too_many_arguments)]
+    fn refine(
+        &self,
+        model: &FilmModel,
+        row: &RowAngles,
+        table: Option<&RowTable>,
+        y: &[f64],
+        d0: f64,
+        r: &mut Vec<f64>,
+        dr: &mut Vec<f64>,
+    ) -> f64 {
+        let nb = y.len();
+        r.resize(nb, 0.0);
+        dr.resize(nb, 0.0);
+        let mut d = d0;
+        for _ in 0..NEWTON_STEPS {
+            match table.filter(|t| t.covers(d)) {
+                Some(t) => t.model(d, r, dr),
+                None => model.eval_band_angles_deriv(&row.at, d, r, dr),
+            }
+            let (mut num, mut den) = (0.0, 0.0);
+            for b in 0..nb {
+                if y[b].is_finite() {
+                    num += (y[b] - r[b]) * dr[b];
+                    den += dr[b] * dr[b];
+                }
+            }
+            if !(den > 0.0 && num.is_finite()) {
+                break;
+            }
+            let step = (num / den).clamp(-MAX_STEP_NM, MAX_STEP_NM);
+            d = (d + step).max(0.0);
+            if step.abs() < 1e-6 {
+                break;
+            }
+        }
+        if d.is_finite() {
+            d
+        } else {
+            d0
+        }
+    }
+}
+
+/// Thickness step of a row's table, nm: cubic Hermite interpolation of a
+/// fringe whose phase moves ≤ 0.05 rad/nm errs by ≲ A·(0.05 h)⁴/384 —
+/// 2e-10 for a fringe amplitude A = 0.05 at h = 1 nm.
+const TABLE_STEP_NM: f64 = 1.0;
+
+/// A row's table covers its thicknesses and this much beyond, nm (room
+/// for the Gauss–Newton steps; beyond, the model itself is evaluated).
+const TABLE_MARGIN_NM: f64 = 15.0;
+
+/// Rows whose thicknesses span more than this evaluate the model per
+/// pixel instead (a table would cost more than it saves).
+const TABLE_MAX_NM: f64 = 400.0;
+
+/// A row's per-band model over its thickness range at [`TABLE_STEP_NM`]:
+/// `R(d, θ_b)` and `e(d)` with their d-slopes, interpolated as cubic
+/// Hermite splines — two model evaluations per sample instead of per pixel
+/// and step.
+#[derive(Clone, Debug, Default)]
+struct RowTable {
+    d0: f64,
+    n: usize,
+    nb: usize,
+    /// `v[j · nb + b]` = [R, dR/dd, e, de/dd] at `d0 + j·step`.
+    v: Vec<[f64; 4]>,
+    r: Vec<f64>,
+    dr: Vec<f64>,
+    rc: Vec<f64>,
+    drc: Vec<f64>,
+}
+
+impl RowTable {
+    /// Tabulate over `span` (false: too wide, not built).
+    fn build(
+        &mut self,
+        model: &FilmModel,
+        at: &BandAngles,
+        centre: &BandAngles,
+        span: (f64, f64),
+        nb: usize,
+    ) -> bool {
+        let (lo, hi) = (span.0.max(0.0), span.1);
+        if !(hi - lo <= TABLE_MAX_NM + 2.0 * TABLE_MARGIN_NM) || !lo.is_finite() {
+            return false;
+        }
+        self.d0 = lo;
+        self.n = ((hi - lo) / TABLE_STEP_NM).ceil() as usize + 1;
+        self.nb = nb;
+        self.v.clear();
+        for v in [&mut self.r, &mut self.dr, &mut self.rc, &mut self.drc] {
+            v.resize(nb, 0.0);
+        }
+        for j in 0..self.n {
+            let d = lo + j as f64 * TABLE_STEP_NM;
+            model.eval_band_angles_deriv(at, d, &mut self.r, &mut self.dr);
+            model.eval_band_angles_deriv(centre, d, &mut self.rc, &mut self.drc);
+            for b in 0..nb {
+                self.v.push([
+                    self.r[b],
+                    self.dr[b],
+                    self.r[b] - self.rc[b],
+                    self.dr[b] - self.drc[b],
+                ]);
+            }
+        }
+        true
+    }
+
+    fn covers(&self, d: f64) -> bool {
+        d >= self.d0 && d <= self.d0 + (self.n.saturating_sub(1)) as f64 * TABLE_STEP_NM
+    }
+
+    /// Interval and Hermite basis at `d` (inside the table).
+    fn basis(&self, d: f64) -> (usize, [f64; 4], f64) {
+        let x = (d - self.d0) / TABLE_STEP_NM;
+        let j = (x.floor() as usize).min(self.n.saturating_sub(2));
+        let t = x - j as f64;
+        let (t2, t3) = (t * t, t * t * t);
+        let h = TABLE_STEP_NM;
+        (
+            j,
+            [
+                2.0 * t3 - 3.0 * t2 + 1.0,
+                (t3 - 2.0 * t2 + t) * h,
+                -2.0 * t3 + 3.0 * t2,
+                (t3 - t2) * h,
+            ],
+            t,
+        )
+    }
+
+    /// `R(d, θ_b)` and its d-slope (linear between samples: it only steers
+    /// the steps).
+    fn model(&self, d: f64, r: &mut [f64], dr: &mut [f64]) {
+        let (j, w, t) = self.basis(d);
+        let (a, b) = (&self.v[j * self.nb..], &self.v[(j + 1) * self.nb..]);
+        for k in 0..self.nb.min(r.len()).min(dr.len()) {
+            let (p, q) = (a[k], b[k]);
+            r[k] = w[0] * p[0] + w[1] * p[1] + w[2] * q[0] + w[3] * q[1];
+            dr[k] = p[1] + t * (q[1] - p[1]);
+        }
+    }
+
+    /// `e(d)`.
+    fn misfit(&self, d: f64, e: &mut Vec<f64>) {
+        let (j, w, _) = self.basis(d);
+        let (a, b) = (&self.v[j * self.nb..], &self.v[(j + 1) * self.nb..]);
+        e.clear();
+        e.extend(
+            (0..self.nb).map(|k| w[0] * a[k][2] + w[1] * a[k][3] + w[2] * b[k][2] + w[3] * b[k][3]),
+        );
+    }
+}
+
+/// The smallest and largest of `v`.
+fn range(v: &[f64]) -> (f64, f64) {
+    v.iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &d| {
+            (a.min(d), b.max(d))
+        })
 }
 
 /// Each pixel's thickness to evaluate the misfit at: its estimate, else its
@@ -460,10 +667,11 @@ mod tests {
     }
 
     /// Noise-free spectra of the demo's film, each band at its own angle
-    /// (±4° around 30°): the first solve at 30° is biased, and each
-    /// iteration shrinks the error by a large factor.
+    /// (±4° around 30°): the first solve at 30° is biased; one correction
+    /// (Gauss–Newton on the per-band model, then the solver on the
+    /// corrected spectra) leaves nothing a second one would remove.
     #[test]
-    fn the_fixed_point_contracts_fast() {
+    fn one_correction_reaches_the_per_band_fit() {
         use crate::estimate::Mode;
         use crate::scene::Scene;
         let path =
@@ -511,19 +719,52 @@ mod tests {
             }
             errs.push(worst);
         }
-        eprintln!("worst error after 0, 1, 2 iterations: {errs:?} nm");
+        eprintln!("worst error after 0, 1, 2 corrections: {errs:?} nm");
         // Uncorrected: biased by about 2σ here (σ ≈ 0.45 nm at noise
         // 0.001; measured 0.84 nm).
         assert!(errs[0] > 0.5, "{errs:?}");
-        // The map d ↦ solve(y − e(d)) contracts by ~‖∂e/∂d‖/‖J‖, the
-        // angle's few-% share of the film's phase: measured 0.84 → 0.013 →
-        // 0.0003 nm. Each step must gain ≥ 10×, and two leave a bias under
-        // 2 % of σ.
-        assert!(
-            errs[1] < 0.1 * errs[0] && errs[2] < 0.1 * errs[1],
-            "{errs:?}"
-        );
-        assert!(errs[2] < 0.01, "{errs:?}");
+        // Corrected: within 2 % of σ of the truth (measured 6e-5 nm: the
+        // f32 spectra and the solver's own convergence), and a second
+        // correction changes it by no more than that.
+        assert!(errs[1] < 0.01, "{errs:?}");
+        assert!((errs[2] - errs[1]).abs() < 0.01, "{errs:?}");
+    }
+
+    #[test]
+    fn the_rows_table_matches_the_model() {
+        let (a, m, rows) = setup(Correction::Auto);
+        let mut ra = RowAngles::default();
+        a.row(&m, &rows, &mut ra);
+        let mut t = RowTable::default();
+        assert!(t.build(&m, &ra.at, &a.centre, (280.0, 420.0), 31));
+        assert!(!t.clone().build(&m, &ra.at, &a.centre, (0.0, 2000.0), 31));
+        let (mut e, mut e_ref, mut buf) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut r, mut dr) = (vec![0.0; 31], vec![0.0; 31]);
+        let (mut r_ref, mut dr_ref) = (vec![0.0; 31], vec![0.0; 31]);
+        let (mut worst_r, mut worst_e, mut worst_dr) = (0.0f64, 0.0f64, 0.0f64);
+        for i in 0..=1400 {
+            let d = 280.0 + 0.1 * i as f64 + 0.0123;
+            if !t.covers(d) {
+                continue;
+            }
+            t.misfit(d, &mut e);
+            a.misfit(&m, &ra, d, &mut e_ref, &mut buf);
+            t.model(d, &mut r, &mut dr);
+            m.eval_band_angles_deriv(&ra.at, d, &mut r_ref, &mut dr_ref);
+            for b in 0..31 {
+                worst_e = worst_e.max((e[b] - e_ref[b]).abs());
+                worst_r = worst_r.max((r[b] - r_ref[b]).abs());
+                worst_dr = worst_dr.max(
+                    (dr[b] - dr_ref[b]).abs() / dr_ref.iter().map(|v| v.abs()).fold(0.0, f64::max),
+                );
+            }
+        }
+        eprintln!("table error: R {worst_r:e}, e {worst_e:e}, dR/dd (relative) {worst_dr:e}");
+        // Values: the Hermite bound of TABLE_STEP_NM (2e-10), with room —
+        // far below what moves a thickness (σ_R = 1e-3). The slope only
+        // steers Gauss–Newton: linear between samples, a few % is enough.
+        assert!(worst_r < 1e-8 && worst_e < 1e-8, "{worst_r:e} {worst_e:e}");
+        assert!(worst_dr < 0.05, "{worst_dr:e}");
     }
 
     #[test]

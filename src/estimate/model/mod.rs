@@ -425,6 +425,31 @@ impl FilmModel {
         }
     }
 
+    /// [`FilmModel::eval_band_angles`] with dR/dd per band into `dr_dd`.
+    pub fn eval_band_angles_deriv(
+        &self,
+        angles: &BandAngles,
+        d: f64,
+        r: &mut [f64],
+        dr_dd: &mut [f64],
+    ) {
+        let nb = self.n_bands.min(r.len()).min(dr_dd.len());
+        if !angles.belongs_to(self) {
+            r[..nb].fill(f64::NAN);
+            dr_dd[..nb].fill(f64::NAN);
+            return;
+        }
+        r[..nb].fill(0.0);
+        dr_dd[..nb].fill(0.0);
+        for (n, c) in self.nodes.iter().zip(&angles.coef) {
+            if n.band < nb {
+                let (v, dd, _) = c.eval(d, self.s_weight, true);
+                r[n.band] += n.weight * v;
+                dr_dd[n.band] += n.weight * dd;
+            }
+        }
+    }
+
     /// Build the model. `integrate[i]` selects passband integration for band
     /// `i` (if it has a width); other bands are point-sampled at their centre.
     pub fn new(
