@@ -437,7 +437,8 @@ impl RowTable {
         nb: usize,
     ) -> bool {
         let (lo, hi) = (span.0.max(0.0), span.1);
-        if !(hi - lo <= TABLE_MAX_NM + 2.0 * TABLE_MARGIN_NM) || !lo.is_finite() {
+        let width = hi - lo;
+        if width.is_nan() || width > TABLE_MAX_NM + 2.0 * TABLE_MARGIN_NM || !lo.is_finite() {
             return false;
         }
         self.d0 = lo;
