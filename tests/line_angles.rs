@@ -226,3 +226,50 @@ fn angles_per_sensor_row_are_checked() {
     assert!((a[0].to_degrees() - (30.0 - 15.5 * 0.2)).abs() < 1e-9);
     assert!((((a[15] + a[16]) / 2.0).to_degrees() - 30.0).abs() < 1e-9);
 }
+
+#[test]
+fn corrected_rows_do_not_depend_on_the_threading() {
+    use irid::line::run::Threading;
+    let r = rig(4.0);
+    let mut out = Vec::new();
+    for threading in [Threading::Inline, Threading::Split] {
+        let built = r.build(r.camera_config(), Mode::Balanced).unwrap();
+        let mut setup = built.setup;
+        setup.threading = threading;
+        let (mut cam, mut tuner) = (built.camera, built.tuner);
+        let mut sink = CollectRows::default();
+        let rep = run_line(
+            &mut cam,
+            &mut tuner as &mut dyn BandTuner,
+            setup,
+            &LineLimits {
+                frames: Some(700),
+                frame_timeout: Duration::from_secs(1),
+            },
+            &mut sink,
+            &AtomicBool::new(false),
+        )
+        .unwrap();
+        assert!(rep.rows_angle_corrected > 100, "{rep:?}");
+        out.push(sink.rows);
+    }
+    // Each row is solved by one thread with its own working memory: the
+    // same rows, bit for bit, whichever thread solved which.
+    assert_eq!(out[0].len(), out[1].len());
+    for (a, b) in out[0].iter().zip(&out[1]) {
+        assert_eq!(a.angle_corrected, b.angle_corrected);
+        for (x, y) in a.estimates.iter().zip(&b.estimates) {
+            assert_eq!(
+                x.thickness_nm.to_bits(),
+                y.thickness_nm.to_bits(),
+                "row {}",
+                a.index
+            );
+            assert_eq!(
+                x.sigma_thickness_nm.to_bits(),
+                y.sigma_thickness_nm.to_bits()
+            );
+            assert_eq!(x.reason, y.reason);
+        }
+    }
+}
