@@ -14,10 +14,14 @@
 //! loop). Without RATE the camera delivers frames as fast as they are
 //! taken (the sustained band rate); with RATE it delivers RATE frames per
 //! second of wall time, as a camera behind a filter stepping RATE bands/s
-//! does (the row latency at that band rate).
+//! does (the row latency at that band rate). `spread=DEG` anywhere in the
+//! arguments makes the incidence angle run ±DEG across the view (around
+//! the scene's 30°), each band then modelled at its own angle where the
+//! rule asks for it; `correction=off|always` overrides the rule.
 
 use irid::device::camera::{CameraError, CameraInfo, Frame, FrameSource};
 use irid::estimate::Mode;
+use irid::line::angles::Correction;
 use irid::line::output::{LineOutput, OutputConfig};
 use irid::line::rig::WebRig;
 use irid::line::run::{run_line, LineLimits, Threading};
@@ -47,9 +51,21 @@ impl<S: FrameSource> FrameSource for Timed<S> {
 }
 
 fn main() {
-    let args: Vec<String> = std::env::args()
-        .skip(1)
-        .filter(|a| !a.starts_with('-'))
+    let all: Vec<String> = std::env::args().skip(1).collect();
+    let keyed = |k: &str| {
+        all.iter()
+            .find_map(|a| a.strip_prefix(k).map(str::to_owned))
+    };
+    let spread: f64 = keyed("spread=").and_then(|v| v.parse().ok()).unwrap_or(0.0);
+    let correction = match keyed("correction=").as_deref() {
+        Some("off") => Correction::Off,
+        Some("always") => Correction::Always,
+        _ => Correction::Auto,
+    };
+    let args: Vec<String> = all
+        .iter()
+        .filter(|a| !a.starts_with('-') && !a.contains('='))
+        .cloned()
         .collect();
     let frames: u64 = args.first().and_then(|a| a.parse().ok()).unwrap_or(1500);
     let rows: u32 = args.get(1).and_then(|a| a.parse().ok()).unwrap_or(64);
@@ -63,12 +79,16 @@ fn main() {
     rig.file.filter.settle_ms = 0.0;
     rig.file.filter.settle_jitter_ms = 0.0;
     rig.file.web.speed_fraction = Some(0.95);
+    if spread > 0.0 {
+        rig.file.camera.angle_deg_per_row = Some(2.0 * spread / (f64::from(rows) - 1.0));
+    }
     let rig = WebRig::resolve(rig.file, rig.base).expect("resolves");
     let mut cam_cfg = rig.camera_config();
     // 1 ms frames, one band each: RATE bands/s is 1000/RATE times slower.
     cam_cfg.realtime_speed = rate / 1000.0;
     let built = rig.build(cam_cfg, Mode::Balanced).expect("builds");
     let (cam, mut tuner, mut setup) = (built.camera, built.tuner, built.setup);
+    setup.angle_correction = correction;
     setup.threading = if inline {
         Threading::Inline
     } else {
@@ -147,5 +167,9 @@ fn main() {
         sink.output_waits(),
         rep.warmup_wait_rows,
         rep.warmup_wait_ms_max
+    );
+    println!(
+        "line: incidence angle ±{spread}° across the view ({correction:?}): {} of {} rows modelled at their bands' own angles",
+        rep.rows_angle_corrected, rep.rows.complete
     );
 }

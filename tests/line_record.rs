@@ -497,3 +497,56 @@ print(json.dumps({"counts": counts, "encoders": encoders, "rows_in_view": web["c
     assert_eq!(inv["line"]["first_rows"][0], row(enc[0]));
     assert_eq!(inv["line"]["first_rows"][1], row(enc[399]));
 }
+
+/// A line whose incidence angle changes across the view: the replay
+/// rebuilds the angles per sensor row from the recorded web file (the
+/// original file is gone by then) and emits the live run's messages
+/// exactly — which it could not with every band at the scene's angle.
+#[test]
+fn a_replay_models_the_recorded_angles_per_sensor_row() {
+    let dir = tempfile::tempdir().unwrap();
+    let demo = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/scenes");
+    let text = std::fs::read_to_string(demo.join("web.toml")).unwrap();
+    let abs = |name: &str| format!("{:?}", demo.join(name).display().to_string());
+    let web = text
+        .replace("\"web-film.toml\"", &abs("web-film.toml"))
+        .replace("\"web-recipe.toml\"", &abs("web-recipe.toml"))
+        .replace(
+            "exposure_ms = 5.0",
+            "exposure_ms = 5.0\nangle_deg_per_row = 0.25",
+        );
+    assert!(web.contains("angle_deg_per_row"));
+    let web_path = dir.path().join("web-angles.toml");
+    std::fs::write(&web_path, web).unwrap();
+    let rec = dir.path().join("web.mcap");
+    let out = ok(&[
+        "run",
+        "--scene",
+        s(&web_path),
+        "--unpaced",
+        "--sweeps",
+        "1",
+        "--no-maps",
+        "--record",
+        s(&rec),
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("modelled at their bands' own incidence angles"),
+        "{err}"
+    );
+    let live = messages(&out.stdout);
+    assert!(segments(&live).len() >= 2, "{live:?}");
+    std::fs::remove_file(&web_path).unwrap();
+    let out = ok(&["replay", s(&rec), "--no-maps"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("modelled at their bands' own incidence angles"),
+        "{err}"
+    );
+    let replayed = messages(&out.stdout);
+    assert_eq!(replayed.len(), live.len());
+    for (a, b) in live.iter().zip(&replayed) {
+        assert_eq!(comparable(a), comparable(b));
+    }
+}

@@ -248,6 +248,12 @@ fn print_report(what: &str, rep: &LineReport, out: &LineOutput) {
         rep.latency_ms_p99,
         rep.latency_ms_max
     );
+    if rep.rows_angle_corrected > 0 {
+        eprintln!(
+            "irid line: {} rows modelled at their bands' own incidence angles (the spread across the view mattered)",
+            rep.rows_angle_corrected
+        );
+    }
     if rep.capture_waits > 0 || out.output_waits() > 0 {
         eprintln!(
             "irid line: capture waited for the solver {} times, rows for the output worker {} times (the CPU or the disk fell behind)",
@@ -421,13 +427,15 @@ fn replay_setup(
             .recipe()
             .with_context(|| format!("{}: recorded recipe", args.file.display()))?,
     };
-    let setup = line.setup(
-        scene,
-        s.bands(),
-        s.order.clone(),
-        Calibrator::from_calibration(cal),
-        mode,
-    );
+    let setup = line
+        .setup(
+            scene,
+            s.bands(),
+            s.order.clone(),
+            Calibrator::from_calibration(cal),
+            mode,
+        )
+        .with_context(|| args.file.display().to_string())?;
     let out_dir = (!args.no_maps).then(|| args.out.join("line"));
     if let Some(d) = &out_dir {
         refuse_earlier_strips(d, args.force)?;

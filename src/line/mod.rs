@@ -10,6 +10,8 @@
 //!   a row is finished, in web order, as soon as it holds every band, or
 //!   when it leaves the view without them (flagged "missing bands");
 //! - [`solve`]: each finished row solved as a one-row cube;
+//! - [`angles`]: where the incidence angle depends on the sensor row, each
+//!   band modelled at its own angle where the spread matters;
 //! - [`run`]: the line runner: capture on one thread, solving on another
 //!   (deterministic: the same rows as all on one thread);
 //! - `stage`: the row stage (solve, sink, latency);
@@ -30,6 +32,7 @@
 //! the wall clock.
 
 pub mod accumulate;
+pub mod angles;
 pub mod geometry;
 pub mod mqtt;
 pub mod output;

@@ -7,16 +7,20 @@
 //! this record the moving-web file's text, the recipe's text and the
 //! numbers the runner was given (registration, geometry, nominal speed,
 //! warm-up, segments, lanes) — so a replay runs the same line even if the
-//! web file has since been edited.
+//! web file has since been edited. The incidence angle per sensor row is
+//! rebuilt from the recorded web file's `[camera]` (around the replay's
+//! scene angle: a replay with `--scene` of another angle moves a slope
+//! with it; an explicit `angles_deg` list stays as recorded).
 
 use super::geometry::{LineGeometry, Motion};
 use super::recipe::Recipe;
+use super::rig::WebFile;
 use super::run::LineSetup;
 use super::LineError;
 use crate::estimate::Mode;
 use crate::optics::band::Band;
 use crate::pipeline::calibration::Calibrator;
-use crate::scene::Scene;
+use crate::scene::{AngleKnowledge, Scene};
 
 /// The `/irid/line` message.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -71,9 +75,40 @@ impl LineRecord {
             .transpose()
     }
 
+    /// The incidence angle of each sensor row, radians, from the recorded
+    /// web file's `[camera]` around `scene`'s uniform angle (None: every
+    /// row at the scene's angle).
+    pub fn sensor_angles(&self, scene: &Scene) -> Result<Option<Vec<f64>>, LineError> {
+        let file: WebFile = toml::from_str(&self.web_toml)
+            .map_err(|e| LineError::Config(format!("recorded web file {}: {e}", self.web_path)))?;
+        let c = &file.camera;
+        if c.angles_deg.is_none() && c.angle_deg_per_row.is_none() {
+            return Ok(None);
+        }
+        let AngleKnowledge::Uniform(theta_c) = scene.angle else {
+            return Err(LineError::Config(format!(
+                "recorded web file {}: angles per sensor row need a known uniform angle ([angle] deg)",
+                self.web_path
+            )));
+        };
+        let angles = c.sensor_angles(theta_c)?;
+        if let Some(a) = &angles {
+            if a.len() != self.geometry.rows_in_view {
+                return Err(LineError::Config(format!(
+                    "recorded web file {}: {} angles per sensor row, {} rows in view",
+                    self.web_path,
+                    a.len(),
+                    self.geometry.rows_in_view
+                )));
+            }
+        }
+        Ok(angles)
+    }
+
     /// The set-up of the recorded run, with `scene`, `bands`, `order`,
     /// `calibrator` and `mode` (the recorded ones, or others to re-judge
-    /// the same frames).
+    /// the same frames); the incidence angle per sensor row is rebuilt from
+    /// the recorded web file around `scene`'s angle.
     pub fn setup(
         &self,
         scene: Scene,
@@ -81,8 +116,9 @@ impl LineRecord {
         order: Vec<usize>,
         calibrator: Calibrator,
         mode: Mode,
-    ) -> LineSetup {
-        LineSetup {
+    ) -> Result<LineSetup, LineError> {
+        let sensor_angles = self.sensor_angles(&scene)?;
+        Ok(LineSetup {
             scene,
             bands,
             order,
@@ -94,7 +130,9 @@ impl LineRecord {
             mode,
             warmup_rows: self.warmup_rows,
             threading: super::run::Threading::default(),
-        }
+            sensor_angles,
+            angle_correction: super::angles::Correction::Auto,
+        })
     }
 }
 
@@ -140,5 +178,69 @@ mod tests {
         bad = r;
         bad.recipe_toml = Some("target_nm = \"x\"".into());
         assert!(bad.recipe().is_err());
+    }
+
+    /// A replay rebuilds the angles per sensor row from the recorded web
+    /// file, exactly as the live rig resolved them, around the replay's
+    /// scene angle; a recording without them (older, or none set) has none.
+    #[test]
+    fn the_angles_per_sensor_row_come_back_from_the_recorded_web_file() {
+        use super::super::rig::WebRig;
+        let demo = WebRig::demo_path();
+        let text = std::fs::read_to_string(&demo).unwrap();
+        let with = text.replace(
+            "exposure_ms = 5.0",
+            "exposure_ms = 5.0\nangle_deg_per_row = 0.25",
+        );
+        assert_ne!(with, text);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("web.toml");
+        let scene = demo.parent().unwrap().join("web-film.toml");
+        let with = with.replace(
+            "scene = \"web-film.toml\"",
+            &format!("scene = {:?}", scene.display().to_string()),
+        );
+        let with = with.replace("recipe = \"web-recipe.toml\"\n", "");
+        std::fs::write(&path, &with).unwrap();
+        let live = WebRig::load(&path).unwrap();
+        let want = live.sensor_angles.clone().unwrap();
+        assert_eq!(want.len(), 32);
+        let mut r = record();
+        r.web_toml = with;
+        r.geometry = live.geometry;
+        let cal = crate::pipeline::calibration::Calibrator::from_calibration(
+            live.build(live.camera_config(), Mode::Fast)
+                .unwrap()
+                .calibration,
+        );
+        let bands = live.scene.bands.clone().unwrap();
+        let order: Vec<usize> = (0..bands.len()).collect();
+        let setup = r
+            .setup(
+                live.scene.clone(),
+                bands.clone(),
+                order.clone(),
+                cal.clone(),
+                Mode::Fast,
+            )
+            .unwrap();
+        assert_eq!(setup.sensor_angles.as_deref(), Some(&want[..]));
+        // Re-judged at another scene angle: the slope moves with it.
+        let mut other = live.scene.clone();
+        other.angle = AngleKnowledge::Uniform(35f64.to_radians());
+        let moved = r
+            .setup(other, bands.clone(), order.clone(), cal.clone(), Mode::Fast)
+            .unwrap()
+            .sensor_angles
+            .unwrap();
+        for (m, w) in moved.iter().zip(&want) {
+            assert!((m - w - 5f64.to_radians()).abs() < 1e-12);
+        }
+        // The demo's own file: no angles.
+        r.web_toml = text;
+        let none = r
+            .setup(live.scene.clone(), bands, order, cal, Mode::Fast)
+            .unwrap();
+        assert!(none.sensor_angles.is_none());
     }
 }

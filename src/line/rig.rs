@@ -5,7 +5,9 @@
 //! File format (`data/scenes/web.toml`): `scene` (optics and bands, a scene
 //! file relative to this one), `recipe` (optional, see
 //! [`super::recipe`]), `[camera]` (`width`, `rows_in_view`,
-//! `frame_period_ms`, `exposure_ms`), `[filter]` (`settle_ms`,
+//! `frame_period_ms`, `exposure_ms`, and the incidence angle per sensor
+//! row: `angle_deg_per_row` — a slope around the scene's `[angle] deg` —
+//! or `angles_deg`, one per sensor row), `[filter]` (`settle_ms`,
 //! `settle_jitter_ms`), `[web]` (`speed_fraction` of the highest speed the
 //! optics allow, or `speed_rows_per_s`; `rows_per_count`, `jitter_rows`,
 //! `seed`), `[film]` ([`WebFilm`]) and `[line]` (`segment_rows`, `lanes`,
@@ -36,6 +38,56 @@ pub struct CameraSpec {
     pub frame_period_ms: f64,
     /// Exposure, ms.
     pub exposure_ms: f64,
+    /// The incidence angle's change per sensor row, degrees: sensor row `s`
+    /// sees the web at `θ_c + (s − (rows_in_view − 1)/2) · slope`, θ_c the
+    /// scene's `[angle] deg` (default 0: every row at θ_c).
+    #[serde(default)]
+    pub angle_deg_per_row: Option<f64>,
+    /// The incidence angle of each sensor row, degrees (instead of the
+    /// slope; exactly `rows_in_view` values).
+    #[serde(default)]
+    pub angles_deg: Option<Vec<f64>>,
+}
+
+impl CameraSpec {
+    /// The incidence angle of each sensor row, radians, around the scene's
+    /// uniform angle `theta_c` (radians); None: every row at `theta_c`.
+    pub fn sensor_angles(&self, theta_c: f64) -> Result<Option<Vec<f64>>, LineError> {
+        let n = self.rows_in_view as usize;
+        let deg: Vec<f64> = match (&self.angles_deg, self.angle_deg_per_row) {
+            (Some(_), Some(_)) => {
+                return Err(LineError::Config(
+                    "[camera]: give angles_deg or angle_deg_per_row, not both".into(),
+                ))
+            }
+            (Some(list), None) => {
+                if list.len() != n {
+                    return Err(LineError::Config(format!(
+                        "[camera] angles_deg has {} values, rows_in_view is {n}: one angle per sensor row",
+                        list.len()
+                    )));
+                }
+                list.clone()
+            }
+            (None, Some(slope)) if slope != 0.0 => {
+                let mid = (n as f64 - 1.0) / 2.0;
+                (0..n)
+                    .map(|s| theta_c.to_degrees() + (s as f64 - mid) * slope)
+                    .collect()
+            }
+            (None, _) => return Ok(None),
+        };
+        if let Some((s, a)) = deg
+            .iter()
+            .enumerate()
+            .find(|(_, a)| !(a.is_finite() && (0.0..90.0).contains(*a)))
+        {
+            return Err(LineError::Config(format!(
+                "[camera]: sensor row {s} would see the web at {a}°, outside 0–90°"
+            )));
+        }
+        Ok(Some(deg.iter().map(|a| a.to_radians()).collect()))
+    }
 }
 
 /// `[filter]`.
@@ -133,6 +185,9 @@ pub struct WebRig {
     pub geometry: LineGeometry,
     /// The speed the web runs at, rows/s.
     pub speed: f64,
+    /// The incidence angle of each sensor row, radians (None: every row at
+    /// the scene's angle).
+    pub sensor_angles: Option<Vec<f64>>,
 }
 
 /// What a run needs, built.
@@ -195,12 +250,23 @@ impl WebRig {
                 ))
             }
         };
+        let sensor_angles = match (&scene.angle, &file.camera) {
+            (AngleKnowledge::Uniform(t), c) => c.sensor_angles(*t)?,
+            (_, c) if c.angles_deg.is_none() && c.angle_deg_per_row.is_none() => None,
+            _ => {
+                return Err(LineError::Config(format!(
+                    "[camera] angles per sensor row need a known uniform angle in {} ([angle] deg)",
+                    scene_path.display()
+                )))
+            }
+        };
         Ok(WebRig {
             file,
             scene,
             base,
             geometry,
             speed,
+            sensor_angles,
         })
     }
 
@@ -240,6 +306,11 @@ impl WebRig {
             noise_sigma: self.scene.noise_sigma.unwrap_or(0.001),
             sensor,
             theta_deg,
+            row_theta_deg: self
+                .sensor_angles
+                .as_ref()
+                .map(|a| a.iter().map(|t| t.to_degrees()).collect())
+                .unwrap_or_default(),
             polarization: self.scene.polarization,
             seed: self.file.web.seed,
             realtime_speed: 0.0,
@@ -317,6 +388,8 @@ impl WebRig {
             mode,
             warmup_rows: 16,
             threading: super::run::Threading::default(),
+            sensor_angles: self.sensor_angles.clone(),
+            angle_correction: super::angles::Correction::Auto,
         };
         Ok(Built {
             camera,

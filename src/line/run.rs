@@ -100,6 +100,13 @@ pub struct LineSetup {
     pub warmup_rows: usize,
     /// How the stages are spread over threads.
     pub threading: Threading,
+    /// The incidence angle of each sensor row, radians (None: every row at
+    /// the scene's angle); each band of a web row is then modelled at the
+    /// angle of the sensor row it was seen at ([`super::angles`]).
+    pub sensor_angles: Option<Vec<f64>>,
+    /// When that angle correction is applied (by default where the spread
+    /// of a row's angles matters).
+    pub angle_correction: super::angles::Correction,
 }
 
 /// When to stop.
@@ -118,6 +125,10 @@ pub struct LineReport {
     pub rows: RowCounts,
     /// Rows handed to the sink.
     pub rows_emitted: u64,
+    /// Of those, rows whose bands were modelled at the incidence angles of
+    /// the sensor rows they were seen at (the spread mattered; see
+    /// [`super::angles`]).
+    pub rows_angle_corrected: u64,
     /// Rows still in view at the end (not emitted).
     pub rows_run_out: u64,
     /// Frames read.
@@ -289,6 +300,7 @@ impl Front<'_> {
             }
         }
         rep.rows_emitted = stage.rows_emitted;
+        rep.rows_angle_corrected = stage.rows_angle_corrected;
         rep.latency_ms_max = stage.latency_max_ms;
         rep.latency_ms_p99 = stage.latency_hist.quantile(0.99);
         rep.warmup_wait_rows = stage.warmup_wait_rows;
@@ -347,7 +359,18 @@ pub fn run_line_tapped<'a>(
     let bands_nm: Vec<f64> = setup.bands.iter().map(|b| b.center_nm).collect();
     let seq = Sequencer::new(SeqMode::Stepped, bands_nm, setup.order.clone(), None)
         .map_err(|e| LineError::Config(e.to_string()))?;
-    let solver = RowSolver::new(&setup.scene, &setup.bands, setup.mode, w, setup.warmup_rows)?;
+    if let Some(a) = &setup.sensor_angles {
+        if a.len() != h {
+            return Err(LineError::Config(format!(
+                "{} incidence angles per sensor row, the camera has {h} rows",
+                a.len()
+            )));
+        }
+    }
+    let mut solver = RowSolver::new(&setup.scene, &setup.bands, setup.mode, w, setup.warmup_rows)?;
+    if let Some(a) = setup.sensor_angles {
+        solver.set_sensor_angles(a, setup.angle_correction)?;
+    }
     let front = Front {
         source,
         tuner,

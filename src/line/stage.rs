@@ -62,6 +62,8 @@ impl Histogram {
 pub(super) struct StageReport {
     /// Rows handed to the sink.
     pub rows_emitted: u64,
+    /// Of those, rows whose bands were modelled at their own angles.
+    pub rows_angle_corrected: u64,
     /// Sum, count and largest of the row latencies, ms.
     pub latency_sum_ms: f64,
     /// Rows whose latency was measured (complete rows after the warm-up).
@@ -131,6 +133,7 @@ impl<'s> RowStage<'s> {
             let t_read = reads.next();
             self.sink.on_row(&row)?;
             self.report.rows_emitted += 1;
+            self.report.rows_angle_corrected += u64::from(row.angle_corrected);
             let Some(t) = t_read.filter(|_| was_ready && row.complete) else {
                 continue;
             };
@@ -158,6 +161,7 @@ impl<'s> RowStage<'s> {
         for row in solved {
             self.sink.on_row(&row)?;
             self.report.rows_emitted += 1;
+            self.report.rows_angle_corrected += u64::from(row.angle_corrected);
         }
         self.sink.finish()?;
         Ok(self.report)

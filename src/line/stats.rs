@@ -262,6 +262,7 @@ mod tests {
             complete: true,
             bands_seen: 31,
             sensor_row_spread: 0,
+            angle_corrected: false,
             estimates: (0..w)
                 .map(|x| {
                     let v = d(x);

@@ -368,7 +368,88 @@ impl ModelOut {
     }
 }
 
+/// Node coefficients with each band at its own incidence angle (see
+/// [`FilmModel::band_angles`]).
+#[derive(Clone, Debug, Default)]
+pub struct BandAngles {
+    coef: Vec<NodeCoef>,
+    /// The model they belong to.
+    model_id: u64,
+}
+
+impl BandAngles {
+    /// Whether these coefficients were computed by `model`.
+    pub fn belongs_to(&self, model: &FilmModel) -> bool {
+        self.model_id == model.id && self.coef.len() == model.nodes.len()
+    }
+}
+
 impl FilmModel {
+    /// The node coefficients with band `b` at incidence angle `thetas[b]`
+    /// (rad), into `out` (its buffer reused): for spectra whose bands were
+    /// seen at different angles. Computed once per set of angles; each
+    /// thickness then costs what one evaluation at one angle does
+    /// ([`FilmModel::eval_band_angles`]). Bands beyond `thetas` are at the
+    /// last angle given.
+    pub fn band_angles(&self, thetas: &[f64], out: &mut BandAngles) {
+        out.coef.clear();
+        out.model_id = self.id;
+        let last = thetas.last().copied().unwrap_or(0.0);
+        for n in &self.nodes {
+            let t = thetas.get(n.band).copied().unwrap_or(last);
+            out.coef.push(NodeCoef::new(
+                [n.n1, n.n2, n.n3],
+                n.w,
+                t.sin(),
+                (t + THETA_STEP).sin(),
+                THETA_STEP,
+            ));
+        }
+    }
+
+    /// Reflectance per band at thickness `d` (nm), each band at the angle
+    /// `angles` gives it (the general path's exact Airy form). `r` holds
+    /// [`FilmModel::n_bands`] values; NaN everywhere when `angles` belongs
+    /// to another model.
+    pub fn eval_band_angles(&self, angles: &BandAngles, d: f64, r: &mut [f64]) {
+        let nb = self.n_bands.min(r.len());
+        if !angles.belongs_to(self) {
+            r[..nb].fill(f64::NAN);
+            return;
+        }
+        r[..nb].fill(0.0);
+        for (n, c) in self.nodes.iter().zip(&angles.coef) {
+            if n.band < nb {
+                r[n.band] += n.weight * c.eval(d, self.s_weight, false).0;
+            }
+        }
+    }
+
+    /// [`FilmModel::eval_band_angles`] with dR/dd per band into `dr_dd`.
+    pub fn eval_band_angles_deriv(
+        &self,
+        angles: &BandAngles,
+        d: f64,
+        r: &mut [f64],
+        dr_dd: &mut [f64],
+    ) {
+        let nb = self.n_bands.min(r.len()).min(dr_dd.len());
+        if !angles.belongs_to(self) {
+            r[..nb].fill(f64::NAN);
+            dr_dd[..nb].fill(f64::NAN);
+            return;
+        }
+        r[..nb].fill(0.0);
+        dr_dd[..nb].fill(0.0);
+        for (n, c) in self.nodes.iter().zip(&angles.coef) {
+            if n.band < nb {
+                let (v, dd, _) = c.eval(d, self.s_weight, true);
+                r[n.band] += n.weight * v;
+                dr_dd[n.band] += n.weight * dd;
+            }
+        }
+    }
+
     /// Build the model. `integrate[i]` selects passband integration for band
     /// `i` (if it has a width); other bands are point-sampled at their centre.
     pub fn new(

@@ -143,9 +143,22 @@ pub struct Scratch {
     /// `fast`: the previous pixel's table (angle bits) and grid point,
     /// within the current row.
     hint: Option<(u64, usize)>,
+    /// The thickness of the last pixel's best fit, judged or not (NaN: no
+    /// fit was made).
+    last_fit_d: f64,
+    /// Per pixel of the last row solved: that thickness.
+    fits: Vec<f64>,
 }
 
 impl Scratch {
+    /// After [`Solver::solve_row`]: each pixel's best-fit thickness, nm,
+    /// whether the fit passed its checks or was flagged (a poor fit still
+    /// says where its minimum lies); NaN where no fit was made (missing
+    /// bands, a spectrum beyond the model).
+    pub fn fit_thickness(&self) -> &[f64] {
+        &self.fits
+    }
+
     fn ensure(&mut self, n: usize) {
         if self.spectrum.len() != n {
             self.spectrum = vec![0.0; n];
@@ -775,6 +788,18 @@ impl Solver {
         self.level = level;
         self.level_mode = mode;
         self.level_note = note;
+    }
+
+    /// The scene's incidence-angle knowledge.
+    pub fn scene_angle(&self) -> &AngleKnowledge {
+        &self.scene.angle
+    }
+
+    /// The forward model at the film index in use (None until the index is
+    /// known or estimated): the point-sampled reflectance every fit
+    /// compares the data with.
+    pub fn film_model(&self) -> Option<&FilmModel> {
+        self.prepared.as_ref().map(|p| &p.model)
     }
 
     /// The thickness range searched, nm, and the largest optical thickness

@@ -27,6 +27,7 @@ impl Solver {
             pre,
             start: job_start,
         } = job;
+        scratch.last_fit_d = f64::NAN;
         let nb = self.bands.len();
         if spectrum.len() != nb {
             return (PixelEstimate::invalid(Reason::MissingBands), f64::NAN);
@@ -318,6 +319,7 @@ impl Solver {
         let Some(best) = order.first().map(|&i| fits[i]) else {
             return (PixelEstimate::invalid(Reason::PoorFit), f64::NAN);
         };
+        scratch.last_fit_d = best.d;
         if !(best.sse.is_finite() && best.d.is_finite() && best.theta.is_finite()) {
             return (PixelEstimate::invalid(Reason::PoorFit), f64::NAN);
         }

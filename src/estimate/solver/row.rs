@@ -51,10 +51,20 @@ impl Solver {
             });
             done = self.solve_row_fast(cube, y, out, &mut pixel, scratch, pre);
         }
+        let mut fits = std::mem::take(&mut scratch.fits);
+        fits.clear();
+        fits.extend(out.iter().take(done).map(|o| o.thickness_nm));
         for (x, o) in out.iter_mut().enumerate().take(cube.width).skip(done) {
             cube.spectrum_into(x, y, &mut pixel);
+            scratch.last_fit_d = f64::NAN;
             *o = self.solve_pixel(&pixel, self.scene.angle.known_at(x, y), scratch);
+            fits.push(if o.is_valid() {
+                o.thickness_nm
+            } else {
+                scratch.last_fit_d
+            });
         }
+        scratch.fits = fits;
         // A pixel lost to unusable bands says why, where the calibration
         // tagged them (dark, saturated).
         for (x, o) in out.iter_mut().enumerate().take(cube.width) {
