@@ -280,7 +280,7 @@ mod tests {
     #[test]
     fn mirror_angles_have_equal_p_reflection() {
         for (n1, ni, nj) in [
-            (1.0, 1.0, 1.5),
+            (1.0f64, 1.0f64, 1.5f64),
             (1.0, 1.37, 1.6),
             (1.0, 1.01, 1.6),
             (1.33, 1.33, 1.5),
