@@ -463,15 +463,7 @@ impl Solver {
         let sigma_theta = var_theta.sqrt();
         let reason = if theta_known.is_none() && sigma_theta.to_degrees() > ANGLE_SIGMA_LIMIT_DEG {
             Reason::AngleNotIdentifiable
-        } else if noise.is_some()
-            && self.film_invisible(
-                prep,
-                theta,
-                self.bands.len(),
-                if theta_known.is_none() { 2 } else { 1 },
-                var_r,
-            )
-        {
+        } else if noise.is_some() && self.film_invisible(prep, theta, self.bands.len(), var_r) {
             Reason::NoFringe
         } else {
             Reason::Ok

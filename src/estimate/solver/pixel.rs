@@ -428,7 +428,7 @@ impl Solver {
         if reason == Reason::Ok
             && (sig_d.is_nan()
                 || sig_d >= span
-                || (judging && self.film_invisible(prep, best.theta, n_ok, n_par, noise_var)))
+                || (judging && self.film_invisible(prep, best.theta, n_ok, noise_var)))
         {
             reason = Reason::NoFringe;
         }
