@@ -95,10 +95,7 @@ impl Solver {
         let step = 0.125 / self.table.sigma_center;
         let g0 = best.d * prep.model.q2_mid(best.theta);
         let g_max = self.d_max * prep.model.q2_mid(best.theta);
-        let (lam_min, lam_max) = (
-            self.table.sorted.first().map_or(400.0, |b| b.1),
-            self.table.sorted.last().map_or(700.0, |b| b.1),
-        );
+        let (lam_min, lam_max) = self.band_span();
         let thin = g0 < 0.5 * lam_max && signal < SUB_FRINGE_BELOW;
         let mut n = 0;
         // A start is refined only where its scan point comes within this

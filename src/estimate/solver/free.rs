@@ -83,14 +83,7 @@ impl Solver {
         if spectrum.len() != nb {
             return PixelEstimate::invalid(Reason::MissingBands);
         }
-        scratch.ensure(nb);
-        let mut n_ok = 0;
-        for (k, &v) in spectrum.iter().enumerate() {
-            let ok = v.is_finite();
-            scratch.spectrum[k] = if ok { v } else { 0.0 };
-            scratch.weight[k] = if ok { 1.0 } else { 0.0 };
-            n_ok += usize::from(ok);
-        }
+        let n_ok = scratch.load(spectrum);
         if n_ok == 0 {
             return PixelEstimate::invalid(Reason::NonFinite);
         }
@@ -105,7 +98,7 @@ impl Solver {
             .map(|b| (1.0 / b.center_nm - s_lo) / half - 1.0)
             .collect();
         let q2 = prep.model.q2_mid(theta);
-        let lam_min = self.table.sorted.first().map_or(400.0, |b| b.1);
+        let lam_min = self.band_span().0;
         let step = lam_min / (4.0 * GRID_PER_QUARTER_FRINGE * 2.0 * q2);
         // The fringe positions first: where they stand out, the level
         // model is only asked about the orders around them.

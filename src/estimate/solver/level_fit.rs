@@ -532,14 +532,7 @@ impl Solver {
         scratch: &mut Scratch,
     ) -> (crate::estimate::PixelEstimate, f64) {
         let nb = self.bands.len();
-        scratch.ensure(nb);
-        let mut n_ok = 0;
-        for (k, &v) in spectrum.iter().enumerate() {
-            let ok = v.is_finite();
-            scratch.spectrum[k] = if ok { v } else { 0.0 };
-            scratch.weight[k] = if ok { 1.0 } else { 0.0 };
-            n_ok += usize::from(ok);
-        }
+        let n_ok = scratch.load(spectrum);
         let n_par = if theta_known.is_some() { 1 } else { 2 };
         if n_ok < nb.div_ceil(2).max(n_par + 3) {
             return (
@@ -557,7 +550,7 @@ impl Solver {
             iters,
             scratch,
         );
-        let lam_min = self.table.sorted.first().map_or(400.0, |b| b.1);
+        let lam_min = self.band_span().0;
         self.finish(&[fit], n_ok, theta_known, None, prep, lam_min, scratch)
     }
 

@@ -167,6 +167,20 @@ impl Scratch {
             self.trial = ModelOut::new(n);
         }
     }
+
+    /// Take `spectrum` in (sized to it): finite values weighted 1, the rest
+    /// 0 and weighted 0; returns how many are finite.
+    fn load(&mut self, spectrum: &[f64]) -> usize {
+        self.ensure(spectrum.len());
+        let mut n_ok = 0;
+        for (k, &v) in spectrum.iter().enumerate() {
+            let ok = v.is_finite();
+            self.spectrum[k] = if ok { v } else { 0.0 };
+            self.weight[k] = if ok { 1.0 } else { 0.0 };
+            n_ok += usize::from(ok);
+        }
+        n_ok
+    }
 }
 
 /// How hard the per-pixel solve works: what a [`Mode`] means in practice.
@@ -788,6 +802,14 @@ impl Solver {
         self.level = level;
         self.level_mode = mode;
         self.level_note = note;
+    }
+
+    /// The shortest and longest band centre, nm.
+    fn band_span(&self) -> (f64, f64) {
+        (
+            self.table.sorted.first().map_or(400.0, |b| b.1),
+            self.table.sorted.last().map_or(700.0, |b| b.1),
+        )
     }
 
     /// The scene's incidence-angle knowledge.

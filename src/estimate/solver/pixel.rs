@@ -73,7 +73,7 @@ impl Solver {
                 return (PixelEstimate::invalid(Reason::OutOfModel), f64::NAN);
             }
         }
-        let lam_min = self.table.sorted.first().map_or(400.0, |b| b.1);
+        let lam_min = self.band_span().0;
         if let Some(t) = theta_known.filter(|_| effort.table && job_start.is_none()) {
             let found = match prep.tables.get(t) {
                 Some(table) => Some((table, t)),
