@@ -99,41 +99,20 @@ fn wrong_pixels(n2: f64, pol: &str, known: bool, modes: &[Mode]) -> Vec<String> 
 const ALL: [Mode; 3] = [Mode::Fast, Mode::Balanced, Mode::Accurate];
 
 /// The whole sweep: four film indices, s, p and unpolarised light, the
-/// angle known and unknown, every mode (but one case, below).
+/// angle known and unknown, every mode. (Once open, now closed: a film
+/// index-matched to its substrate (1.59 on 1.60) in p light, where films
+/// past the range at 54.7° (near Brewster's angle, fringes of ~28 noise
+/// variances, aliased) read ~47 nm; and in `fast`, unpolarised with the
+/// angle unknown, a closed form 3.8 nm off at 1200 nm claiming σ 1.1 nm.)
 #[test]
 fn noise_free_extremes_are_never_valid_and_wrong() {
     let mut wrong = vec![];
     for n2 in [1.01, 1.2, 1.37, 1.59] {
         for pol in ["s", "p", "u"] {
             for known in [true, false] {
-                let modes: &[Mode] = if pol == "u" && !known {
-                    &ALL[1..]
-                } else {
-                    &ALL
-                };
-                // See the ignored test below.
-                if !(n2 == 1.59 && pol == "p") {
-                    wrong.extend(wrong_pixels(n2, pol, known, modes));
-                }
+                wrong.extend(wrong_pixels(n2, pol, known, &ALL));
             }
         }
-    }
-    assert!(wrong.is_empty(), "valid and wrong:\n{}", wrong.join("\n"));
-}
-
-/// The open cases: unpolarised light with the angle unknown in `fast`; a
-/// film index-matched to its substrate (1.59 on 1.60) in p light, where
-/// films past the range at 55° (near Brewster's angle) have fringes of
-/// ~28 noise variances, aliased, and a sub-fringe fit passes.
-#[test]
-#[ignore = "open: unpolarised with the angle unknown in fast mode, 1 pixel (n2 1.2, 1200 nm at 49.7°) at 3.5σ; n2 1.59 in p light, films of 2.6–3 µm (past the range) at 54.7° read as ~47 nm (3–4 pixels per mode)"]
-fn noise_free_extremes_open_cases() {
-    let mut wrong = vec![];
-    for n2 in [1.01, 1.2, 1.37, 1.59] {
-        wrong.extend(wrong_pixels(n2, "u", false, &[Mode::Fast]));
-    }
-    for known in [true, false] {
-        wrong.extend(wrong_pixels(1.59, "p", known, &ALL));
     }
     assert!(wrong.is_empty(), "valid and wrong:\n{}", wrong.join("\n"));
 }

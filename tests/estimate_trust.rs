@@ -156,8 +156,9 @@ fn clean_data_keep_the_absolute_level_and_the_statistical_limit() {
         // The χ² test flags about its nominal 0.5 % of clean pixels (plus
         // the angle-poor rows' few): ≥ 97 % stay valid.
         assert!(acc.valid_fraction >= 0.97, "{mode:?}: {acc:?}");
-        let mae_limit = if mode == Mode::Fast { 1.1 } else { 0.42 };
-        assert!(acc.thickness_mae_nm <= mae_limit, "{mode:?}: {acc:?}");
+        // The bound's efficient mean error here is ~0.37 nm: both modes
+        // reach it (`fast` by one Gauss–Newton step from its closed form).
+        assert!(acc.thickness_mae_nm <= 0.42, "{mode:?}: {acc:?}");
         assert!(
             (0.90..=0.995).contains(&acc.coverage_2sigma),
             "{mode:?}: {acc:?}"

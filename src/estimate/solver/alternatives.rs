@@ -1,6 +1,13 @@
-//! Alternative fits with the angle free: the basins a fresh search never
-//! looks at, weighed against its best fit like a second fringe order (the
-//! better one wins; if both fit alike, the order is ambiguous).
+//! Alternative fits: the basins a fresh search never looks at, weighed
+//! against its best fit like a second fringe order (the better one wins;
+//! if both fit alike, the order is ambiguous).
+//!
+//! - **Past the resolved range** (any light, the angle known or free):
+//!   where the fringes are weak, a film beyond what the bands resolve
+//!   (up to twice it) aliases into a passing in-range fit; one there that
+//!   fits as well flags the pixel "fringes unresolved" (or ambiguous).
+//!
+//! With the angle free, also:
 //!
 //! - **Mirror angles** (p light): an interface's p reflection vanishes at
 //!   its Brewster angle and grows again beyond it, so an angle on one side
@@ -56,8 +63,8 @@ const MIRROR_BELOW: f64 = 200.0;
 const ITERS: usize = 25;
 
 impl Solver {
-    /// The alternatives to the best of `fits` (angle free, judged pixels
-    /// only), into `out`; returns how many.
+    /// The alternatives to the best of `fits` (judged pixels only), into
+    /// `out`; returns how many.
     #[allow(clippy::too_many_arguments)]
     pub(super) fn alternative_fits(
         &self,
@@ -69,9 +76,10 @@ impl Solver {
         scratch: &mut Scratch,
         out: &mut [Fit],
     ) -> usize {
-        let Some(sigma) = noise.filter(|_| theta_known.is_none() && self.judging()) else {
+        let Some(sigma) = noise.filter(|_| self.judging()) else {
             return 0;
         };
+        let free = theta_known.is_none();
         let Some(best) = fits
             .iter()
             .filter(|f| f.sse.is_finite() && f.d.is_finite() && f.theta.is_finite())
@@ -105,18 +113,38 @@ impl Solver {
         // other basin far beyond it, so ordinary pixels pay the scan only.
         let threshold = self.chi2.threshold(n_ok.saturating_sub(2).max(1));
         let gate = best.sse + WEAK_FRINGES * threshold * sigma * sigma;
-        let mut push = |n: &mut usize, start: Option<(f64, f64, f64)>, scratch: &mut Scratch| {
+        let in_range = (self.d_min, self.d_max);
+        let mut push = |n: &mut usize,
+                        start: Option<(f64, f64, f64)>,
+                        bounds: (f64, f64),
+                        scratch: &mut Scratch| {
             let Some((d, th, e)) = start else { return };
             if *n >= out.len() || e > gate {
                 return;
             }
-            let mut f = self.refine(model, d, th, true, ITERS, scratch);
+            let mut f = self.refine_within(model, d, th, free, ITERS, bounds, scratch);
             f.integrated = best.integrated;
             if f.sse.is_finite() {
                 out[*n] = f;
                 *n += 1;
             }
         };
+        if weak {
+            // Past the resolved range (to twice it), where point samples
+            // alias: weak fringes of a thicker film pass for an in-range
+            // one (a 2.8 µm film index-matched to its substrate, seen near
+            // Brewster's angle, read 47 nm). A film there that fits as
+            // well leaves the pixel flagged "fringes unresolved".
+            let q = prep.model.q2_mid(best.theta);
+            let g_res = self.g_max.0;
+            let bounds = (self.d_min, 2.0 * g_res / q);
+            let span = (g_res, 2.0 * g_res);
+            let start = self.scan_start(model, best.theta, span, step, None, bounds, free, scratch);
+            push(&mut n, start, bounds, scratch);
+        }
+        if !free {
+            return n;
+        }
         if self.scene.polarization.s_weight() < 0.5 && signal < MIRROR_BELOW {
             let (n1, n3) = prep.model.ambient_substrate_mid();
             let (n1, n2, n3) = (n1.re, prep.model.n2_mid(), n3.re);
@@ -142,8 +170,8 @@ impl Solver {
                 } else {
                     (g0 - 3.0 * step, g0 + 3.0 * step)
                 };
-                let start = self.scan_start(model, tm, span, step, None, scratch);
-                push(&mut n, start, scratch);
+                let start = self.scan_start(model, tm, span, step, None, in_range, true, scratch);
+                push(&mut n, start, in_range, scratch);
             }
         }
         if weak {
@@ -154,9 +182,11 @@ impl Solver {
                 (0.0, g_max),
                 step,
                 Some((g0, 2.0 * step)),
+                in_range,
+                true,
                 scratch,
             );
-            push(&mut n, start, scratch);
+            push(&mut n, start, in_range, scratch);
         }
         if thin {
             // A film below its first fringe: its phase hardly changes
@@ -170,9 +200,11 @@ impl Solver {
                 (0.0, 0.5 * lam_max),
                 0.5 * step,
                 Some((g0, 0.125 * lam_min)),
+                in_range,
+                true,
                 scratch,
             );
-            push(&mut n, start, scratch);
+            push(&mut n, start, in_range, scratch);
         }
         n
     }
@@ -181,7 +213,10 @@ impl Solver {
     /// at angle `theta`, each point judged with the angle moved to its best
     /// to first order (a mirror angle is approximate, and far from normal
     /// incidence the level is steep in the angle); grid points within
-    /// `exclude` = (g, half-width) are skipped. Returns (d, θ, its SSE).
+    /// `exclude` = (g, half-width) are skipped, and so are thicknesses
+    /// outside `d_range`; with the angle known (`free` false) it stays.
+    /// Returns (d, θ, its SSE).
+    #[allow(clippy::too_many_arguments)]
     fn scan_start(
         &self,
         model: &FilmModel,
@@ -189,6 +224,8 @@ impl Solver {
         span: (f64, f64),
         step: f64,
         exclude: Option<(f64, f64)>,
+        d_range: (f64, f64),
+        free: bool,
         scratch: &mut Scratch,
     ) -> Option<(f64, f64, f64)> {
         let (lo, hi) = self.theta_range;
@@ -202,7 +239,7 @@ impl Solver {
                 continue;
             }
             let d = g / q;
-            if !(self.d_min..=self.d_max).contains(&d) {
+            if !(d_range.0..=d_range.1).contains(&d) {
                 continue;
             }
             model.eval(d, theta, &mut scratch.trial, true);
@@ -213,7 +250,7 @@ impl Solver {
                 jj += w * j * j;
             }
             let e2 = sse(&scratch.spectrum, &scratch.weight, &scratch.trial.r);
-            let (e, dt) = if jj > 0.0 {
+            let (e, dt) = if free && jj > 0.0 {
                 (e2 - ej * ej / jj, (ej / jj).clamp(-0.05, 0.05))
             } else {
                 (e2, 0.0)

@@ -4,9 +4,9 @@
 
 #![allow(clippy::needless_range_loop)] // band-indexed numeric loops read clearer with indices
 
-use super::{Prepared, Scratch, Solver};
-use crate::estimate::model::FilmModel;
-use crate::estimate::Reason;
+use super::refine::MIN_FREE_THETA;
+use super::{Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
+use crate::estimate::{PixelEstimate, Reason};
 
 /// How close to a bound of its search an estimate may come before it is
 /// "pinned" there: a fraction of the searched span.
@@ -42,13 +42,101 @@ impl Solver {
         chi2
     }
 
-    /// χ² of the model at `(d, θ)` (evaluated into `s.trial`).
-    pub(super) fn chi2_at(&self, model: &FilmModel, d: f64, theta: f64, s: &mut Scratch) -> f64 {
-        let mut trial = std::mem::take(&mut s.trial);
-        model.eval(d, theta, &mut trial, false);
-        let c = self.chi2_of(s, &trial.r);
-        s.trial = trial;
-        c
+    /// `fast`'s closed form judged against the full model spectrum (in
+    /// `s.spectrum`, all `n_ok` bands used): `Ok` with the estimate to
+    /// report, or `Err((d, θ))` to refine from where it does not explain
+    /// the spectrum (χ², a bound, a free angle at normal incidence where R
+    /// is even in θ and the closed form's σ misses the angle's share).
+    ///
+    /// The closed form is not the least-squares fit. One Gauss–Newton step
+    /// from it (noise-weighted, the model's derivatives at the same
+    /// evaluation as χ²) says how far the fit lies: a step within a
+    /// twentieth of a fringe is taken, and σ is the least-squares one
+    /// there ((JᵀWJ)⁻¹ with the noise model's weights), widened by the
+    /// Birge ratio where the χ² left after the step (to second order)
+    /// exceeds its degrees of freedom (never narrowed); a longer step, or
+    /// an angle too weak for a linearised σ, refines. Without the step, a
+    /// closed form 3.8 nm off at 1200 nm (noise-free, angle free) claimed
+    /// σ = 1.1 nm; with it `fast` reaches the bound on the paper's
+    /// cylinder (mean error 0.365 nm against 0.68 nm).
+    pub(super) fn judge_closed_form(
+        &self,
+        prep: &Prepared,
+        mut fe: PixelEstimate,
+        theta_known: Option<f64>,
+        n_ok: usize,
+        s: &mut Scratch,
+    ) -> Result<PixelEstimate, (f64, f64)> {
+        let (d, th) = (fe.thickness_nm, fe.theta_deg.to_radians());
+        let free = theta_known.is_none();
+        let n_par = if free { 2 } else { 1 };
+        if free && th < MIN_FREE_THETA {
+            return Err((d, th));
+        }
+        let Some(noise) = &self.noise else {
+            return Ok(fe);
+        };
+        let mut t = std::mem::take(&mut s.trial);
+        prep.model.eval(d, th, &mut t, true);
+        let (mut chi2, mut a, mut b, mut c, mut gd, mut gt) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+        for k in 0..s.spectrum.len() {
+            if s.weight[k] == 0.0 {
+                continue;
+            }
+            let w = s.weight[k] / noise.var(k, t.r[k]);
+            let e = s.spectrum[k] - t.r[k];
+            let (jd, jt) = (t.dr_dd[k], if free { t.dr_dth[k] } else { 0.0 });
+            chi2 += w * e * e;
+            a += w * jd * jd;
+            b += w * jd * jt;
+            c += w * jt * jt;
+            gd += w * jd * e;
+            gt += w * jt * e;
+        }
+        s.trial = t;
+        if !(self.fit_passes(chi2, n_ok, n_par)
+            && self.bound_reason(prep, d, th, theta_known).is_none())
+        {
+            return Err((d, th));
+        }
+        // The step and the least-squares covariance (the weights are the
+        // noise model's: (JᵀWJ)⁻¹ is the covariance itself).
+        let (sd, st, var_d, var_t) = if free {
+            let det = a * c - b * b;
+            if det > 0.0 {
+                let step = ((c * gd - b * gt) / det, (a * gt - b * gd) / det);
+                (step.0, step.1, c / det, a / det)
+            } else {
+                (f64::NAN, f64::NAN, f64::NAN, f64::NAN)
+            }
+        } else if a > 0.0 {
+            (gd / a, 0.0, 1.0 / a, 0.0)
+        } else {
+            (f64::NAN, f64::NAN, f64::NAN, f64::NAN)
+        };
+        let (lam_min, _) = self.band_span();
+        let fringe = lam_min / (2.0 * prep.model.q2_mid(th));
+        let (nd, nt) = (d + sd, th + st);
+        let (lo, hi) = self.theta_range;
+        if !(sd.abs() <= 0.05 * fringe
+            && (self.d_min..=self.d_max).contains(&nd)
+            && (!free || (lo..=hi).contains(&nt)))
+        {
+            return Err((d, th));
+        }
+        // χ² after the step, to second order.
+        let chi2 = (chi2 - (gd * sd + gt * st)).max(0.0);
+        let birge = (chi2 / (n_ok - n_par).max(1) as f64).max(1.0).sqrt();
+        let (sig_d, sig_t) = (birge * var_d.sqrt(), birge * var_t.sqrt().to_degrees());
+        if sig_t > ANGLE_SIGMA_LIMIT_DEG {
+            // A weak angle: the refinement's profile bounds decide.
+            return Err((d, th));
+        }
+        fe.thickness_nm = nd;
+        fe.theta_deg = nt.to_degrees();
+        fe.sigma_thickness_nm = sig_d;
+        fe.sigma_theta_deg = sig_t;
+        Ok(fe)
     }
 
     /// Whether a fit with `chi2` over `n_ok` bands and `n_par` fitted

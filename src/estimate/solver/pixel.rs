@@ -4,7 +4,7 @@
 //! covariance, validity flags.
 
 use super::closed_form::angle_start;
-use super::refine::{sse, MIN_FREE_THETA};
+use super::refine::sse;
 use super::search::{Candidate, MAX_CANDIDATES};
 use super::{Fit, Job, Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
 use crate::estimate::{PixelEstimate, Reason};
@@ -90,7 +90,6 @@ impl Solver {
                 Some(s) => Some(s),
                 None => match self.extrema_estimate(prep, theta_known, noise, scratch) {
                     Some(fe) => {
-                        let (d, th) = (fe.thickness_nm, fe.theta_deg.to_radians());
                         if effort.closed_form_only {
                             // The closed form is checked against the full
                             // model spectrum; one that does not explain it
@@ -98,28 +97,13 @@ impl Solver {
                             if !judging {
                                 return (fe, f64::NAN);
                             }
-                            let chi2 = self.chi2_at(&prep.model, d, th, scratch);
-                            // A free angle found at normal incidence is not
-                            // taken as it stands: there R is even in θ, the
-                            // closed form's σ misses the angle's share, and
-                            // the refinement decides.
-                            let at_normal = theta_known.is_none() && th < MIN_FREE_THETA;
-                            if !at_normal
-                                && self.fit_passes(chi2, n_ok, n_par)
-                                && self.bound_reason(prep, d, th, theta_known).is_none()
-                            {
-                                // The closed form is not the best fit: a
-                                // χ² above its degrees of freedom is its
-                                // own misfit, which σ then carries (the
-                                // Birge ratio; never narrowed).
-                                let birge = (chi2 / (n_ok - n_par).max(1) as f64).max(1.0).sqrt();
-                                let mut fe = fe;
-                                fe.sigma_thickness_nm *= birge;
-                                fe.sigma_theta_deg *= birge;
-                                return (fe, f64::NAN);
+                            match self.judge_closed_form(prep, fe, theta_known, n_ok, scratch) {
+                                Ok(fe) => return (fe, f64::NAN),
+                                Err(start) => Some(start),
                             }
+                        } else {
+                            Some((fe.thickness_nm, fe.theta_deg.to_radians()))
                         }
-                        Some((d, th))
                     }
                     None => None,
                 },
@@ -299,7 +283,9 @@ impl Solver {
         let n_par = if theta_known.is_some() { 1 } else { 2 };
         // With the angle free, fits a fresh search never looks at compete
         // too (see `alternatives`).
-        let mut all = [Fit::default(); 7];
+        // Three fits and at most five alternatives (past the range, two
+        // mirror angles, the whole range, the sub-fringe range).
+        let mut all = [Fit::default(); 8];
         let n_all = fits.len().min(3);
         all[..n_all].copy_from_slice(&fits[..n_all]);
         let n_all = n_all
@@ -313,7 +299,7 @@ impl Solver {
                 &mut all[n_all..],
             );
         let fits = &all[..n_all];
-        let mut order = [0usize, 1, 2, 3, 4, 5, 6];
+        let mut order = [0usize, 1, 2, 3, 4, 5, 6, 7];
         let order = &mut order[..n_all];
         order.sort_by(|&a, &b| fits[a].sse.total_cmp(&fits[b].sse));
         let Some(best) = order.first().map(|&i| fits[i]) else {

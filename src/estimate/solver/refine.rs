@@ -9,7 +9,8 @@ use crate::estimate::model::{FilmModel, ModelOut};
 pub(super) const MIN_FREE_THETA: f64 = 0.05;
 
 impl Solver {
-    /// Levenberg–Marquardt on thickness (and angle when `free_theta`).
+    /// Levenberg–Marquardt on thickness (and angle when `free_theta`),
+    /// within the solver's thickness range.
     pub(super) fn refine(
         &self,
         model: &FilmModel,
@@ -17,6 +18,23 @@ impl Solver {
         theta0: f64,
         free_theta: bool,
         iters: usize,
+        s: &mut Scratch,
+    ) -> Fit {
+        let range = (self.d_min, self.d_max);
+        self.refine_within(model, d0, theta0, free_theta, iters, range, s)
+    }
+
+    /// [`Solver::refine`] with the thickness held to `(d_lo, d_hi)` (the
+    /// check for a film past the resolved range looks beyond it).
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn refine_within(
+        &self,
+        model: &FilmModel,
+        d0: f64,
+        theta0: f64,
+        free_theta: bool,
+        iters: usize,
+        (d_lo, d_hi): (f64, f64),
         s: &mut Scratch,
     ) -> Fit {
         let (lo, hi) = self.theta_range;
@@ -31,7 +49,7 @@ impl Solver {
         } else {
             theta0
         };
-        let (mut d, mut th) = (d0.clamp(self.d_min, self.d_max), theta0);
+        let (mut d, mut th) = (d0.clamp(d_lo, d_hi), theta0);
         eval(d, th, &mut s.cur);
         let mut cur_sse = sse(&s.spectrum, &s.weight, &s.cur.r);
         let mut mu = 1e-4;
@@ -64,7 +82,7 @@ impl Solver {
                 };
                 // Never jump more than a quarter fringe in one step.
                 let max_dd = 0.25 * 400.0 / (2.0 * model.n2_mid());
-                let nd = (d + sd.clamp(-max_dd, max_dd)).clamp(self.d_min, self.d_max);
+                let nd = (d + sd.clamp(-max_dd, max_dd)).clamp(d_lo, d_hi);
                 let nt = (th + st.clamp(-0.1, 0.1)).clamp(lo, hi);
                 eval(nd, nt, &mut s.trial);
                 let new_sse = sse(&s.spectrum, &s.weight, &s.trial.r);

@@ -2,7 +2,6 @@
 //! (`fast` band-major, 64 pixels at a time), rows in parallel.
 
 use super::closed_form::ExtremaAcc;
-use super::refine::MIN_FREE_THETA;
 use super::{Effort, Scratch, Solver};
 use crate::estimate::detect::{self, CandidatePlanes};
 use crate::estimate::{maps, Cube, EstimateError, Mode, ParamMaps, PixelEstimate, Reason};
@@ -168,24 +167,18 @@ impl Solver {
                     est = self.closed_form(prep, &acc, theta_known, noise, Some(index));
                 }
                 let mut retry_from = None;
-                if let (Some(e), true) = (&est, self.judging()) {
+                if let (Some(e), true) = (est, self.judging()) {
                     // The closed form must explain the whole spectrum.
                     cube.spectrum_into(x, y, pixel);
                     scratch.ensure(nb);
                     scratch.spectrum.copy_from_slice(pixel);
                     scratch.weight.fill(1.0);
-                    let (d, th) = (e.thickness_nm, e.theta_deg.to_radians());
-                    let n_par = if theta_known.is_some() { 1 } else { 2 };
-                    let chi2 = self.chi2_at(&prep.model, d, th, scratch);
-                    // At normal incidence the closed form's σ misses the
-                    // angle's share (R is even in θ): refine instead.
-                    let at_normal = theta_known.is_none() && th < MIN_FREE_THETA;
-                    if at_normal
-                        || !(self.fit_passes(chi2, nb, n_par)
-                            && self.bound_reason(prep, d, th, theta_known).is_none())
-                    {
-                        est = None;
-                        retry_from = Some((d, th));
+                    match self.judge_closed_form(prep, e, theta_known, nb, scratch) {
+                        Ok(e) => est = Some(e),
+                        Err(start) => {
+                            est = None;
+                            retry_from = Some(start);
+                        }
                     }
                 }
                 out[x] = match est {
