@@ -54,8 +54,9 @@ impl Solver {
     /// twentieth of a fringe is taken, and σ is the least-squares one
     /// there ((JᵀWJ)⁻¹ with the noise model's weights), widened by the
     /// Birge ratio where the χ² left after the step (to second order)
-    /// exceeds its degrees of freedom (never narrowed); a longer step, or
-    /// an angle too weak for a linearised σ, refines. Without the step, a
+    /// exceeds its degrees of freedom (never narrowed); a longer step
+    /// refines; σ_θ past the limit flags "angle not identifiable", as the
+    /// closed form's own σ does. Without the step, a
     /// closed form 3.8 nm off at 1200 nm (noise-free, angle free) claimed
     /// σ = 1.1 nm; with it `fast` reaches the bound on the paper's
     /// cylinder (mean error 0.365 nm against 0.68 nm).
@@ -99,6 +100,11 @@ impl Solver {
         {
             return Err((d, th));
         }
+        if !fe.is_valid() {
+            // Flagged by the closed form itself (a weak angle, no fringe),
+            // on a spectrum it explains: the flag stands.
+            return Ok(fe);
+        }
         // The step and the least-squares covariance (the weights are the
         // noise model's: (JᵀWJ)⁻¹ is the covariance itself).
         let (sd, st, var_d, var_t) = if free {
@@ -129,8 +135,8 @@ impl Solver {
         let birge = (chi2 / (n_ok - n_par).max(1) as f64).max(1.0).sqrt();
         let (sig_d, sig_t) = (birge * var_d.sqrt(), birge * var_t.sqrt().to_degrees());
         if sig_t > ANGLE_SIGMA_LIMIT_DEG {
-            // A weak angle: the refinement's profile bounds decide.
-            return Err((d, th));
+            // As the closed form flags a weak angle.
+            fe.reason = Reason::AngleNotIdentifiable;
         }
         fe.thickness_nm = nd;
         fe.theta_deg = nt.to_degrees();

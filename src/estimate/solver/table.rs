@@ -116,28 +116,36 @@ fn interval_dots(r: [&[f32]; 2], dr: [&[f32]; 2], y: &[f64], centre: &[f64], h: 
         &dr[1][..nb],
         &centre[..nb],
     );
-    let term = |k: usize| {
+    // Written out, not as a closure: a closure is not compiled with the
+    // enclosing function's target features, and here it was called (not
+    // inlined) once per band from the AVX2 version.
+    let mut acc = [[0f64; 4]; 4];
+    let whole = nb - nb % 4;
+    for k0 in (0..whole).step_by(4) {
+        for l in 0..4 {
+            let k = k0 + l;
+            let a = f64::from(ra[k]);
+            let (p, q) = (f64::from(da[k]) * h, f64::from(db[k]) * h);
+            let b = f64::from(rb[k]);
+            let c1 = p;
+            let c2 = 3.0 * (b - a) - 2.0 * p - q;
+            let c3 = 2.0 * (a - b) + p + q;
+            let e = y[k] - centre[k] - a;
+            acc[0][l] += e * e;
+            acc[1][l] += e * c1;
+            acc[2][l] += e * c2;
+            acc[3][l] += e * c3;
+        }
+    }
+    for k in whole..nb {
         let a = f64::from(ra[k]);
         let (c1, c2, c3) =
             IntervalCubic::coefficients(a, f64::from(rb[k]), f64::from(da[k]), f64::from(db[k]), h);
         let e = y[k] - centre[k] - a;
-        [e * e, e * c1, e * c2, e * c3]
-    };
-    let mut acc = [[0f64; 4]; 4];
-    let whole = nb - nb % 4;
-    for k0 in (0..whole).step_by(4) {
-        let v: [[f64; 4]; 4] = std::array::from_fn(|l| term(k0 + l));
-        for (q, s) in acc.iter_mut().enumerate() {
-            for l in 0..4 {
-                s[l] += v[l][q];
-            }
-        }
-    }
-    for k in whole..nb {
-        let v = term(k);
-        for (s, x) in acc.iter_mut().zip(v) {
-            s[0] += x;
-        }
+        acc[0][0] += e * e;
+        acc[1][0] += e * c1;
+        acc[2][0] += e * c2;
+        acc[3][0] += e * c3;
     }
     acc.map(|s| (s[0] + s[1]) + (s[2] + s[3]))
 }
