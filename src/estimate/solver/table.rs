@@ -106,6 +106,7 @@ impl IntervalCubic {
 /// `e = y − centre − A` (see [`IntervalCubic`]): values `r` and slopes
 /// `dr` at the interval's two ends. Four independent lanes per sum (a
 /// single f64 chain would not vectorise), the tail band by band.
+#[allow(clippy::needless_range_loop)] // four lanes, indexed alike
 #[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
 fn interval_dots(r: [&[f32]; 2], dr: [&[f32]; 2], y: &[f64], centre: &[f64], h: f64) -> [f64; 4] {
     let nb = y.len();
