@@ -92,6 +92,40 @@ impl NoiseModel {
         (self.var0[k] + self.shot[k] * r.max(0.0)).max(SIGMA_FLOOR * SIGMA_FLOOR)
     }
 
+    /// χ² of `y` (weights `w`: 0 drops a band) against the model values
+    /// `r`, each band weighted by its variance at `r`, and the mean
+    /// variance of the bands used (0 when none is). Four independent lanes
+    /// and no branch per band, so the divisions overlap (a single chain
+    /// waited on each one).
+    pub fn chi2_and_mean_var(&self, y: &[f64], w: &[f64], r: &[f64]) -> (f64, f64) {
+        let n = y.len().min(w.len()).min(r.len()).min(self.var0.len());
+        let (y, w, r) = (&y[..n], &w[..n], &r[..n]);
+        let (var0, shot) = (&self.var0[..n], &self.shot[..n]);
+        let floor = SIGMA_FLOOR * SIGMA_FLOOR;
+        let (mut chi2, mut sum_var, mut used) = ([0.0f64; 4], [0.0f64; 4], [0.0f64; 4]);
+        let whole = n - n % 4;
+        let mut band = |k: usize, l: usize| {
+            let var = (var0[k] + shot[k] * r[k].max(0.0)).max(floor);
+            let e = y[k] - r[k];
+            let on = if w[k] != 0.0 { 1.0 } else { 0.0 };
+            chi2[l] += on * w[k] * e * e / var;
+            sum_var[l] += on * var;
+            used[l] += on;
+        };
+        for k0 in (0..whole).step_by(4) {
+            for l in 0..4 {
+                band(k0 + l, l);
+            }
+        }
+        for k in whole..n {
+            band(k, 0);
+        }
+        let sum = |a: [f64; 4]| (a[0] + a[1]) + (a[2] + a[3]);
+        let used = sum(used);
+        let mean = if used > 0.0 { sum(sum_var) / used } else { 0.0 };
+        (sum(chi2), mean)
+    }
+
     /// A typical σ (root mean variance over bands at reflectance `r`).
     pub fn typical_sigma(&self, r: f64) -> f64 {
         let n = self.var0.len().max(1) as f64;
@@ -309,6 +343,33 @@ mod tests {
         assert!((m.var(0, 0.04).sqrt() - SIGMA_FLOOR).abs() < 1e-9);
         let tiny = cube_with(2, 2, 8, |_, _, _| 0.04, 1e-3);
         assert!(NoiseModel::from_data(&tiny).is_none());
+    }
+
+    /// The lane-wise χ² and mean variance against a plain loop over
+    /// [`NoiseModel::var`] (lengths not a multiple of four, dropped bands).
+    #[test]
+    fn chi2_and_mean_variance_match_a_plain_sum() {
+        for n in [1usize, 4, 7, 31] {
+            let m = NoiseModel {
+                var0: (0..n).map(|k| 1e-6 * (1.0 + k as f64)).collect(),
+                shot: (0..n).map(|k| 1e-5 * (k % 3) as f64).collect(),
+                source: NoiseSource::Given,
+            };
+            let y: Vec<f64> = (0..n).map(|k| 0.1 + 0.01 * (k as f64).sin()).collect();
+            let r: Vec<f64> = (0..n).map(|k| 0.1 + 0.012 * (k as f64).cos()).collect();
+            let w: Vec<f64> = (0..n).map(|k| if k % 5 == 2 { 0.0 } else { 1.0 }).collect();
+            let (mut chi2, mut v, mut used) = (0.0, 0.0, 0.0);
+            for k in 0..n {
+                if w[k] != 0.0 {
+                    chi2 += (y[k] - r[k]).powi(2) / m.var(k, r[k]);
+                    v += m.var(k, r[k]);
+                    used += 1.0;
+                }
+            }
+            let (c, mv) = m.chi2_and_mean_var(&y, &w, &r);
+            assert!((c - chi2).abs() <= 1e-12 * chi2, "{n}: {c} vs {chi2}");
+            assert!((mv - v / used).abs() <= 1e-15, "{n}: {mv}");
+        }
     }
 
     #[test]

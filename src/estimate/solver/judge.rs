@@ -22,26 +22,6 @@ impl Solver {
         self.noise.is_some()
     }
 
-    /// χ² of the spectrum in `s` (weights mark the bands used) against the
-    /// reflectance `r`, each band weighted by the noise model's variance at
-    /// the model value. NaN when no noise model is known. (The image-wide
-    /// level's own uncertainty is common to all pixels and mostly absorbed
-    /// by each pixel's fit; it widens σ instead, see `Level::sigma_inflation`.)
-    pub(super) fn chi2_of(&self, s: &Scratch, r: &[f64]) -> f64 {
-        let Some(noise) = &self.noise else {
-            return f64::NAN;
-        };
-        let mut chi2 = 0.0;
-        for k in 0..s.spectrum.len() {
-            if s.weight[k] == 0.0 {
-                continue;
-            }
-            let e = s.spectrum[k] - r[k];
-            chi2 += s.weight[k] * e * e / noise.var(k, r[k]);
-        }
-        chi2
-    }
-
     /// `fast`'s closed form judged against the full model spectrum (in
     /// `s.spectrum`, all `n_ok` bands used): `Ok` with the estimate to
     /// report, or `Err((d, θ))` to refine from where it does not explain
@@ -152,6 +132,20 @@ impl Solver {
             return true;
         }
         chi2.is_finite() && self.chi2.passes(chi2, n_ok.saturating_sub(n_par).max(1))
+    }
+
+    /// χ² of the spectrum in `s` (weights mark the bands used) against the
+    /// reflectance `r`, each band weighted by the noise model's variance at
+    /// the model value (NaN when no noise model is known), and the mean
+    /// noise variance of those bands ([`Solver::noise_var`]), in one pass.
+    /// (The image-wide level's own uncertainty is common to all pixels and
+    /// mostly absorbed by each pixel's fit; it widens σ instead, see
+    /// `Level::sigma_inflation`.)
+    pub(super) fn chi2_and_noise_var(&self, s: &Scratch, r: &[f64]) -> (f64, f64) {
+        match &self.noise {
+            Some(noise) => noise.chi2_and_mean_var(&s.spectrum, &s.weight, r),
+            None => (f64::NAN, 0.0),
+        }
     }
 
     /// The mean noise variance of the bands used, at the

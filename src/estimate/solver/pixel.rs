@@ -324,10 +324,7 @@ impl Solver {
                 Some(t) => t.values(best.d, &mut trial.r, &mut scratch.grid),
                 None => model.eval(best.d, best.theta, &mut trial, false),
             }
-            let out = (
-                self.chi2_of(scratch, &trial.r),
-                self.noise_var(scratch, &trial.r),
-            );
+            let out = self.chi2_and_noise_var(scratch, &trial.r);
             scratch.trial = trial;
             out
         } else {
