@@ -13,8 +13,9 @@ use irid::synth::{scene_bands, Renderer};
 use scene_common::with_known_angle;
 use std::path::Path;
 
-/// A 31 × 19 image: thickness 0–3000 nm across, angle 0–89.5° down.
-fn scene(n2: f64, pol: &str, known: bool) -> Scene {
+/// A 31 × 19 image: thickness 0–3000 nm across, angle 0–89.5° down,
+/// 400–700 nm in bands `step` nm apart.
+fn scene(n2: f64, pol: &str, known: bool, step: u32) -> Scene {
     let text = format!(
         r#"
 [ambient]
@@ -28,7 +29,7 @@ polarization = "{pol}"
 [bands]
 start_nm = 400
 stop_nm = 700
-step_nm = 10
+step_nm = {step}
 fwhm_nm = 0
 [truth]
 width = 31
@@ -50,8 +51,8 @@ seed = 1
 /// The valid pixels farther than max(3σ, 2 nm) from the truth, per case and
 /// mode, with how many pixels were valid (printed, so a run shows that the
 /// check is not passed by flagging everything).
-fn wrong_pixels(n2: f64, pol: &str, known: bool, modes: &[Mode]) -> Vec<String> {
-    let s = scene(n2, pol, known);
+fn wrong_pixels(n2: f64, pol: &str, known: bool, step: u32, modes: &[Mode]) -> Vec<String> {
+    let s = scene(n2, pol, known, step);
     let bands = scene_bands(&s).unwrap();
     let r = Renderer::new(&s).unwrap();
     let cube = r.render_cube(&bands).unwrap();
@@ -72,7 +73,7 @@ fn wrong_pixels(n2: f64, pol: &str, known: bool, modes: &[Mode]) -> Vec<String> 
             let tol = (3.0 * f64::from(maps.sigma_thickness_nm[i])).max(2.0);
             if err.abs() > tol {
                 out.push(format!(
-                    "n2 {n2} {pol} angle known {known} {mode:?}: d {d:.0} nm θ {:.1}°: {:.1} ± {:.2} nm (θ̂ {:.2}°)",
+                    "n2 {n2} {pol} angle known {known} {step} nm {mode:?}: d {d:.0} nm θ {:.1}°: {:.1} ± {:.2} nm (θ̂ {:.2}°)",
                     truth.theta_deg[i],
                     maps.thickness_nm[i],
                     maps.sigma_thickness_nm[i],
@@ -80,7 +81,7 @@ fn wrong_pixels(n2: f64, pol: &str, known: bool, modes: &[Mode]) -> Vec<String> 
                 ));
             }
         }
-        eprintln!("n2 {n2} {pol} angle known {known} {mode:?}: {valid} of {n} valid");
+        eprintln!("n2 {n2} {pol} angle known {known} {step} nm {mode:?}: {valid} of {n} valid");
         // Most of the domain is measurable: flagging everything would pass
         // the check above. At least half the pixels stay valid; in p light
         // with the angle unknown, a third (around Brewster's angle, ~58° on
@@ -110,8 +111,45 @@ fn noise_free_extremes_are_never_valid_and_wrong() {
     for n2 in [1.01, 1.2, 1.37, 1.59] {
         for pol in ["s", "p", "u"] {
             for known in [true, false] {
-                wrong.extend(wrong_pixels(n2, pol, known, &ALL));
+                wrong.extend(wrong_pixels(n2, pol, known, 10, &ALL));
             }
+        }
+    }
+    assert!(wrong.is_empty(), "valid and wrong:\n{}", wrong.join("\n"));
+}
+
+/// The same at 61 bands (5 nm apart): films resolved to 6.5 µm of optical
+/// thickness, so the angle's share of the fit changes. Found by this
+/// sweep and fixed: unpolarised light near normal incidence with the angle
+/// free, where R is even in θ and the residual stays flat towards 0° far
+/// beyond the linearised σ_θ (a 2.2 µm film at 0° read 2250 ± 8.5 nm at
+/// 14.6°; now the profile widens σ_θ where a probe towards normal
+/// incidence stays within a variance). p light is in the ignored test
+/// below.
+#[test]
+fn noise_free_extremes_at_61_bands() {
+    let mut wrong = vec![];
+    for n2 in [1.01, 1.2, 1.37, 1.59] {
+        for pol in ["s", "u"] {
+            for known in [true, false] {
+                wrong.extend(wrong_pixels(n2, pol, known, 5, &ALL));
+            }
+        }
+    }
+    assert!(wrong.is_empty(), "valid and wrong:\n{}", wrong.join("\n"));
+}
+
+/// Open: p light at 61 bands with the angle free, one pixel per mode in
+/// two images near Brewster's angle (n2 1.37: 200 nm at 54.7° read
+/// 79 ± 0.5 nm at 52.2°; n2 1.59: 200 nm at 44.8° read 325 ± 1.6 nm at
+/// the mirror angle 65.9°).
+#[test]
+#[ignore = "open: p light at 61 bands, angle free, 1 pixel per mode at n2 1.37 and 1.59"]
+fn noise_free_extremes_at_61_bands_p_light() {
+    let mut wrong = vec![];
+    for n2 in [1.01, 1.2, 1.37, 1.59] {
+        for known in [true, false] {
+            wrong.extend(wrong_pixels(n2, "p", known, 5, &ALL));
         }
     }
     assert!(wrong.is_empty(), "valid and wrong:\n{}", wrong.join("\n"));

@@ -160,6 +160,31 @@ impl Solver {
         0.5 * (lo + hi) - best.d
     }
 
+    /// Whether the residual, the optical thickness held, stays within one
+    /// variance of the best towards normal incidence beyond the linearised
+    /// σ_θ: at the range's low end, or 3 σ_θ below the fit (R is even in
+    /// θ, so near normal incidence the valley is flatter than its
+    /// curvature at the fit says). Two model evaluations at most.
+    pub(super) fn angle_valley_wider(
+        &self,
+        model: &FilmModel,
+        best: Fit,
+        var: f64,
+        sig_th: f64,
+        s: &mut Scratch,
+    ) -> bool {
+        let lo = self.theta_range.0;
+        let g = best.d * model.q2_mid(best.theta);
+        let target = best.sse + var;
+        [lo, best.theta - 3.0 * sig_th]
+            .into_iter()
+            .filter(|&t| t >= lo && t < best.theta)
+            .any(|t| {
+                model.eval(g / model.q2_mid(t), t, &mut s.trial, false);
+                sse(&s.spectrum, &s.weight, &s.trial.r) <= target
+            })
+    }
+
     /// Profile bound on a weak angle: the larger of the two distances from
     /// the fitted angle (within the search range) at which the residual,
     /// with the optical thickness `g = d·n2 cos θ2` held, exceeds the best
