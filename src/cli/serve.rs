@@ -252,8 +252,11 @@ function draw(){
 let loading = false, wanted = null;
 const img = document.getElementById('map');
 function loadMap(n){ wanted = n; if (loading) return; loading = true; img.src = '/map.png?sweep=' + n; }
-img.onload = () => { img.dataset.loaded = String(img.naturalWidth); loading = false; };
-img.onerror = () => { loading = false; };
+// After a load, the newest sweep asked for meanwhile; after a failure (no
+// map yet, a dropped connection), the same again half a second later.
+img.onload = () => { img.dataset.loaded = String(img.naturalWidth); loading = false;
+  if (!img.src.endsWith('sweep=' + wanted)) loadMap(wanted); };
+img.onerror = () => { loading = false; setTimeout(() => loadMap(wanted), 500); };
 function show(s){
   hist.push(s); if (hist.length > 600) hist.shift();
   document.getElementById('sweep').textContent = s.sweep;
