@@ -242,9 +242,10 @@ impl Solver {
             if !(d_range.0..=d_range.1).contains(&d) {
                 continue;
             }
-            model.eval(d, theta, &mut scratch.trial, true);
+            // The angle's derivative only where the angle may move.
+            model.eval(d, theta, &mut scratch.trial, free);
             let (mut ej, mut jj) = (0.0, 0.0);
-            for b in 0..scratch.spectrum.len() {
+            for b in (0..scratch.spectrum.len()).filter(|_| free) {
                 let (w, j) = (scratch.weight[b], scratch.trial.dr_dth[b]);
                 ej += w * (scratch.spectrum[b] - scratch.trial.r[b]) * j;
                 jj += w * j * j;

@@ -281,10 +281,10 @@ impl Solver {
         scratch: &mut Scratch,
     ) -> (PixelEstimate, f64) {
         let n_par = if theta_known.is_some() { 1 } else { 2 };
-        // With the angle free, fits a fresh search never looks at compete
-        // too (see `alternatives`).
-        // Three fits and at most five alternatives (past the range, two
-        // mirror angles, the whole range, the sub-fringe range).
+        // Fits a fresh search never looks at compete too (see
+        // `alternatives`): three fits and at most five alternatives (past
+        // the range; with the angle free, two mirror angles, the whole
+        // range, the sub-fringe range).
         let mut all = [Fit::default(); 8];
         let n_all = fits.len().min(3);
         all[..n_all].copy_from_slice(&fits[..n_all]);
@@ -366,15 +366,13 @@ impl Solver {
                 let (lo, hi) = self.theta_range;
                 // At a bound (where the slope vanishes or the clamp hides
                 // the other side) the profile replaces the linearised σ.
-                // Inside the range the profile may only widen it: R is
-                // even in θ, so towards normal incidence the residual can
-                // stay flat far beyond the linearised σ (unpolarised,
-                // 61 bands, a 2.2 µm film at 0° fitted 14.6° ± 0.9°, its
-                // thickness 50 nm off with σ 8.5 nm).
-                // The profile is a bisection (~20 evaluations): inside the
-                // range it runs only where a probe towards normal
-                // incidence, at the range's end or 3 linearised σ off,
-                // stays within one variance.
+                // Inside the range it may only widen it: R is even in θ,
+                // so towards normal incidence the residual can stay flat
+                // far beyond the linearised σ (unpolarised, 61 bands, a
+                // 2.2 µm film at 0° fitted 14.6° ± 0.9°, 50 nm off with
+                // σ 8.5 nm). The profile is a bisection (~20 evaluations),
+                // so there it runs only where a cheap probe says the
+                // valley is wider (`angle_valley_wider`).
                 let at_bound = best.theta - lo < sig_th || hi - best.theta < sig_th;
                 let sig_th = if !sig_th.is_finite() || at_bound {
                     let th_bound = self.profile_sigma_theta(model, best, var, scratch);
