@@ -136,8 +136,9 @@ fn the_live_page_its_events_and_the_map_update() {
     }
 }
 
-/// A screenshot of the page in headless Chromium, taken 8 s after it
-/// opened (the page loads its history, then follows the events).
+/// A screenshot of the page in headless Chromium, taken when it has
+/// loaded (at most 8 s): the trend so far comes inline and the map is part
+/// of the load, so a loaded page is a drawn page.
 /// Also Chromium's stderr, to say why a screenshot is missing or blank.
 fn screenshot(addr: &str) -> (Option<irid::render::canvas::RgbImage>, String) {
     let dir = tempfile::tempdir().unwrap();

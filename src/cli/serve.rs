@@ -116,10 +116,14 @@ fn respond(req: tiny_http::Request, shared: &Shared) {
     let url = req.url().split('?').next().unwrap_or("").to_string();
     let (lock, _) = &**shared;
     let _ = match url.as_str() {
-        "/" => req.respond(
-            tiny_http::Response::from_string(PAGE)
-                .with_header(header("Content-Type", "text/html; charset=utf-8")),
-        ),
+        "/" => {
+            let page = lock.lock().map(|s| page(&s)).unwrap_or_default();
+            req.respond(
+                tiny_http::Response::from_string(page)
+                    .with_header(header("Content-Type", "text/html; charset=utf-8"))
+                    .with_header(header("Cache-Control", "no-store")),
+            )
+        }
         "/map.png" => {
             let png = lock.lock().map(|s| s.png.clone()).unwrap_or_default();
             if png.is_empty() {
@@ -209,6 +213,11 @@ fn stream_events(w: &mut dyn Write, shared: &Shared) {
     }
 }
 
+/// The page with the trend so far inline (`</` escaped inside the script).
+fn page(st: &State) -> String {
+    PAGE.replace("/*HISTORY*/", &st.history.join(",").replace("</", "<\\/"))
+}
+
 const PAGE: &str = r##"<!doctype html>
 <html><head><meta charset="utf-8"><title>irid live</title>
 <style>
@@ -258,6 +267,8 @@ img.onload = () => { img.dataset.loaded = String(img.naturalWidth); loading = fa
   if (!img.src.endsWith('sweep=' + wanted)) loadMap(wanted); };
 img.onerror = () => { loading = false; setTimeout(() => loadMap(wanted), 500); };
 function show(s){
+  // A stream's first event repeats the newest summary the page has.
+  if (hist.length && s.sweep <= hist[hist.length - 1].sweep) return;
   hist.push(s); if (hist.length > 600) hist.shift();
   document.getElementById('sweep').textContent = s.sweep;
   document.getElementById('valid').textContent = fmt(100 * s.valid_fraction, 1) + ' %';
@@ -266,7 +277,9 @@ function show(s){
   loadMap(s.sweep);
   draw();
 }
-fetch('/history.json').then(r => r.json()).then(h => { h.forEach(show);
-  const es = new EventSource('/events'); es.onmessage = e => show(JSON.parse(e.data)); });
+// The trend so far comes inline, so that the page is drawn when it has
+// loaded (its map is part of the load); then the events follow.
+[/*HISTORY*/].forEach(show);
+const es = new EventSource('/events'); es.onmessage = e => show(JSON.parse(e.data));
 </script></body></html>
 "##;
