@@ -12,9 +12,18 @@
 //! - **data**: estimated from the cube without any model, by robust
 //!   (median-based) differences that cancel smooth signal: second
 //!   differences between neighbouring pixels along each image axis, and
-//!   fourth differences along wavelength where the bands are dense. Signal
-//!   only ever adds to such a difference, so the smallest estimate is the
-//!   least contaminated one.
+//!   fourth differences along wavelength where the bands are dense (per
+//!   band, over a window of neighbouring bands: a spectrometer's noise grows
+//!   tenfold towards the ends of its range). Signal only ever adds to such a
+//!   difference, so the smallest estimate is the least contaminated one.
+//!
+//! On top of the noise, a **reflectance-scale accuracy** ε (`rel2` = ε²):
+//! what a measured absolute reflectance may be off by, as a fraction of R,
+//! from its reference (the reference's own table, focus height, lamp drift
+//! between reference and sample, a lamp line imperfectly divided out). It is
+//! not noise (it is smooth and the same in every repeat), so no difference
+//! of the data measures it; it is a property of the instrument, given
+//! (`--reflectance-accuracy`), and added in quadrature.
 
 #![allow(clippy::needless_range_loop)] // band-indexed numeric loops read clearer with indices
 
@@ -50,13 +59,16 @@ impl NoiseSource {
 /// few 1e-4 is still flagged.
 pub const SIGMA_FLOOR: f64 = 1e-4;
 
-/// Per-band reflectance noise: `σ_k(R)² = var0[k] + shot[k]·max(R, 0)`.
+/// Per-band reflectance noise:
+/// `σ_k(R)² = var0[k] + shot[k]·max(R, 0) + rel2·R²`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct NoiseModel {
     /// Signal-independent variance per band (cube plane order).
     pub var0: Vec<f64>,
     /// Signal-dependent (shot) variance per unit reflectance, per band.
     pub shot: Vec<f64>,
+    /// Squared relative accuracy of the reflectance scale (ε², 0: exact).
+    pub rel2: f64,
     /// Where it came from.
     pub source: NoiseSource,
 }
@@ -68,6 +80,7 @@ impl NoiseModel {
         NoiseModel {
             var0: vec![s * s; n_bands],
             shot: vec![0.0; n_bands],
+            rel2: 0.0,
             source,
         }
     }
@@ -77,8 +90,23 @@ impl NoiseModel {
         NoiseModel {
             var0: sigma.iter().map(|s| s.max(SIGMA_FLOOR).powi(2)).collect(),
             shot: vec![0.0; sigma.len()],
+            rel2: 0.0,
             source,
         }
+    }
+
+    /// The same noise with a reflectance-scale accuracy ε (a fraction of R)
+    /// added in quadrature; the larger of ε and the one already in force.
+    pub fn with_accuracy(mut self, eps: f64) -> NoiseModel {
+        if eps.is_finite() && eps > 0.0 {
+            self.rel2 = self.rel2.max(eps * eps);
+        }
+        self
+    }
+
+    /// The reflectance-scale accuracy ε in force (0: none).
+    pub fn accuracy(&self) -> f64 {
+        self.rel2.sqrt()
     }
 
     /// Number of bands.
@@ -89,7 +117,8 @@ impl NoiseModel {
     /// Variance of band `k` at reflectance `r`.
     #[inline]
     pub fn var(&self, k: usize, r: f64) -> f64 {
-        (self.var0[k] + self.shot[k] * r.max(0.0)).max(SIGMA_FLOOR * SIGMA_FLOOR)
+        let r = r.max(0.0);
+        (self.var0[k] + self.shot[k] * r + self.rel2 * r * r).max(SIGMA_FLOOR * SIGMA_FLOOR)
     }
 
     /// χ² of `y` (weights `w`: 0 drops a band) against the model values
@@ -102,10 +131,12 @@ impl NoiseModel {
         let (y, w, r) = (&y[..n], &w[..n], &r[..n]);
         let (var0, shot) = (&self.var0[..n], &self.shot[..n]);
         let floor = SIGMA_FLOOR * SIGMA_FLOOR;
+        let rel2 = self.rel2;
         let (mut chi2, mut sum_var, mut used) = ([0.0f64; 4], [0.0f64; 4], [0.0f64; 4]);
         let whole = n - n % 4;
         let mut band = |k: usize, l: usize| {
-            let var = (var0[k] + shot[k] * r[k].max(0.0)).max(floor);
+            let rk = r[k].max(0.0);
+            let var = (var0[k] + shot[k] * rk + rel2 * rk * rk).max(floor);
             let e = y[k] - r[k];
             let on = if w[k] != 0.0 { 1.0 } else { 0.0 };
             chi2[l] += on * w[k] * e * e / var;
@@ -134,7 +165,9 @@ impl NoiseModel {
 
     /// Whether every band's variance is the same constant (a scalar σ).
     pub fn is_uniform(&self) -> bool {
-        self.shot.iter().all(|&s| s == 0.0) && self.var0.windows(2).all(|w| w[0] == w[1])
+        self.rel2 == 0.0
+            && self.shot.iter().all(|&s| s == 0.0)
+            && self.var0.windows(2).all(|w| w[0] == w[1])
     }
 
     /// Estimate the noise from the cube itself, without a model: per band,
@@ -142,15 +175,29 @@ impl NoiseModel {
     /// and (for dense band sets) of fourth differences along wavelength.
     /// `None` when the cube is too small to tell.
     pub fn from_data(cube: &Cube) -> Option<NoiseModel> {
+        Self::from_data_with(cube, true)
+    }
+
+    /// [`NoiseModel::from_data`], the estimate along wavelength per band
+    /// (`per_band`) or pooled over all bands. The free level keeps the
+    /// pooled one: its fringe-order margins were set against it, and with
+    /// the per-band one a lamp's bump passed for a first-order fringe
+    /// (`tests/free_level_spectra.rs`).
+    pub fn from_data_with(cube: &Cube, per_band: bool) -> Option<NoiseModel> {
         let nb = cube.bands.len();
-        let spectral = spectral_sigma(cube);
+        let spectral = spectral_sigmas(cube).map(|(pooled, mut s)| {
+            if !per_band {
+                s.iter_mut().for_each(|v| *v = pooled);
+            }
+            s
+        });
         let mut sig = Vec::with_capacity(nb);
         for k in 0..nb {
             let plane = cube.plane(k);
             let s = [
                 axis_sigma(plane, cube.width, cube.height, 1),
                 axis_sigma(plane, cube.width, cube.height, cube.width),
-                spectral,
+                spectral.as_ref().map(|s| s[k]),
             ]
             .into_iter()
             .flatten()
@@ -208,11 +255,20 @@ fn axis_sigma(plane: &[f32], width: usize, height: usize, stride: usize) -> Opti
     Some(1.4826 * median(&mut d) / 6f64.sqrt())
 }
 
-/// Robust σ from fourth differences along wavelength (variance 70σ²),
-/// pooled over up to 2 000 pixels; only for band sets of at least 16 bands
-/// whose steps in wavelength are even (within 10 %), where a fringe changes
-/// little from one band to the next. `None` otherwise.
-fn spectral_sigma(cube: &Cube) -> Option<f64> {
+/// Robust σ pooled over all bands, and per band (cube plane order), from
+/// fourth differences along
+/// wavelength (variance 70σ²), pooled over up to 2 000 pixels; only for band
+/// sets of at least 16 bands whose steps in wavelength are even (within
+/// 10 %), where a fringe changes little from one band to the next. `None`
+/// otherwise.
+///
+/// Each band takes the differences centred within a window of its
+/// neighbours (at least 31 centres, a tenth of the bands on denser sets),
+/// and never less than the estimate pooled over all bands: a spectrometer's
+/// noise grows tenfold towards its range's ends, which one pooled value
+/// hides (the ends then fail every fit), while a window's median scatters
+/// by ~1.25/√N and an estimate scattering low would fail clean spectra.
+fn spectral_sigmas(cube: &Cube) -> Option<(f64, Vec<f64>)> {
     let nb = cube.bands.len();
     if nb < 16 {
         return None;
@@ -232,22 +288,43 @@ fn spectral_sigma(cube: &Cube) -> Option<f64> {
     let n = cube.plane_len();
     let step = n.div_ceil(2_000).max(1);
     let mut spec = vec![0.0; nb];
-    let mut d = Vec::new();
+    // |4th difference| per centre (sorted band position 2..nb−3).
+    let mut by_centre: Vec<Vec<f64>> = vec![Vec::new(); nb];
     for i in (0..n).step_by(step) {
         for (k, &b) in order.iter().enumerate() {
             spec[k] = f64::from(cube.data[b * n + i]);
         }
-        for w in spec.windows(5) {
+        for (c, w) in spec.windows(5).enumerate() {
             let v = w[0] - 4.0 * w[1] + 6.0 * w[2] - 4.0 * w[3] + w[4];
             if v.is_finite() {
-                d.push(v.abs());
+                by_centre[c + 2].push(v.abs());
             }
         }
     }
-    if d.len() < 30 {
+    let scale = 1.4826 / 70f64.sqrt();
+    let mut all: Vec<f64> = by_centre.iter().flatten().copied().collect();
+    if all.len() < 30 {
         return None;
     }
-    Some(1.4826 * median(&mut d) / 70f64.sqrt())
+    let pooled = scale * median(&mut all);
+    let (first, last) = (2, nb - 3);
+    let half = 15.max(nb / 20);
+    let mut out = vec![pooled; nb];
+    let mut d = Vec::new();
+    for (p, &b) in order.iter().enumerate() {
+        // A window of 2·half + 1 centres, shifted inwards at the ends.
+        let a = p.saturating_sub(half).max(first);
+        let z = (a + 2 * half).min(last);
+        let a = z.saturating_sub(2 * half).max(first);
+        d.clear();
+        for c in a..=z {
+            d.extend_from_slice(&by_centre[c]);
+        }
+        if d.len() >= 30 {
+            out[b] = (scale * median(&mut d)).max(pooled);
+        }
+    }
+    Some((pooled, out))
 }
 
 /// Median (reorders `v`; `v` not empty).
@@ -336,6 +413,56 @@ mod tests {
         assert!((s / 2e-3 - 1.0).abs() < 0.25, "{s}");
     }
 
+    /// A spectrometer's noise: 1e-3 at the ends of 400 bands, 1e-4 over the
+    /// middle half. Per band, each end is read within a window's scatter
+    /// (the median of 31 differences: ~±22 %, allowed ±35 %), the middle at
+    /// the pooled value (its floor, here above the middle's own level);
+    /// pooled, every band gets the same.
+    #[test]
+    fn a_spectrometers_noisy_ends_are_seen_per_band() {
+        let nb = 400;
+        let bands: Vec<Band> = (0..nb)
+            .map(|k| Band::new(400.0 + k as f64, 0.0).unwrap())
+            .collect();
+        let truth = |k: usize| if (100..300).contains(&k) { 1e-4 } else { 1e-3 };
+        let mut c = Cube::zeros(1, 1, bands);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let unit = Normal::new(0.0, 1.0).unwrap();
+        for k in 0..nb {
+            let lam = 400.0 + k as f64;
+            let r = 0.1 + 0.05 * (4.0 * std::f64::consts::PI * 1.5 * 300.0 / lam).cos();
+            c.data[k] = (r + truth(k) * unit.sample(&mut rng)) as f32;
+        }
+        let per_band = NoiseModel::from_data(&c).unwrap();
+        let pooled = NoiseModel::from_data_with(&c, false).unwrap();
+        for k in [0, 40, 360, 399] {
+            let s = per_band.var(k, 0.0).sqrt();
+            assert!((s / 1e-3 - 1.0).abs() < 0.35, "band {k}: {s}");
+        }
+        // The pooled median sits between the two levels (half the bands
+        // each); the middle never goes below it.
+        let p = pooled.var(0, 0.0).sqrt();
+        assert!(p > 1e-4 && p < 4e-4, "{p}");
+        for k in [170, 200, 230] {
+            let s = per_band.var(k, 0.0).sqrt();
+            assert!(s >= p && s < 1.2 * p, "band {k}: {s} against {p}");
+            assert_eq!(pooled.var(k, 0.0), pooled.var(0, 0.0));
+        }
+    }
+
+    /// The reflectance-scale accuracy adds (ε·R)² to every band's variance,
+    /// the larger ε standing.
+    #[test]
+    fn the_scale_accuracy_adds_in_quadrature() {
+        let m = NoiseModel::uniform(1e-3, 3, NoiseSource::Given)
+            .with_accuracy(0.05)
+            .with_accuracy(0.02);
+        assert!((m.accuracy() - 0.05).abs() < 1e-15);
+        assert!((m.var(1, 0.4) - (1e-6 + 0.02f64.powi(2))).abs() < 1e-15);
+        assert!((m.var(1, -0.1) - 1e-6).abs() < 1e-18);
+        assert!(!m.is_uniform());
+    }
+
     #[test]
     fn noise_free_data_sit_on_the_floor_and_tiny_cubes_give_none() {
         let c = cube_with(50, 50, 8, |x, _, _| 0.04 + 1e-4 * x as f64, 0.0);
@@ -353,6 +480,7 @@ mod tests {
             let m = NoiseModel {
                 var0: (0..n).map(|k| 1e-6 * (1.0 + k as f64)).collect(),
                 shot: (0..n).map(|k| 1e-5 * (k % 3) as f64).collect(),
+                rel2: if n == 7 { 4e-4 } else { 0.0 },
                 source: NoiseSource::Given,
             };
             let y: Vec<f64> = (0..n).map(|k| 0.1 + 0.01 * (k as f64).sin()).collect();
@@ -377,6 +505,7 @@ mod tests {
         let m = NoiseModel {
             var0: vec![1e-6],
             shot: vec![1e-5],
+            rel2: 0.0,
             source: NoiseSource::Camera,
         };
         assert!((m.var(0, 0.0) - 1e-6).abs() < 1e-18);

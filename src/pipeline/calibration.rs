@@ -225,6 +225,7 @@ impl CalNoise {
         crate::estimate::noise::NoiseModel {
             var0: self.var0.clone(),
             shot: self.shot.clone(),
+            rel2: 0.0,
             source: crate::estimate::noise::NoiseSource::Camera,
         }
     }
