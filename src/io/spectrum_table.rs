@@ -445,6 +445,13 @@ fn push_row(
     Ok(())
 }
 
+/// Fewest rows for [`SpectrumTable::repair_spikes`] to look for spikes:
+/// a densely sampled spectrometer file, not a band set.
+pub const SPIKE_MIN_ROWS: usize = 100;
+
+/// How far (in robust σ of the local departures) a spike stands out.
+pub const SPIKE_SIGMAS: f64 = 10.0;
+
 impl SpectrumTable {
     /// Number of spectra.
     pub fn spectra(&self) -> usize {
@@ -541,6 +548,96 @@ impl SpectrumTable {
         })
     }
 
+    /// Replace isolated spikes by the median of their neighbours; returns
+    /// the wavelengths (nm) replaced, per spectrum in order.
+    ///
+    /// A spectrometer's file can hold single samples no spectrum of a film
+    /// makes: a cosmic ray on the detector, a dead pixel, a zero written at
+    /// the end of the range. On a densely sampled table (at least
+    /// [`SPIKE_MIN_ROWS`] rows) a film's spectrum changes little from one row
+    /// to the next, so a sample is a spike when it departs from the median of
+    /// its six nearest neighbours (each carried to it along the local
+    /// slope) by more than [`SPIKE_SIGMAS`] times the
+    /// robust scatter of such departures over the 50 rows around it, and by
+    /// more than the spread of those neighbours themselves (less their
+    /// extremes, one of which may be a spike's partner). Only up to two
+    /// adjacent samples qualify: a longer run is structure, left to the fit.
+    pub fn repair_spikes(&mut self) -> Vec<f64> {
+        let (w, nb) = (self.cube.width, self.rows());
+        let mut replaced = Vec::new();
+        if nb < SPIKE_MIN_ROWS {
+            return replaced;
+        }
+        let mut y = vec![0.0f64; nb];
+        let mut dev = vec![0.0f64; nb];
+        let mut med = vec![0.0f64; nb];
+        let mut spread = vec![0.0f64; nb];
+        let mut nbh: Vec<f64> = Vec::with_capacity(6);
+        let mut win: Vec<f64> = Vec::with_capacity(51);
+        for x in 0..w {
+            for (k, v) in y.iter_mut().enumerate() {
+                *v = f64::from(self.cube.data[k * w + x]);
+            }
+            if y.iter().any(|v| !v.is_finite()) {
+                continue;
+            }
+            for i in 0..nb {
+                // The six nearest rows, shifted inwards at the ends.
+                let a = i.saturating_sub(3).min(nb - 7);
+                // The local slope (median step between neighbours), so a
+                // row at the range's end, seen from one side, is not taken
+                // for a spike of the slope's size.
+                nbh.clear();
+                nbh.extend(
+                    (a..a + 6)
+                        .filter(|&j| j != i && j + 1 != i)
+                        .map(|j| y[j + 1] - y[j]),
+                );
+                nbh.sort_by(f64::total_cmp);
+                let slope = nbh[nbh.len() / 2];
+                nbh.clear();
+                nbh.extend(
+                    (a..a + 7)
+                        .filter(|&j| j != i)
+                        .map(|j| y[j] + slope * (i as f64 - j as f64)),
+                );
+                nbh.sort_by(f64::total_cmp);
+                med[i] = 0.5 * (nbh[2] + nbh[3]);
+                spread[i] = nbh[4] - nbh[1];
+                dev[i] = y[i] - med[i];
+            }
+            let mut spikes = Vec::new();
+            for i in 0..nb {
+                let a = i.saturating_sub(25).min(nb.saturating_sub(51));
+                let z = (a + 51).min(nb);
+                win.clear();
+                win.extend(dev[a..z].iter().map(|d| d.abs()));
+                let m = win.len() / 2;
+                let (_, mid, _) = win.select_nth_unstable_by(m, f64::total_cmp);
+                let scale = 1.4826 * *mid;
+                if dev[i].abs() > SPIKE_SIGMAS * scale && dev[i].abs() > spread[i] {
+                    spikes.push(i);
+                }
+            }
+            // Runs of at most two.
+            let mut j = 0;
+            while j < spikes.len() {
+                let mut e = j;
+                while e + 1 < spikes.len() && spikes[e + 1] == spikes[e] + 1 {
+                    e += 1;
+                }
+                if e - j < 2 {
+                    for &i in &spikes[j..=e] {
+                        self.cube.data[i * w + x] = med[i] as f32;
+                        replaced.push(self.cube.bands[i].center_nm);
+                    }
+                }
+                j = e + 1;
+            }
+        }
+        replaced
+    }
+
     /// Drop the bands that are NaN in every spectrum; returns how many.
     pub fn drop_empty_bands(&mut self) -> usize {
         let w = self.cube.width;
@@ -589,6 +686,51 @@ mod tests {
         let t = parse("wl;a\n400;0,5\n410;0,25\n420;\"1,5\"\n430;nan\n").unwrap();
         assert_eq!(t.cube.data[..3], [0.5, 0.25, 1.5]);
         assert!(t.cube.data[3].is_nan());
+    }
+
+    /// A dense fringe spectrum with noise: a zero at the last row, a
+    /// cosmic ray in the middle and a two-sample glitch are replaced; the
+    /// clean table and a three-sample step are left alone.
+    #[test]
+    fn isolated_spikes_are_repaired_and_structure_is_not() {
+        let rows = 400;
+        let mut text = String::from("wl,a\n");
+        let mut noise = 0x2545_f491_4f6c_dd1du64;
+        let mut truth = Vec::new();
+        for i in 0..rows {
+            let lam = 400.0 + i as f64;
+            noise ^= noise << 13;
+            noise ^= noise >> 7;
+            noise ^= noise << 17;
+            let e = ((noise >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 1e-3;
+            let r = 0.2 + 0.15 * (4.0 * std::f64::consts::PI * 1.5 * 600.0 / lam).cos();
+            truth.push(r);
+            text.push_str(&format!("{lam},{}\n", r + e));
+        }
+        let clean = parse(&text).unwrap();
+        let mut t = clean.clone();
+        let none = t.repair_spikes();
+        assert!(none.is_empty(), "a clean spectrum has no spike: {none:?}");
+        let mut bad = clean.clone();
+        bad.cube.data[rows - 1] = 0.0;
+        bad.cube.data[150] += 0.08;
+        bad.cube.data[250] -= 0.05;
+        bad.cube.data[251] -= 0.05;
+        let mut fixed = bad.clone();
+        let got = fixed.repair_spikes();
+        assert_eq!(got, [550.0, 650.0, 651.0, 799.0]);
+        for i in [150, 250, 251, rows - 1] {
+            let e = (f64::from(fixed.cube.data[i]) - truth[i]).abs();
+            assert!(e < 3e-3, "row {i}: {e}");
+        }
+        let mut step = clean.clone();
+        for i in 300..303 {
+            step.cube.data[i] += 0.05;
+        }
+        assert!(
+            step.repair_spikes().is_empty(),
+            "three samples are structure"
+        );
     }
 
     #[test]
