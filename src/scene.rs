@@ -15,8 +15,9 @@
 //! - `[light]`: `polarization` = `"s"`, `"p"`, `"u"` or an s weight.
 //! - `[bands]`: the band set for synthetic cubes and live runs (`irid fit`
 //!   takes its bands from the cube header).
-//! - `[measurement]`: the instrument — `noise_sigma` (reflectance noise σ)
-//!   and `level` (`auto`, `absolute`, `scaled`, `free`).
+//! - `[measurement]`: the instrument — `noise_sigma` (reflectance noise σ),
+//!   `reflectance_accuracy` (the reflectance scale's accuracy, a fraction
+//!   of R) and `level` (`auto`, `absolute`, `scaled`, `free`).
 //! - `[truth]`: the synthetic ground truth (size, film index, thickness and
 //!   angle fields, noise, seed) for `irid synth` and the synthetic camera.
 //!
@@ -171,6 +172,10 @@ pub struct MeasurementSpec {
     /// Reflectance noise σ (default: measured by the camera's calibration,
     /// or estimated from the data without a model).
     pub noise_sigma: Option<f64>,
+    /// Accuracy of the reflectance scale, a fraction of R (default 0 for
+    /// cubes, see `irid fit` for spectrum tables): added to the noise in
+    /// quadrature when fits are judged.
+    pub reflectance_accuracy: Option<f64>,
     /// `auto`, `absolute`, `scaled` or `free` (default `auto`).
     pub level: Option<String>,
 }
@@ -398,6 +403,8 @@ pub struct Scene {
     pub max_thickness_nm: Option<f64>,
     /// Reflectance noise σ, when known.
     pub noise_sigma: Option<f64>,
+    /// Accuracy of the reflectance scale, a fraction of R (0: exact).
+    pub reflectance_accuracy: f64,
     /// How the instrument's level is modelled.
     pub level: LevelMode,
 }
@@ -525,6 +532,13 @@ impl Scene {
                 ));
             }
         }
+        let reflectance_accuracy = file.measurement.reflectance_accuracy.unwrap_or(0.0);
+        if !(reflectance_accuracy.is_finite() && (0.0..0.5).contains(&reflectance_accuracy)) {
+            return Err(invalid(
+                "measurement.reflectance_accuracy",
+                format!("must lie in [0, 0.5), not {reflectance_accuracy}"),
+            ));
+        }
         let level = match &file.measurement.level {
             None => LevelMode::Auto,
             Some(l) => LevelMode::from_name(l).ok_or_else(|| {
@@ -589,6 +603,7 @@ impl Scene {
             min_thickness_nm,
             max_thickness_nm,
             noise_sigma,
+            reflectance_accuracy,
             level,
         })
     }

@@ -326,3 +326,116 @@ fn table_errors_name_the_file_and_line() {
     fails_with(&fit_args(s(&good), s(&nowhere), &[]), &["no-such-dir"]);
     assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2);
 }
+
+/// A spectrometer file the model did not render: a film of a dispersive
+/// index (n = 1.56 + 6000/λ², PS-like) on n = 3.9, fitted with one index;
+/// the reflectance scale off by a smooth 0–4 % (a reference's error); noise
+/// ten times larger at the range's ends than in its middle (a detector's
+/// response); and a zero written at the last row. The thickness is read
+/// within 2 % and valid under the default accuracy of a table (10 % of R)
+/// where the dispersion leaves the fringes in place (thin films; a 610 nm
+/// film is valid and right, or flagged "poor fit");
+/// judged as exact (`--reflectance-accuracy 0 --level absolute`) the same
+/// file fails the fit test; the spike is replaced, with a note; and with the index unknown the
+/// result is valid and within 3σ, or flagged.
+#[test]
+fn a_spectrometer_file_is_judged_with_its_reflectance_accuracy() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut seed = 0x9e37_79b9_7f4a_7c15u64;
+    let mut gauss = move || {
+        // Sum of 12 uniforms, less 6: unit variance, deterministic.
+        let mut acc = 0.0;
+        for _ in 0..12 {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            acc += (seed >> 11) as f64 / (1u64 << 53) as f64;
+        }
+        acc - 6.0
+    };
+    for d in [95.0, 240.0, 610.0] {
+        let mut text = String::from("wavelength_nm,film\n");
+        for nm in 401..=1000 {
+            let lam = nm as f64;
+            let media = Media {
+                n1: Complex64::new(1.0, 0.0),
+                n2: Complex64::new(1.56 + 6000.0 / (lam * lam), 0.0),
+                n3: Complex64::new(3.9, 0.0),
+            };
+            let r = airy::reflectance(media, d, 0.0, lam, Polarization::S);
+            let gain = 1.0 + 0.04 * (lam - 401.0) / 599.0;
+            let u = (lam - 700.0) / 300.0;
+            let sigma = 3e-4 * (1.0 + 9.0 * u.powi(8));
+            let v = if nm == 1000 {
+                0.0
+            } else {
+                gain * r + sigma * gauss()
+            };
+            text.push_str(&format!("{nm},{v:.5}\n"));
+        }
+        let input = dir.path().join(format!("film{d}.csv"));
+        std::fs::write(&input, text).unwrap();
+        let res = dir.path().join("res.csv");
+        let args = |extra: &[&'static str]| {
+            let mut v: Vec<String> = [
+                "fit",
+                s(&input),
+                "--out",
+                s(&res),
+                "--n3",
+                "3.9",
+                "--theta-deg",
+                "0",
+                "--force",
+            ]
+            .iter()
+            .map(|a| a.to_string())
+            .collect();
+            v.extend(extra.iter().map(|a| a.to_string()));
+            v
+        };
+        let run = |extra: &[&'static str]| {
+            let a = args(extra);
+            let refs: Vec<&str> = a.iter().map(String::as_str).collect();
+            let out = ok(&refs);
+            (
+                String::from_utf8_lossy(&out.stderr).to_string(),
+                read_csv(&res).remove(0),
+            )
+        };
+        let (err, row) = run(&["--n2", "1.59"]);
+        assert!(
+            err.contains("1 isolated spike(s) replaced") && err.contains("1000 nm"),
+            "{err}"
+        );
+        assert!(err.contains("accurate to 10.0 % of R"), "{err}");
+        if d < 300.0 {
+            assert_eq!(row.fields[9], "1", "{d} nm: {:?}", row.fields);
+        } else if row.fields[9] == "0" {
+            // Thicker, the index's dispersion shifts the fringes by more
+            // than any scale error: one index is the wrong material.
+            assert_eq!(row.fields[9..], ["0", "7", "poor fit"], "{d} nm");
+            continue;
+        }
+        let got = row.f(3);
+        assert!((got - d).abs() <= 0.02 * d, "{d} nm read {got}");
+        // (`auto` may find and correct the scale error itself: absolute.)
+        let (_, exact) = run(&[
+            "--n2",
+            "1.59",
+            "--reflectance-accuracy",
+            "0",
+            "--level",
+            "absolute",
+        ]);
+        assert_eq!(exact.fields[9..], ["0", "7", "poor fit"], "{d} nm");
+        let (_, free) = run(&[]);
+        if free.fields[9] == "1" {
+            let (got, sigma) = (free.f(3), free.f(4));
+            assert!(
+                (got - d).abs() <= (0.1 * d).max(3.0 * sigma),
+                "{d} nm, index unknown: {got} ± {sigma}"
+            );
+        }
+    }
+}

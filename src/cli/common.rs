@@ -134,6 +134,11 @@ pub struct SceneOverrides {
     /// from the data without a model).
     #[arg(long, value_name = "SIGMA")]
     pub noise_sigma: Option<f64>,
+    /// Accuracy of the reflectance scale, a fraction of R (reference,
+    /// focus, lamp drift), added to the noise when fits are judged (default
+    /// 0; spectrum tables outside `--level free`: 0.10).
+    #[arg(long, value_name = "FRACTION")]
+    pub reflectance_accuracy: Option<f64>,
     /// How the instrument's level is modelled: `auto` (absolute unless the
     /// data show a correctable calibration error), `absolute`, `scaled`
     /// (image-wide gain and offset per band), `free` (per-pixel scale,
@@ -192,6 +197,9 @@ impl SceneOverrides {
         }
         if let Some(s) = self.noise_sigma {
             file.measurement.noise_sigma = Some(s);
+        }
+        if let Some(e) = self.reflectance_accuracy {
+            file.measurement.reflectance_accuracy = Some(e);
         }
         if let Some(l) = self.level {
             file.measurement.level = Some(l.name().into());

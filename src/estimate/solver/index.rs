@@ -42,7 +42,8 @@ impl Solver {
         // from the fits it judges: given, measured by the camera, or
         // estimated from the data without a model.
         if self.noise.is_none() {
-            if let Some(n) = NoiseModel::from_data(cube) {
+            let per_band = self.scene.level != LevelMode::Free;
+            if let Some(n) = NoiseModel::from_data_with(cube, per_band) {
                 self.set_noise(n);
             }
         }
@@ -131,10 +132,63 @@ impl Solver {
     ) -> Result<IndexEstimate, EstimateError> {
         let est = match self.scene.film.clone() {
             FilmKnowledge::Known(_) => self.index.clone().expect("known index set at construction"),
-            FilmKnowledge::Unknown { search, prior } => self.search_index(sample, search, prior)?,
+            FilmKnowledge::Unknown { search, prior } => {
+                let est = self.search_index(sample, search, prior)?;
+                let eps = self.noise.as_ref().map_or(0.0, |n| n.accuracy());
+                if eps > 0.0 && est.estimated && !est.at_bound {
+                    self.with_scale_spread(sample, search, prior, eps, est)
+                } else {
+                    est
+                }
+            }
         };
         self.set_film_index(est.clone())?;
         Ok(est)
+    }
+
+    /// The index's share of the reflectance scale's accuracy ε: the
+    /// index searched again on the sample scaled by 1 ± ε, half the spread
+    /// added to σ in quadrature. A scale error is the same in every band,
+    /// so the noise term ε·R (independent per band) cannot carry it: on a
+    /// thin film, whose index shows only in the level, a 3 % scale moves
+    /// the index by ~0.05, while the independent term leaves σ ≈ 0.005.
+    fn with_scale_spread(
+        &self,
+        sample: &[SamplePixel],
+        search: (f64, f64),
+        prior: Option<f64>,
+        eps: f64,
+        mut est: IndexEstimate,
+    ) -> IndexEstimate {
+        let mut ns = [f64::NAN; 2];
+        for (n, f) in ns.iter_mut().zip([1.0 + eps, 1.0 - eps]) {
+            let scaled: Vec<SamplePixel> = sample
+                .iter()
+                .map(|p| SamplePixel {
+                    spectrum: p.spectrum.iter().map(|v| v * f).collect(),
+                    ..p.clone()
+                })
+                .collect();
+            if let Ok(e) = self.search_index(&scaled, search, prior) {
+                *n = e.n;
+            }
+        }
+        let spread = if ns.iter().all(|n| n.is_finite()) {
+            0.5 * (ns[0] - ns[1]).abs()
+        } else {
+            // The index is lost at one end of the scale's range: nothing
+            // pins it.
+            f64::INFINITY
+        };
+        est.sigma = est.sigma.hypot(spread);
+        est.scale_branches = spread.is_finite().then_some(ns);
+        est.note = format!(
+            "{}{}σ includes ±{spread:.4} from the reflectance scale's {:.1} % accuracy",
+            est.note,
+            if est.note.is_empty() { "" } else { "; " },
+            100.0 * eps
+        );
+        est
     }
 
     /// Up to `max` pixels on a regular lattice with complete spectra, with
@@ -367,6 +421,7 @@ impl Solver {
             ambiguous,
             at_bound,
             sigma_in_level: false,
+            scale_branches: None,
         })
     }
 

@@ -103,6 +103,12 @@ pub struct IndexEstimate {
     /// Estimated jointly with the image-wide level: its share of σ_d is
     /// carried by the level's inflation factor, not added again.
     pub sigma_in_level: bool,
+    /// The index found again on the sample scaled by 1 ± ε (a reflectance
+    /// scale accurate to ε): half their spread is part of `sigma`, and each
+    /// pixel's σ_d spans the thicknesses the two carry at the pixel's
+    /// optical thickness (not a linearisation: one spectrum can put the two
+    /// far apart).
+    pub scale_branches: Option<[f64; 2]>,
 }
 
 /// Pixels sampled (on a jittered grid) for the global film-index search
@@ -483,6 +489,7 @@ impl Solver {
                 ambiguous: false,
                 at_bound: false,
                 sigma_in_level: false,
+                scale_branches: None,
             });
         }
         if scene.level == LevelMode::Free {
@@ -739,23 +746,31 @@ impl Solver {
             // optical thickness: ∂d/∂n2 = −d·n2/q2².
             let q2 = prep.model.q2_mid(est.theta_deg.to_radians());
             let dd_dn = est.thickness_nm * index.n / (q2 * q2);
-            let sigma_n = if index.sigma_in_level {
-                0.0
-            } else {
-                index.sigma
+            // The thickness at the pixel's optical thickness under index t.
+            let kx2 = index.n * index.n - q2 * q2;
+            let d_at = |t: f64| est.thickness_nm * q2 / (t * t - kx2).max(1e-12).sqrt();
+            // The scale's branches: half the span of their thicknesses
+            // (exact at fixed optical thickness), in place of their share
+            // of σ_n in the linear term.
+            let (sigma_n, scale) = match index.scale_branches {
+                Some([p, m]) => {
+                    let spread = 0.5 * (p - m).abs();
+                    let rest = (index.sigma * index.sigma - spread * spread)
+                        .max(0.0)
+                        .sqrt();
+                    (rest, 0.5 * (d_at(p) - d_at(m)).abs())
+                }
+                None => (index.sigma, 0.0),
             };
+            let sigma_n = if index.sigma_in_level { 0.0 } else { sigma_n };
             let (a, b) = (est.sigma_thickness_nm, dd_dn * sigma_n);
             // An unresolved twin: the thickness on the other branch (same
             // optical thickness) is as likely, so σ spans it.
             let c = match (index.ambiguous, index.twin) {
-                (true, Some(t)) => {
-                    let kx2 = index.n * index.n - q2 * q2;
-                    let q_twin = (t * t - kx2).max(1e-12).sqrt();
-                    (est.thickness_nm * (q2 / q_twin - 1.0)).abs()
-                }
+                (true, Some(t)) => (d_at(t) - est.thickness_nm).abs(),
                 _ => 0.0,
             };
-            est.sigma_thickness_nm = (a * a + b * b + c * c).sqrt();
+            est.sigma_thickness_nm = (a * a + b * b + c * c + scale * scale).sqrt();
         }
     }
 
@@ -772,6 +787,7 @@ impl Solver {
     /// Use this noise model from now on (given, measured by the camera's
     /// calibration, or estimated from the data).
     pub fn set_noise(&mut self, noise: NoiseModel) {
+        let noise = noise.with_accuracy(self.scene.reflectance_accuracy);
         let typical = noise.typical_sigma(0.05);
         self.noise = Some(noise);
         if let Some(i) = &mut self.index {

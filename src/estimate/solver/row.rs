@@ -257,12 +257,60 @@ impl Solver {
                 },
                 |(scratch, est), (y, mut row)| {
                     self.solve_row(cube, y, est, scratch);
+                    self.widen_for_scale(cube, y, est, scratch);
                     row.set_all(est);
                     row_done(y);
                 },
             );
         maps.meta = self.map_meta();
         Ok(maps)
+    }
+
+    /// The reflectance scale's share of each valid pixel's σ_d, where a
+    /// scale accuracy ε is in force: the pixel fitted again on its spectrum
+    /// scaled by 1 ± ε, half the spread of the thicknesses added in
+    /// quadrature. A scale error is the same in every band, so the noise
+    /// term (ε·R)², independent per band, leaves σ_d too small where the
+    /// thickness shows in the level (a film below its first fringe). Two
+    /// more fits per valid pixel: spectrum tables (few spectra) take it by
+    /// default, cubes only when given an ε.
+    fn widen_for_scale(
+        &self,
+        cube: &Cube,
+        y: usize,
+        out: &mut [PixelEstimate],
+        scratch: &mut Scratch,
+    ) {
+        let eps = self.noise.as_ref().map_or(0.0, |n| n.accuracy());
+        if eps <= 0.0 {
+            return;
+        }
+        let mut pixel = vec![0.0; cube.bands.len()];
+        let mut scaled = vec![0.0; cube.bands.len()];
+        for (x, o) in out.iter_mut().enumerate().take(cube.width) {
+            if !o.is_valid() {
+                continue;
+            }
+            cube.spectrum_into(x, y, &mut pixel);
+            let theta = self.scene.angle.known_at(x, y);
+            let mut ds = [f64::NAN; 2];
+            for (d, f) in ds.iter_mut().zip([1.0 + eps, 1.0 - eps]) {
+                scaled.iter_mut().zip(&pixel).for_each(|(s, v)| *s = v * f);
+                scratch.last_fit_d = f64::NAN;
+                let e = self.solve_pixel(&scaled, theta, scratch);
+                // A scaled spectrum may fail the test; its best fit still
+                // says where that scale puts the thickness.
+                *d = if e.is_valid() {
+                    e.thickness_nm
+                } else {
+                    scratch.last_fit_d
+                };
+            }
+            if ds.iter().all(|d| d.is_finite()) {
+                let spread = 0.5 * (ds[0] - ds[1]).abs();
+                o.sigma_thickness_nm = o.sigma_thickness_nm.hypot(spread);
+            }
+        }
     }
 
     /// Metadata for maps produced by this solver.
