@@ -284,7 +284,9 @@ impl Solver {
         n: f64,
         sample: &[SamplePixel],
     ) -> Result<(f64, f64, f64, f64), EstimateError> {
-        let prep = self.prepare(&Dispersion::constant(n))?;
+        // Untabled: the sample's fits start from its fringe candidates and
+        // never scan a table.
+        let prep = self.prepare_with(&Dispersion::constant(n), false)?;
         Ok(self.sample_sse(&prep, sample))
     }
 
@@ -320,10 +322,12 @@ impl Solver {
             let missing = sample.len() as f64 - fitted;
             Ok(sse + missing * total_ss / sample.len() as f64)
         };
-        let mut prof = Vec::with_capacity(grid.len());
-        for &n in &grid {
-            prof.push(cost(n)?);
-        }
+        // The trial indices in parallel too: a spectrum table's sample is
+        // one or a few pixels.
+        let prof = grid
+            .par_iter()
+            .map(|&n| cost(n))
+            .collect::<Result<Vec<f64>, EstimateError>>()?;
         // Local minima of the coarse profile, best first.
         let mut minima: Vec<usize> = (0..prof.len())
             .filter(|&i| {

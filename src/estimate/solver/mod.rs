@@ -534,6 +534,14 @@ impl Solver {
     }
 
     fn prepare(&self, film: &Dispersion) -> Result<Prepared, EstimateError> {
+        self.prepare_with(film, true)
+    }
+
+    /// The model for `film`, with its thickness tables where `tabled` (the
+    /// film-index profile fits its sample without them: a table per trial
+    /// index is most of the search's cost on a spectrometer's hundreds of
+    /// bands and tens of micrometres of range).
+    fn prepare_with(&self, film: &Dispersion, tabled: bool) -> Result<Prepared, EstimateError> {
         let model = FilmModel::new(
             &self.bands,
             &self.scene.ambient,
@@ -593,8 +601,13 @@ impl Solver {
             .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
                 (a.min(v), b.max(v))
             });
-        let tables = self.build_tables(&model);
-        tracing::debug!(bytes = tables.bytes(), "thickness tables built");
+        let tables = if tabled {
+            let tables = self.build_tables(&model);
+            tracing::debug!(bytes = tables.bytes(), "thickness tables built");
+            tables
+        } else {
+            table::Tables::default()
+        };
         Ok(Prepared {
             tables,
             model,
