@@ -327,6 +327,65 @@ fn table_errors_name_the_file_and_line() {
     assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2);
 }
 
+/// Percent reflectance, as many spectrometers export it: columns headed
+/// with `%` are divided by 100 (a note says so) and fit back to their
+/// thicknesses; the same numbers without such a header are no reflectance
+/// at all, and the error says what the values are and what to do
+/// (nothing written).
+#[test]
+fn percent_tables_are_read_when_headed_and_refused_clearly_when_not() {
+    let dir = tempfile::tempdir().unwrap();
+    let rows: Vec<(String, f64)> = (0..=150)
+        .map(|i| {
+            let lam = 400.0 + 2.0 * i as f64;
+            (lam.to_string(), lam)
+        })
+        .collect();
+    let percent = |header: Option<&str>| {
+        let mut text = String::new();
+        if let Some(h) = header {
+            text.push_str(h);
+            text.push('\n');
+        }
+        for (w, lam) in &rows {
+            text.push_str(w);
+            for d in THICKNESSES {
+                text.push_str(&format!("\t{}", 100.0 * reflectance(d, *lam)));
+            }
+            text.push('\n');
+        }
+        text
+    };
+    let headed = dir.path().join("headed.txt");
+    std::fs::write(
+        &headed,
+        percent(Some("Wavelength (nm)\tR300 (%)\t%R 500\tR800 [%]")),
+    )
+    .unwrap();
+    let res = dir.path().join("res.csv");
+    let out = ok(&fit_args(s(&headed), s(&res), &[]));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("3 spectrum column(s) headed in percent divided by 100"),
+        "{err}"
+    );
+    let csv = read_csv(&res);
+    assert_thicknesses(&csv, &["R300 (%)", "%R 500", "R800 [%]"], 1.0);
+
+    let bare = dir.path().join("bare.txt");
+    std::fs::write(&bare, percent(None)).unwrap();
+    let res2 = dir.path().join("res2.csv");
+    fails_with(
+        &fit_args(s(&bare), s(&res2), &[]),
+        &[
+            "reflectance's range",
+            "percent? divide by 100",
+            "--level free",
+        ],
+    );
+    assert!(!res2.exists());
+}
+
 /// A spectrometer file the model did not render: a film of a dispersive
 /// index (n = 1.56 + 6000/λ², PS-like) on n = 3.9, fitted with one index;
 /// the reflectance scale off by a smooth 0–4 % (a reference's error); noise

@@ -284,6 +284,19 @@ fn span(t: &SpectrumTable) -> String {
 fn read_table(a: &FitArgs) -> anyhow::Result<SpectrumTable> {
     let path = &a.cube;
     let mut table = spectrum_table::read_table(path)?;
+    let percent = table.percent_to_fraction();
+    if !percent.is_empty() {
+        eprintln!(
+            "irid fit: note: {} spectrum column(s) headed in percent divided by 100 ({})",
+            percent.len(),
+            percent
+                .iter()
+                .take(4)
+                .cloned()
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
     let spikes = table.repair_spikes();
     if !spikes.is_empty() {
         let list: Vec<String> = spikes.iter().take(8).map(|l| format!("{l}")).collect();
@@ -421,7 +434,7 @@ pub fn run(a: &FitArgs) -> anyhow::Result<()> {
         .context("building the thread pool")?;
     let start = Instant::now();
     pool.install(|| solver.estimate_film_index(&cube))
-        .context("estimating the film index")?;
+        .context("the image-wide stage (noise, level, film index)")?;
     let index_s = start.elapsed().as_secs_f64();
     let bar = super::progress::bar(cube.height as u64, "fitting rows");
     let result = pool.install(|| solver.fit_cube_with_progress(&cube, &|_| bar.inc(1)));

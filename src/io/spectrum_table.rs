@@ -18,7 +18,9 @@
 //! - Units: nm. A first header cell with a `um`, `µm`, `micron(s)` or
 //!   `micrometer(s)` word means µm, with `nm` or `nanometer(s)` nm;
 //!   otherwise, if every wavelength is below 30, µm (the ENVI rule).
-//!   Wavenumber columns are refused.
+//!   Wavenumber columns are refused. A spectrum whose header cell has a
+//!   `%` or the word `percent` ("R (%)", "%R") is in percent: the caller
+//!   divides it by 100 ([`SpectrumTable::percent_to_fraction`]).
 //! - Order: wavelengths strictly increasing or strictly decreasing (the
 //!   latter are reversed); a repeated wavelength or a change of direction
 //!   is an error naming the line.
@@ -548,6 +550,28 @@ impl SpectrumTable {
         })
     }
 
+    /// Spectra whose header names them in percent (a `%` in the name, or
+    /// the word `percent`) divided by 100 to fractions; their names.
+    pub fn percent_to_fraction(&mut self) -> Vec<String> {
+        let w = self.cube.width;
+        let mut done = Vec::new();
+        for (x, name) in self.names.iter().enumerate() {
+            let lower = name.to_lowercase();
+            if !(lower.contains('%')
+                || lower
+                    .split(|c: char| !c.is_alphanumeric())
+                    .any(|t| t == "percent"))
+            {
+                continue;
+            }
+            for v in self.cube.data.iter_mut().skip(x).step_by(w) {
+                *v *= 0.01;
+            }
+            done.push(name.clone());
+        }
+        done
+    }
+
     /// Replace isolated spikes by the median of their neighbours; returns
     /// the wavelengths (nm) replaced, per spectrum in order.
     ///
@@ -731,6 +755,22 @@ mod tests {
             step.repair_spikes().is_empty(),
             "three samples are structure"
         );
+    }
+
+    #[test]
+    fn percent_columns_are_scaled_and_others_not() {
+        let mut t = parse("nm,R (%),sample,Percent reflectance\n400,50,0.5,25\n410,40,0.4,20\n420,30,0.3,10\n430,20,0.2,5\n")
+            .unwrap();
+        let done = t.percent_to_fraction();
+        assert_eq!(
+            done,
+            vec!["R (%)".to_string(), "Percent reflectance".to_string()]
+        );
+        // Band-major: each band's three spectra.
+        let want = [0.5, 0.5, 0.25, 0.4, 0.4, 0.2, 0.3, 0.3, 0.1, 0.2, 0.2, 0.05];
+        for (g, w) in t.cube.data.iter().zip(want) {
+            assert!((f64::from(*g) - w).abs() < 1e-7, "{:?}", t.cube.data);
+        }
     }
 
     #[test]

@@ -53,9 +53,7 @@ impl Solver {
         let n_sample = INDEX_SAMPLE_PIXELS;
         let sample = self.sample_pixels(cube, n_sample);
         if sample.is_empty() {
-            return Err(EstimateError::FilmIndex(
-                "no pixel has a complete, finite spectrum".into(),
-            ));
+            return Err(EstimateError::FilmIndex(Self::why_no_sample(cube)));
         }
         let mut est = self.index_for(&sample)?;
         if self.residual_noise_floor {
@@ -122,6 +120,25 @@ impl Solver {
         }
         self.set_film_index(est.clone())?;
         Ok(est)
+    }
+
+    /// Why no pixel could be sampled: missing values, or values no
+    /// reflectance takes (percent, raw counts, intensities).
+    fn why_no_sample(cube: &Cube) -> String {
+        let finite = cube.data.iter().filter(|v| v.is_finite());
+        let (lo, hi) = finite.fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| {
+            (a.min(v), b.max(v))
+        });
+        if lo.is_finite() && !(lo >= -0.2 && hi <= 1.2) {
+            format!(
+                "no pixel's spectrum lies within a reflectance's range (values span {lo} to {hi}, \
+                 where a calibrated reflectance lies in 0–1): percent? divide by 100 (a table \
+                 column headed with % is); intensities or counts? `--level free` fits them"
+            )
+        } else {
+            "no pixel has a complete, finite spectrum (more than a quarter of its bands missing)"
+                .into()
+        }
     }
 
     /// The film index for a sample (searched where unknown), prepared for
