@@ -384,6 +384,13 @@ fn percent_tables_are_read_when_headed_and_refused_clearly_when_not() {
         ],
     );
     assert!(!res2.exists());
+    // Told so, the same file fits.
+    ok(&fit_args(s(&bare), s(&res2), &["--percent"]));
+    assert_thicknesses(
+        &read_csv(&res2),
+        &["spectrum1", "spectrum2", "spectrum3"],
+        1.0,
+    );
 }
 
 /// A spectrometer file the model did not render: a film of a dispersive

@@ -36,6 +36,53 @@ fn assert_error(text: &str, fragments: &[&str]) {
     }
 }
 
+/// A spectrometer's own export: a block of metadata above the data
+/// (OceanView's layout, tab-separated rows without a column header, its
+/// begin and end markers), and a CSV whose metadata end in the header.
+#[test]
+fn metadata_above_the_data_is_skipped() {
+    let t = parse(
+        "Data from Sample_Reflection__0__12-00-00-000.txt Node\n\
+         \n\
+         Date: Tue Mar 05 12:00:00 CET 2024\n\
+         User: lab\n\
+         Spectrometer: USB4H12345\n\
+         Integration Time (sec): 1.000000E-1\n\
+         Scans to average: 10\n\
+         Number of Pixels in Spectrum: 4\n\
+         >>>>>Begin Spectral Data<<<<<\n\
+         400.12\t41.5\n\
+         400.50\t41.7\n\
+         400.88\t41.9\n\
+         401.26\t42.0\n\
+         >>>>>End Spectral Data<<<<<\n",
+    )
+    .unwrap();
+    assert_eq!(t.names, ["spectrum1"]);
+    assert_eq!(centers(&t), [400.12, 400.50, 400.88, 401.26]);
+    assert_eq!(spectrum(&t, 0), [41.5, 41.7, 41.9, 42.0]);
+
+    let t = parse(
+        "Instrument,F20\n\
+         Operator,lab; shift 2\n\
+         Date,2024-03-05\n\
+         Wavelength (nm),wafer 1,wafer 2\n\
+         400,0.30,0.31\n\
+         410,0.32,0.33\n\
+         420,0.34,0.35\n\
+         430,0.36,0.37\n",
+    )
+    .unwrap();
+    assert_eq!(t.names, ["wafer 1", "wafer 2"]);
+    assert_eq!(spectrum(&t, 1), [0.31, 0.33, 0.35, 0.37]);
+    // The last metadata line without a name per column is no header.
+    let t = parse(
+        "Instrument: F20\nExported 2024\n400 0.3 0.4\n410 0.3 0.4\n420 0.3 0.4\n430 0.3 0.4\n",
+    )
+    .unwrap();
+    assert_eq!(t.names, ["spectrum1", "spectrum2"]);
+}
+
 #[test]
 fn csv_with_a_header() {
     let t = parse(

@@ -53,6 +53,10 @@ pub struct FitArgs {
     /// Spectrum tables: keep only the rows with LO ≤ wavelength ≤ HI (nm).
     #[arg(long, value_name = "LO:HI")]
     pub wavelength_range: Option<String>,
+    /// Spectrum tables: every value is percent reflectance (divided by
+    /// 100; columns headed with `%` are read so without it).
+    #[arg(long)]
+    pub percent: bool,
     /// Spectrum tables: resample onto bands LO, LO+STEP, … ≤ HI (nm), each
     /// the mean of the table values within ±STEP/2 of its centre (FWHM STEP).
     #[arg(long, value_name = "LO:HI:STEP")]
@@ -222,9 +226,9 @@ struct Input {
 fn read_input(a: &FitArgs) -> anyhow::Result<Input> {
     match input_kind(&a.cube) {
         InputKind::Envi => {
-            if a.bands.is_some() || a.wavelength_range.is_some() {
+            if a.bands.is_some() || a.wavelength_range.is_some() || a.percent {
                 bail!(
-                    "--bands and --wavelength-range apply to spectrum tables; {} is an ENVI cube, fitted in its own bands",
+                    "--bands, --wavelength-range and --percent apply to spectrum tables; {} is an ENVI cube, fitted in its own bands and reflectance",
                     a.cube.display()
                 );
             }
@@ -284,7 +288,12 @@ fn span(t: &SpectrumTable) -> String {
 fn read_table(a: &FitArgs) -> anyhow::Result<SpectrumTable> {
     let path = &a.cube;
     let mut table = spectrum_table::read_table(path)?;
-    let percent = table.percent_to_fraction();
+    let percent = if a.percent {
+        table.cube.data.iter_mut().for_each(|v| *v *= 0.01);
+        Vec::new()
+    } else {
+        table.percent_to_fraction()
+    };
     if !percent.is_empty() {
         eprintln!(
             "irid fit: note: {} spectrum column(s) headed in percent divided by 100 ({})",

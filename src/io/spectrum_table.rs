@@ -8,13 +8,17 @@
 //! 401,0.0415,nan                          <- nan, NaN or an empty cell: missing
 //! ```
 //!
-//! - Separators: `;` if the first non-comment line has one, else `,`, else
+//! - Separators: `;` if the first data row has one, else `,`, else
 //!   a tab (spaces around cells ignored), else runs of spaces and tabs. In `;` files a decimal comma (`0,0412`) is
 //!   read as a decimal point. Cells may be wrapped in double quotes (no
 //!   separator inside them); one trailing separator per line is ignored.
-//! - Header: the first non-comment line, when its first cell is not a
-//!   number; its first cell names the wavelength column, the others the
-//!   spectra (without a header they are `spectrum1`, `spectrum2`, …).
+//! - Header: the line above the first data row, when its first cell is not
+//!   a number; its first cell names the wavelength column, the others the
+//!   spectra (without a header they are `spectrum1`, `spectrum2`, …). A
+//!   spectrometer's metadata may stand above it (lines whose first cell is
+//!   not a number, and `>>>`-markers such as OceanView's "Begin Spectral
+//!   Data"): then the last of them is the header only if it has a cell per
+//!   column. The first data row fixes the separator.
 //! - Units: nm. A first header cell with a `um`, `µm`, `micron(s)` or
 //!   `micrometer(s)` word means µm, with `nm` or `nanometer(s)` nm;
 //!   otherwise, if every wavelength is below 30, µm (the ENVI rule).
@@ -170,7 +174,11 @@ pub fn read_table(path: &Path) -> Result<SpectrumTable, IoError> {
 pub fn parse_table(mut reader: impl BufRead, path: &Path) -> Result<SpectrumTable, IoError> {
     let mut buf = Vec::new();
     let mut line_no = 0usize;
-    let mut sep = None;
+    let mut sep: Option<Separator> = None;
+    // The last non-numeric line before the first data row, and how many
+    // there were.
+    let mut pending: Option<(String, usize)> = None;
+    let mut preamble = 0usize;
     // Cells per row (wavelength included), and the line that fixed it.
     let mut columns: Option<(usize, usize)> = None;
     let mut header: Option<Vec<String>> = None;
@@ -207,36 +215,71 @@ pub fn parse_table(mut reader: impl BufRead, path: &Path) -> Result<SpectrumTabl
         }
         let text = String::from_utf8_lossy(&buf);
         let t = text.trim_start_matches('\u{feff}').trim();
-        if t.is_empty() || t.starts_with('#') || t.starts_with('%') {
+        // Comments, blank lines, and a spectrometer's data markers
+        // (OceanView's ">>>>>Begin Spectral Data<<<<<").
+        if t.is_empty() || t.starts_with('#') || t.starts_with('%') || t.starts_with(">>>") {
             continue;
         }
-        let sep = *sep.get_or_insert_with(|| Separator::detect(t));
-        let decimal_comma = sep == Separator::Semicolon;
         // Trailing tabs are separators (empty cells), not blank space.
         let t = text
             .trim_start_matches('\u{feff}')
             .trim_start()
             .trim_end_matches([' ', '\r', '\n']);
-        let mut cells = sep.split(t);
-        let Some((ncols, first_line)) = columns else {
-            // The first content line: a header unless it starts with a number.
-            if parse_number(cells[0], decimal_comma).is_none() {
-                while cells.len() > 1 && cells.last().is_some_and(|c| c.is_empty()) {
-                    cells.pop();
-                }
-                if cells.len() < 2 {
-                    return Err(IoError::line(
-                        path,
-                        line_no,
-                        "no spectrum column (the header names only the wavelength column)",
-                    ));
-                }
-                check_spectra(path, line_no, cells.len() - 1)?;
-                unit = header_unit(cells[0]).map_err(|m| IoError::line(path, line_no, m))?;
-                header = Some(cells[1..].iter().map(|c| c.to_string()).collect());
-                columns = Some((cells.len(), line_no));
+        if columns.is_none() {
+            let line_sep = Separator::detect(t);
+            let first = line_sep.split(t);
+            if parse_number(first[0], line_sep == Separator::Semicolon).is_none() {
+                // Before the first data row: the header, or a
+                // spectrometer's metadata above it (the last such line is
+                // taken for the header where it has a name per column).
+                pending = Some((t.to_string(), line_no));
+                preamble += 1;
                 continue;
             }
+            // The first data row fixes the separator.
+            sep = Some(line_sep);
+            if let Some((h, h_line)) = pending.take() {
+                let n = first.len();
+                let split = |sep: Separator| {
+                    let mut c = sep.split(&h);
+                    while c.len() > 1 && c.last().is_some_and(|c| c.is_empty()) {
+                        c.pop();
+                    }
+                    c
+                };
+                let fit = |c: &Vec<&str>| {
+                    c.len() == n || (c.len() + 1 == n && first.last().is_some_and(|c| c.is_empty()))
+                };
+                // Split as the data are, or as the header itself reads (a
+                // space-separated header over tab-separated rows).
+                let own = split(Separator::detect(&h));
+                let (hcells, fits) = match split(line_sep) {
+                    c if fit(&c) => (c, true),
+                    _ if fit(&own) => (own, true),
+                    _ => (own, false),
+                };
+                // A lone line above the data is the header, checked as
+                // one; after metadata, only a line that fits the columns.
+                if preamble == 1 || fits {
+                    if hcells.len() < 2 {
+                        return Err(IoError::line(
+                            path,
+                            h_line,
+                            "no spectrum column (the header names only the wavelength column)",
+                        ));
+                    }
+                    check_spectra(path, h_line, hcells.len() - 1)?;
+                    unit = header_unit(hcells[0]).map_err(|m| IoError::line(path, h_line, m))?;
+                    header = Some(hcells[1..].iter().map(|c| c.to_string()).collect());
+                    columns = Some((hcells.len(), h_line));
+                }
+            }
+        }
+        // Set by the first data row above.
+        let sep = *sep.get_or_insert_with(|| Separator::detect(t));
+        let decimal_comma = sep == Separator::Semicolon;
+        let mut cells = sep.split(t);
+        let Some((ncols, first_line)) = columns else {
             if cells.len() < 2 {
                 return Err(IoError::line(
                     path,

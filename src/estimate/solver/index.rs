@@ -132,8 +132,9 @@ impl Solver {
         if lo.is_finite() && !(lo >= -0.2 && hi <= 1.2) {
             format!(
                 "no pixel's spectrum lies within a reflectance's range (values span {lo} to {hi}, \
-                 where a calibrated reflectance lies in 0–1): percent? divide by 100 (a table \
-                 column headed with % is); intensities or counts? `--level free` fits them"
+                 where a calibrated reflectance lies in 0–1): percent? divide by 100 (`irid fit \
+                 --percent`; a table column headed with % is); intensities or counts? `--level \
+                 free` fits them"
             )
         } else {
             "no pixel has a complete, finite spectrum (more than a quarter of its bands missing)"
