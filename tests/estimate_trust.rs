@@ -375,3 +375,57 @@ seed = 3
         maps.reason
     );
 }
+
+/// A reflectance scale accurate to ε (`[measurement]
+/// reflectance_accuracy`), on the paper's cylinder (angle per pixel and
+/// index known) with its white reference 4 % high and the level held
+/// absolute: every pixel's σ_d carries the scale's share (the fit on the
+/// spectrum ×(1 ± ε)), in `fit_cube` and in the row solve the live runner
+/// and the line use alike; judged exact (ε = 0) the same data are flagged
+/// or wrong, judged with ε = 5 % none is valid and wrong.
+#[test]
+fn a_scale_accuracy_widens_sigma_on_every_path() {
+    let mut s = with_known_angle(Scene::paper_cylinder());
+    s.level = LevelMode::Absolute;
+    if let irid::scene::FilmKnowledge::Unknown { .. } = s.film {
+        s.film =
+            irid::scene::FilmKnowledge::Known(irid::optics::dispersion::Dispersion::constant(1.37));
+    }
+    let (mut cube, truth) = render(&s);
+    miscalibrate(&mut cube, &|_| 1.04, 0.0);
+    let exact = fit_with(&s, &cube, Mode::Balanced).0;
+    s.reflectance_accuracy = 0.05;
+    let (maps, mut solver) = fit_with(&s, &cube, Mode::Balanced);
+    let acc = compare(&maps, &truth);
+    let wrong = valid_wrong(&maps, &truth);
+    eprintln!(
+        "exact: valid {:.3} wrong {:.4}; ε 5 %: valid {:.3} MAE {:.3} cover {:.3} wrong {:.4}",
+        compare(&exact, &truth).valid_fraction,
+        valid_wrong(&exact, &truth),
+        acc.valid_fraction,
+        acc.thickness_mae_nm,
+        acc.coverage_2sigma,
+        wrong
+    );
+    let exact_ok = 1.0 - compare(&exact, &truth).valid_fraction + valid_wrong(&exact, &truth);
+    assert!(exact_ok > 0.5, "judged exact, a 4 % gain must show");
+    assert!(
+        acc.valid_fraction > 0.9 && wrong <= 0.01,
+        "{acc:?} wrong {wrong}"
+    );
+    // The row solve gives every pixel the same estimate and σ.
+    solver.estimate_film_index(&cube).unwrap();
+    let mut scratch = irid::estimate::solver::Scratch::default();
+    let mut row = vec![irid::estimate::PixelEstimate::invalid(Reason::PoorFit); cube.width];
+    for y in 0..cube.height {
+        solver.solve_row(&cube, y, &mut row, &mut scratch);
+        for (x, e) in row.iter().enumerate() {
+            let i = y * cube.width + x;
+            assert_eq!(e.is_valid(), maps.valid[i] > 0.5, "pixel {x},{y}");
+            if e.is_valid() {
+                let (a, b) = (e.sigma_thickness_nm, f64::from(maps.sigma_thickness_nm[i]));
+                assert!((a - b).abs() <= 1e-3 * b, "pixel {x},{y}: σ {a} vs {b}");
+            }
+        }
+    }
+}

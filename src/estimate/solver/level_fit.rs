@@ -244,7 +244,14 @@ impl Solver {
             if unknown_index {
                 self.set_film_index(est_abs.clone())?;
             }
-            self.calibration_suspect = significant && level.is_plausible();
+            // A gain within the scale's stated accuracy ε (and no offset
+            // beyond what ε allows at a reflectance of 0.05) is what ε
+            // already covers in every pixel's χ² and σ: not suspect.
+            let eps = self.noise.as_ref().map_or(0.0, |n| n.accuracy());
+            let within_accuracy = eps > 0.0
+                && level.gain.iter().all(|g| (g - 1.0).abs() <= eps)
+                && level.offset.iter().all(|o| o.abs() <= 0.05 * eps);
+            self.calibration_suspect = significant && level.is_plausible() && !within_accuracy;
             self.level_note = if self.calibration_suspect {
                 format!(
                     "absolute as asked, but the image shows a calibration error (a gain {g:.4} and offset {o:.5} would lower χ² by {delta:.0} > {threshold:.0}): every pixel flagged poor fit; use --level auto or scaled"

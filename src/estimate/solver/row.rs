@@ -74,6 +74,8 @@ impl Solver {
             }
         }
         scratch.pixel = pixel;
+        // Every path (`irid fit`, the live runner, the line) widens alike.
+        self.widen_for_scale(cube, y, out, scratch);
     }
 
     /// `fast` on a whole row, band-major: the extremum candidates of 64
@@ -257,7 +259,6 @@ impl Solver {
                 },
                 |(scratch, est), (y, mut row)| {
                     self.solve_row(cube, y, est, scratch);
-                    self.widen_for_scale(cube, y, est, scratch);
                     row.set_all(est);
                     row_done(y);
                 },
