@@ -279,26 +279,20 @@ pub fn parse_table(mut reader: impl BufRead, path: &Path) -> Result<SpectrumTabl
         let sep = *sep.get_or_insert_with(|| Separator::detect(t));
         let decimal_comma = sep == Separator::Semicolon;
         let mut cells = sep.split(t);
-        let Some((ncols, first_line)) = columns else {
-            if cells.len() < 2 {
-                return Err(IoError::line(
-                    path,
-                    line_no,
-                    "no spectrum column (a row holds only a wavelength)",
-                ));
+        // Without a header, the first data row fixes the columns.
+        let (ncols, first_line) = match columns {
+            Some(c) => c,
+            None => {
+                if cells.len() < 2 {
+                    return Err(IoError::line(
+                        path,
+                        line_no,
+                        "no spectrum column (a row holds only a wavelength)",
+                    ));
+                }
+                check_spectra(path, line_no, cells.len() - 1)?;
+                *columns.insert((cells.len(), line_no))
             }
-            check_spectra(path, line_no, cells.len() - 1)?;
-            columns = Some((cells.len(), line_no));
-            push_row(
-                path,
-                line_no,
-                &cells,
-                decimal_comma,
-                &mut rows,
-                &mut values,
-                &mut last_column_used,
-            )?;
-            continue;
         };
         if cells.len() == ncols + 1 && cells.last().is_some_and(|c| c.is_empty()) {
             cells.pop();

@@ -139,6 +139,8 @@ pub const ANGLE_SIGMA_LIMIT_DEG: f64 = 0.25;
 pub struct Scratch {
     /// The caller's gathered spectrum (solve_row).
     pixel: Vec<f64>,
+    /// That spectrum scaled by 1 ± ε (the scale accuracy's refits).
+    scaled: Vec<f64>,
     sorted_y: Vec<f64>,
     spectrum: Vec<f64>,
     weight: Vec<f64>,

@@ -286,8 +286,11 @@ impl Solver {
         if eps <= 0.0 {
             return;
         }
-        let mut pixel = vec![0.0; cube.bands.len()];
-        let mut scaled = vec![0.0; cube.bands.len()];
+        // The row's buffers, reused: no allocation per row.
+        let mut pixel = std::mem::take(&mut scratch.pixel);
+        let mut scaled = std::mem::take(&mut scratch.scaled);
+        pixel.resize(cube.bands.len(), 0.0);
+        scaled.resize(cube.bands.len(), 0.0);
         for (x, o) in out.iter_mut().enumerate().take(cube.width) {
             if !o.is_valid() {
                 continue;
@@ -312,6 +315,8 @@ impl Solver {
                 o.sigma_thickness_nm = o.sigma_thickness_nm.hypot(spread);
             }
         }
+        scratch.pixel = pixel;
+        scratch.scaled = scaled;
     }
 
     /// Metadata for maps produced by this solver.
