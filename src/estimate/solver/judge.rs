@@ -244,8 +244,14 @@ impl Solver {
         if !(lo.is_finite() && hi.is_finite()) {
             return false;
         }
+        let margin = 0.1 * (hi - lo).max(0.01);
+        if (lo - margin..=hi + margin).contains(&mean) {
+            // Inside without the noise's share of the margin (σ ≥ 0 only
+            // widens it): most pixels, spared a pass over the bands.
+            return false;
+        }
         let sigma = self.noise.as_ref().map_or(0.0, |n| n.typical_sigma(mean));
-        let margin = 0.1 * (hi - lo).max(0.01) + 5.0 * sigma;
+        let margin = margin + 5.0 * sigma;
         mean > hi + margin || mean < lo - margin
     }
 }

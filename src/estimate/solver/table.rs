@@ -19,7 +19,6 @@ use super::{Effort, Fit, Prepared, Scratch, Solver};
 use crate::estimate::model::{FilmModel, ModelOut};
 use crate::estimate::PixelEstimate;
 use multiversion::multiversion;
-use std::collections::HashMap;
 use std::sync::Arc;
 
 /// Largest phase change of any band between adjacent grid points, rad.
@@ -38,8 +37,8 @@ pub const INTERP_TOL: f64 = 1e-5;
 /// coarse minima walk downhill on the full grid.
 const SCAN_STRIDE: usize = 3;
 
-/// Half-width, in grid points, of `fast`'s search around the previous
-/// pixel's fringe order (±1.8 rad of the fastest band's phase).
+/// Grid intervals `fast` may walk from the previous pixel's fringe order
+/// (±1.8 rad of the fastest band's phase) before it scans instead.
 const HINT_WINDOW: usize = 6;
 
 /// Bytes a table holds per grid point for `nb` bands (values and slopes,
@@ -104,8 +103,11 @@ impl IntervalCubic {
 
 /// `[Σe², Σe·c1, Σe·c2, Σe·c3]` over the bands of one grid interval,
 /// `e = y − centre − A` (see [`IntervalCubic`]): values `r` and slopes
-/// `dr` at the interval's two ends. Four independent lanes per sum (a
-/// single f64 chain would not vectorise), the tail band by band.
+/// `dr` at the interval's two ends. The `c`'s are linear in `B − A`, `P`
+/// and `Q`, so so are their sums: per band only `e` and `B − A` are
+/// formed and four products summed (`Σe²`, `Σe(B − A)`, `ΣeP`, `ΣeQ`),
+/// the `c`'s sums follow once. Four independent lanes per sum (a single
+/// f64 chain would not vectorise), the tail band by band.
 #[allow(clippy::needless_range_loop)] // four lanes, indexed alike
 #[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
 fn interval_dots(r: [&[f32]; 2], dr: [&[f32]; 2], y: &[f64], centre: &[f64], h: f64) -> [f64; 4] {
@@ -126,29 +128,26 @@ fn interval_dots(r: [&[f32]; 2], dr: [&[f32]; 2], y: &[f64], centre: &[f64], h: 
         for l in 0..4 {
             let k = k0 + l;
             let a = f64::from(ra[k]);
-            let (p, q) = (f64::from(da[k]) * h, f64::from(db[k]) * h);
-            let b = f64::from(rb[k]);
-            let c1 = p;
-            let c2 = 3.0 * (b - a) - 2.0 * p - q;
-            let c3 = 2.0 * (a - b) + p + q;
             let e = y[k] - centre[k] - a;
             acc[0][l] += e * e;
-            acc[1][l] += e * c1;
-            acc[2][l] += e * c2;
-            acc[3][l] += e * c3;
+            acc[1][l] += e * (f64::from(rb[k]) - a);
+            acc[2][l] += e * f64::from(da[k]);
+            acc[3][l] += e * f64::from(db[k]);
         }
     }
     for k in whole..nb {
         let a = f64::from(ra[k]);
-        let (c1, c2, c3) =
-            IntervalCubic::coefficients(a, f64::from(rb[k]), f64::from(da[k]), f64::from(db[k]), h);
         let e = y[k] - centre[k] - a;
         acc[0][0] += e * e;
-        acc[1][0] += e * c1;
-        acc[2][0] += e * c2;
-        acc[3][0] += e * c3;
+        acc[1][0] += e * (f64::from(rb[k]) - a);
+        acc[2][0] += e * f64::from(da[k]);
+        acc[3][0] += e * f64::from(db[k]);
     }
-    acc.map(|s| (s[0] + s[1]) + (s[2] + s[3]))
+    let [ee, ed, ep, eq] = acc.map(|s| (s[0] + s[1]) + (s[2] + s[3]));
+    let (ep, eq) = (ep * h, eq * h);
+    // IntervalCubic::coefficients, summed: c1 = P·h,
+    // c2 = 3(B − A) − (2P + Q)·h, c3 = 2(A − B) + (P + Q)·h.
+    [ee, ep, 3.0 * ed - 2.0 * ep - eq, -2.0 * ed + ep + eq]
 }
 
 /// `Σ (e − c1 t − c2 t² − c3 t³)²` as a polynomial in `t`, lowest power
@@ -594,34 +593,6 @@ impl ThicknessTable {
         kept
     }
 
-    /// The residual's minimum within `half` grid points of `j0`, if it lies
-    /// inside that window (not on its edge, which would say the minimum is
-    /// elsewhere).
-    pub fn window_min(
-        &self,
-        y: &[f64],
-        w: &[f64],
-        j0: usize,
-        half: usize,
-        buf: &mut GridScratch,
-    ) -> Option<GridMin> {
-        self.load(y, w, buf);
-        let lo = j0.saturating_sub(half);
-        let hi = (j0 + half).min(self.m - 1);
-        let mut best = GridMin {
-            j: lo,
-            sse: f32::INFINITY,
-        };
-        for j in lo..=hi {
-            let e = self.sse_at(j, buf);
-            if e < best.sse {
-                best = GridMin { j, sse: e };
-            }
-        }
-        let interior = (best.j > lo || lo == 0) && (best.j < hi || hi == self.m - 1);
-        (interior && best.sse.is_finite()).then_some(best)
-    }
-
     /// R and dR/dd of every band at `d` (inside the grid) by cubic Hermite
     /// interpolation.
     fn interp(&self, d: f64, r: &mut [f64], dr: &mut [f64]) {
@@ -756,8 +727,14 @@ impl ThicknessTable {
     /// residual falls, moving on (at most eight intervals) while the
     /// minimum sits on the far end. Returns `(d, Σ e², Σ (dR/dd)²)` as [`Self::fit`].
     fn fit_complete(&self, y: &[f64], j: usize) -> (f64, f64, f64) {
-        /// Intervals the walk may move past the first.
-        const MAX_WALK: usize = 8;
+        self.walk_complete(y, j, 8).0
+    }
+
+    /// [`Self::fit_complete`] with at most `max_walk` intervals walked
+    /// past the first; also says whether the minimum is a stationary
+    /// point (not an interval end the residual still falls beyond, where
+    /// the walk stopped short: the minimum lies elsewhere).
+    fn walk_complete(&self, y: &[f64], j: usize, max_walk: usize) -> ((f64, f64, f64), bool) {
         let last = self.m - 2;
         // The interval right of `j` where the residual falls into it,
         // else the one on its left.
@@ -769,7 +746,7 @@ impl ThicknessTable {
         }
         let (mut t, mut v) = poly_min(&p);
         let left = t == 0.0;
-        for _ in 0..MAX_WALK {
+        for _ in 0..max_walk {
             // The minimum on the interval's end: the residual still
             // falls beyond it (in the direction first taken).
             if left && t == 0.0 && i > 0 {
@@ -783,12 +760,27 @@ impl ThicknessTable {
             (t, v) = poly_min(&p);
         }
         let (best_i, best_t, best_v) = (i, t, v);
+        let inside = (best_t > 0.0 || best_i == 0) && (best_t < 1.0 || best_i == last);
         let t = best_t;
         let [s11, s12, s13, s22, s23, s33] = self.gram[best_i];
         let a = (s11
             + t * (4.0 * s12 + t * (4.0 * s22 + 6.0 * s13 + t * (12.0 * s23 + t * 9.0 * s33))))
             / (self.h * self.h);
-        (self.d_at(best_i) + t * self.h, best_v.max(0.0), a)
+        ((self.d_at(best_i) + t * self.h, best_v.max(0.0), a), inside)
+    }
+
+    /// `fast`'s fit from the previous pixel's grid point `j0`: the
+    /// residual's minimum reached by walking downhill on the interpolant
+    /// from there (at most [`HINT_WINDOW`] intervals), if the walk ends at
+    /// a stationary point (else the fringe order changed: scan instead).
+    /// Returns `(d, Σ e², Σ (dR/dd)²)` as [`Self::fit`]; complete spectra
+    /// only.
+    pub fn fit_near(&self, y: &[f64], w: &[f64], j0: usize) -> Option<(f64, f64, f64)> {
+        if j0 >= self.m || !w[..self.nb].iter().all(|&v| v == 1.0) {
+            return None;
+        }
+        let (fit, inside) = self.walk_complete(y, j0, HINT_WINDOW);
+        (inside && fit.0.is_finite() && fit.1.is_finite()).then_some(fit)
     }
 }
 
@@ -885,11 +877,12 @@ fn scan_weighted(r: &[f32], y: &[f32], w: &[f32], sse: &mut [f32]) {
 }
 
 /// The tables of a solver: one per known angle (keyed by the angle's
-/// bits), or, for an angle map with too many distinct angles, one per bin
-/// of an angle grid.
+/// bits, sorted: every pixel looks its table up, and a uniform angle's
+/// one key is found without hashing), or, for an angle map with too many
+/// distinct angles, one per bin of an angle grid.
 #[derive(Clone, Debug, Default)]
 pub struct Tables {
-    by_angle: HashMap<u64, Arc<ThicknessTable>>,
+    by_angle: Vec<(u64, Arc<ThicknessTable>)>,
     bins: Option<Bins>,
 }
 
@@ -922,11 +915,15 @@ impl Tables {
         if angles.is_empty() || bytes > TABLE_BUDGET_BYTES {
             return Tables::default();
         }
-        let by_angle = angles
+        let mut keys: Vec<u64> = angles.iter().map(|t| t.to_bits()).collect();
+        keys.sort_unstable();
+        keys.dedup();
+        let by_angle = keys
             .par_iter()
-            .map(|&t| {
+            .map(|&k| {
+                let t = f64::from_bits(k);
                 let (lo, hi) = range(t);
-                (t.to_bits(), Arc::new(ThicknessTable::new(model, t, lo, hi)))
+                (k, Arc::new(ThicknessTable::new(model, t, lo, hi)))
             })
             .collect();
         Tables {
@@ -971,7 +968,7 @@ impl Tables {
             })
             .collect();
         Tables {
-            by_angle: HashMap::new(),
+            by_angle: Vec::new(),
             bins: Some(Bins { lo, step, tables }),
         }
     }
@@ -989,7 +986,14 @@ impl Tables {
 
     /// The table at exactly this angle, if one was built.
     pub fn get(&self, theta: f64) -> Option<&ThicknessTable> {
-        self.by_angle.get(&theta.to_bits()).map(|t| &**t)
+        let key = theta.to_bits();
+        match self.by_angle.as_slice() {
+            [(k, t)] => (*k == key).then_some(&**t),
+            all => all
+                .binary_search_by_key(&key, |e| e.0)
+                .ok()
+                .map(|i| &*all[i].1),
+        }
     }
 
     /// Whether any table was built.
@@ -1003,7 +1007,7 @@ impl Tables {
             .bins
             .as_ref()
             .map_or(0, |b| b.tables.iter().map(|t| t.bytes()).sum());
-        self.by_angle.values().map(|t| t.bytes()).sum::<usize>() + bins
+        self.by_angle.iter().map(|(_, t)| t.bytes()).sum::<usize>() + bins
     }
 }
 
@@ -1034,8 +1038,15 @@ impl Solver {
         if exact && effort.closed_form_only {
             if let Some((_, j0)) = scratch.hint.filter(|h| h.0 == key) {
                 let (y, w) = (&scratch.spectrum, &scratch.weight);
-                if let Some(g) = table.window_min(y, w, j0, HINT_WINDOW, &mut scratch.grid) {
-                    let fit = self.table_fit(table, g, theta, effort, scratch);
+                if let Some((d, sse, a)) = table.fit_near(y, w, j0) {
+                    let fit = Fit {
+                        d,
+                        theta,
+                        sse,
+                        jtj: [a, 0.0, 0.0],
+                        integrated: false,
+                        tabled: true,
+                    };
                     let out = self.finish(&[fit], n_ok, Some(theta), noise, prep, lam_min, scratch);
                     if out.0.is_valid() {
                         scratch.hint = Some((key, table.index_of(fit.d)));
