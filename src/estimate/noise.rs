@@ -28,6 +28,7 @@
 #![allow(clippy::needless_range_loop)] // band-indexed numeric loops read clearer with indices
 
 use super::Cube;
+use multiversion::multiversion;
 
 /// Where a noise level came from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -71,6 +72,60 @@ pub struct NoiseModel {
     pub rel2: f64,
     /// Where it came from.
     pub source: NoiseSource,
+}
+
+/// A [`NoiseModel`] whose variances do not depend on the reflectance
+/// ([`NoiseModel::flat`]): per band the variance and its inverse.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FlatNoise {
+    var: Vec<f64>,
+    inv_var: Vec<f64>,
+}
+
+impl FlatNoise {
+    /// As [`NoiseModel::chi2_and_mean_var`] (the model values `r` only
+    /// enter through the residual).
+    pub fn chi2_and_mean_var(&self, y: &[f64], w: &[f64], r: &[f64]) -> (f64, f64) {
+        flat_chi2(&self.var, &self.inv_var, y, w, r)
+    }
+}
+
+/// [`FlatNoise::chi2_and_mean_var`]: four independent lanes, no branch and
+/// no division per band.
+#[allow(clippy::needless_range_loop)] // four lanes, indexed alike
+#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+fn flat_chi2(var: &[f64], inv: &[f64], y: &[f64], w: &[f64], r: &[f64]) -> (f64, f64) {
+    let n = y
+        .len()
+        .min(w.len())
+        .min(r.len())
+        .min(var.len())
+        .min(inv.len());
+    let (y, w, r) = (&y[..n], &w[..n], &r[..n]);
+    let (var, inv) = (&var[..n], &inv[..n]);
+    let (mut chi2, mut sum_var, mut used) = ([0.0f64; 4], [0.0f64; 4], [0.0f64; 4]);
+    let whole = n - n % 4;
+    for k0 in (0..whole).step_by(4) {
+        for l in 0..4 {
+            let k = k0 + l;
+            let e = y[k] - r[k];
+            let on = if w[k] != 0.0 { 1.0 } else { 0.0 };
+            chi2[l] += on * w[k] * e * e * inv[k];
+            sum_var[l] += on * var[k];
+            used[l] += on;
+        }
+    }
+    for k in whole..n {
+        let e = y[k] - r[k];
+        let on = if w[k] != 0.0 { 1.0 } else { 0.0 };
+        chi2[0] += on * w[k] * e * e * inv[k];
+        sum_var[0] += on * var[k];
+        used[0] += on;
+    }
+    let sum = |a: [f64; 4]| (a[0] + a[1]) + (a[2] + a[3]);
+    let used = sum(used);
+    let mean = if used > 0.0 { sum(sum_var) / used } else { 0.0 };
+    (sum(chi2), mean)
 }
 
 impl NoiseModel {
@@ -155,6 +210,18 @@ impl NoiseModel {
         let used = sum(used);
         let mean = if used > 0.0 { sum(sum_var) / used } else { 0.0 };
         (sum(chi2), mean)
+    }
+
+    /// The same model where no band's variance depends on the reflectance
+    /// (no shot term, an exact scale): each band's inverse variance, once,
+    /// so χ² needs no division per band. `None` otherwise.
+    pub fn flat(&self) -> Option<FlatNoise> {
+        if self.rel2 != 0.0 || self.shot.iter().any(|&s| s != 0.0) {
+            return None;
+        }
+        let var: Vec<f64> = (0..self.var0.len()).map(|k| self.var(k, 0.0)).collect();
+        let inv_var = var.iter().map(|v| 1.0 / v).collect();
+        Some(FlatNoise { var, inv_var })
     }
 
     /// A typical σ (root mean variance over bands at reflectance `r`).
@@ -498,6 +565,40 @@ mod tests {
             assert!((c - chi2).abs() <= 1e-12 * chi2, "{n}: {c} vs {chi2}");
             assert!((mv - v / used).abs() <= 1e-15, "{n}: {mv}");
         }
+    }
+
+    #[test]
+    fn the_flat_form_gives_the_same_chi2_without_divisions() {
+        for n in [1usize, 4, 7, 31] {
+            let m = NoiseModel {
+                var0: (0..n).map(|k| 1e-6 * (1.0 + k as f64)).collect(),
+                shot: vec![0.0; n],
+                rel2: 0.0,
+                source: NoiseSource::Given,
+            };
+            let y: Vec<f64> = (0..n).map(|k| 0.1 + 0.01 * (k as f64).sin()).collect();
+            let r: Vec<f64> = (0..n).map(|k| 0.1 + 0.012 * (k as f64).cos()).collect();
+            let w: Vec<f64> = (0..n).map(|k| if k % 5 == 2 { 0.0 } else { 1.0 }).collect();
+            let (c, v) = m.chi2_and_mean_var(&y, &w, &r);
+            let (cf, vf) = m
+                .flat()
+                .expect("no shot term")
+                .chi2_and_mean_var(&y, &w, &r);
+            assert!((c - cf).abs() <= 1e-12 * c, "{n}: {c} vs {cf}");
+            assert!((v - vf).abs() <= 1e-15, "{n}: {v} vs {vf}");
+        }
+        // A shot term or a scale accuracy makes the variance depend on R.
+        let shot = NoiseModel {
+            var0: vec![1e-6; 3],
+            shot: vec![0.0, 1e-5, 0.0],
+            rel2: 0.0,
+            source: NoiseSource::Camera,
+        };
+        assert!(shot.flat().is_none());
+        assert!(NoiseModel::uniform(1e-3, 3, NoiseSource::Given)
+            .with_accuracy(0.05)
+            .flat()
+            .is_none());
     }
 
     #[test]

@@ -99,10 +99,14 @@ impl Solver {
             energy / self.chi2.threshold(n_ok.saturating_sub(2).max(1))
         };
         let weak = signal < WEAK_FRINGES;
+        if !weak && !free {
+            // The angle known and the fringes strong: no alternative.
+            return 0;
+        }
 
         let step = 0.125 / self.table.sigma_center;
-        let g0 = best.d * prep.model.q2_mid(best.theta);
-        let g_max = self.d_max * prep.model.q2_mid(best.theta);
+        let q2 = prep.model.q2_mid(best.theta);
+        let (g0, g_max) = (best.d * q2, self.d_max * q2);
         let (lam_min, lam_max) = self.band_span();
         let thin = g0 < 0.5 * lam_max && signal < SUB_FRINGE_BELOW;
         let mut n = 0;

@@ -142,9 +142,10 @@ impl Solver {
     /// mostly absorbed by each pixel's fit; it widens σ instead, see
     /// `Level::sigma_inflation`.)
     pub(super) fn chi2_and_noise_var(&self, s: &Scratch, r: &[f64]) -> (f64, f64) {
-        match &self.noise {
-            Some(noise) => noise.chi2_and_mean_var(&s.spectrum, &s.weight, r),
-            None => (f64::NAN, 0.0),
+        match (&self.flat_noise, &self.noise) {
+            (Some(flat), Some(_)) => flat.chi2_and_mean_var(&s.spectrum, &s.weight, r),
+            (_, Some(noise)) => noise.chi2_and_mean_var(&s.spectrum, &s.weight, r),
+            (_, None) => (f64::NAN, 0.0),
         }
     }
 

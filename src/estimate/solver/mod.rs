@@ -62,7 +62,7 @@ mod table;
 
 use super::level::{Level, LevelMode};
 use super::model::{FilmModel, ModelOut};
-use super::noise::NoiseModel;
+use super::noise::{FlatNoise, NoiseModel};
 use super::quality::Chi2Test;
 use super::range::RangeLimit;
 use super::{EstimateError, Mode, PixelEstimate, Reason};
@@ -337,6 +337,9 @@ pub struct Solver {
     g_max: (f64, RangeLimit),
     /// The noise model the fits are judged against, once known.
     noise: Option<NoiseModel>,
+    /// The same, where its variances do not depend on R (χ² without a
+    /// division per band).
+    flat_noise: Option<FlatNoise>,
     /// The χ² test.
     chi2: Chi2Test,
     /// The image-wide level in force (identity unless `scaled`).
@@ -464,6 +467,7 @@ impl Solver {
             d_max_given: scene.max_thickness_nm.is_some(),
             g_max,
             noise: None,
+            flat_noise: None,
             chi2: Chi2Test::flagging(MAX_BANDS),
             level: Level::identity(bands.len()),
             level_mode: match scene.level {
@@ -804,6 +808,7 @@ impl Solver {
     pub fn set_noise(&mut self, noise: NoiseModel) {
         let noise = noise.with_accuracy(self.scene.reflectance_accuracy);
         let typical = noise.typical_sigma(0.05);
+        self.flat_noise = noise.flat();
         self.noise = Some(noise);
         if let Some(i) = &mut self.index {
             i.noise_sigma = typical;

@@ -321,7 +321,7 @@ impl Solver {
         let (chi2, noise_var) = if judging {
             let mut trial = std::mem::take(&mut scratch.trial);
             match prep.tables.get(best.theta).filter(|_| best.tabled) {
-                Some(t) => t.values(best.d, &mut trial.r, &mut scratch.grid),
+                Some(t) => t.values(best.d, &mut trial.r),
                 None => model.eval(best.d, best.theta, &mut trial, false),
             }
             let out = self.chi2_and_noise_var(scratch, &trial.r);

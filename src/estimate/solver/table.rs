@@ -636,9 +636,39 @@ impl ThicknessTable {
     }
 
     /// R of every band at `d` on the interpolant (as the fit saw it).
-    pub fn values(&self, d: f64, r: &mut [f64], buf: &mut GridScratch) {
-        buf.dr.resize(self.nb, 0.0);
-        self.interp(d, r, &mut buf.dr);
+    /// (The interpolant of [`Self::interp`] without the slopes.)
+    pub fn values(&self, d: f64, r: &mut [f64]) {
+        let nb = self.nb;
+        let x = ((d - self.d0) / self.h).clamp(0.0, (self.m - 1) as f64);
+        let j = (x.floor() as usize).min(self.m - 2);
+        let t = x - j as f64;
+        let (t2, t3) = (t * t, t * t * t);
+        let h = self.h;
+        let (h00, h10, h01, h11) = (
+            2.0 * t3 - 3.0 * t2 + 1.0,
+            (t3 - 2.0 * t2 + t) * h,
+            -2.0 * t3 + 3.0 * t2,
+            (t3 - t2) * h,
+        );
+        let nbp = self.nbp;
+        let (ra, rb) = (
+            &self.r[j * nbp..j * nbp + nb],
+            &self.r[(j + 1) * nbp..(j + 1) * nbp + nb],
+        );
+        let (da, db) = (
+            &self.dr[j * nb..(j + 1) * nb],
+            &self.dr[(j + 1) * nb..(j + 2) * nb],
+        );
+        let centre = &self.centre[..nb];
+        for (k, v) in r[..nb].iter_mut().enumerate() {
+            let (a, b, p, q) = (
+                f64::from(ra[k]),
+                f64::from(rb[k]),
+                f64::from(da[k]),
+                f64::from(db[k]),
+            );
+            *v = centre[k] + h00 * a + h10 * p + h01 * b + h11 * q;
+        }
     }
 
     /// The least-squares thickness near grid point `j` on the interpolant:
@@ -1192,6 +1222,10 @@ mod tests {
             for (a, b) in r.iter().zip(&out.r) {
                 worst = worst.max((a - b).abs());
             }
+            // The values alone are the same interpolant.
+            let mut v = [0.0; 31];
+            t.values(d, &mut v);
+            assert_eq!(v, r, "at {d} nm");
         }
         // Fringe amplitude here is ≤ 0.05: bound 1e-6 plus f32 storage.
         assert!(worst < 2e-6, "{worst}");
