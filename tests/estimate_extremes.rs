@@ -124,7 +124,7 @@ fn noise_free_extremes_are_never_valid_and_wrong() {
 /// free, where R is even in θ and the residual stays flat towards 0° far
 /// beyond the linearised σ_θ (a 2.2 µm film at 0° read 2250 ± 8.5 nm at
 /// 14.6°; now the profile widens σ_θ where a probe towards normal
-/// incidence stays within a variance). p light is in the ignored test
+/// incidence stays within a variance). p light is in the two tests
 /// below.
 #[test]
 fn noise_free_extremes_at_61_bands() {
@@ -139,12 +139,32 @@ fn noise_free_extremes_at_61_bands() {
     assert!(wrong.is_empty(), "valid and wrong:\n{}", wrong.join("\n"));
 }
 
-/// Open: p light at 61 bands with the angle free, one pixel per mode in
-/// two images near Brewster's angle (n2 1.37: 200 nm at 54.7° read
-/// 79 ± 0.5 nm at 52.2°; n2 1.59: 200 nm at 44.8° read 325 ± 1.6 nm at
-/// the mirror angle 65.9°).
+/// p light at 61 bands with the angle free, where the film index leaves
+/// the fringes strong enough for the mirror check's scan (n2 1.01–1.37).
+/// Found by the sweep below and fixed: n2 1.37, a 200 nm film at 54.7°
+/// read 79 ± 0.5 nm at 52.2°, valid in every mode — across the ambient–
+/// film Brewster angle (53.9°) the fringes shift by a quarter wave, and
+/// the mirror side's scan led back to the fitted side; now its angle
+/// moves stay on the mirror's side and its second basin is refined too.
 #[test]
-#[ignore = "open: p light at 61 bands, angle free, 1 pixel per mode at n2 1.37 and 1.59"]
+fn noise_free_extremes_at_61_bands_p_light_up_to_n2_1_37() {
+    let mut wrong = vec![];
+    for n2 in [1.01, 1.2, 1.37] {
+        for known in [true, false] {
+            wrong.extend(wrong_pixels(n2, "p", known, 5, &ALL));
+        }
+    }
+    assert!(wrong.is_empty(), "valid and wrong:\n{}", wrong.join("\n"));
+}
+
+/// Open: n2 1.59 on 1.60 in p light at 61 bands with the angle free, one
+/// pixel per mode: 200 nm at 44.8° reads 325 ± 1.6 nm at 65.9°, on the
+/// far side of the ambient–film Brewster angle (57.8°). The fitted side's
+/// fringes are weak there (under ten χ² thresholds), so the mirror check
+/// scans the whole range at the mirror angle, and its best start refines
+/// to a 51 nm basin on the truth's side, not to the truth.
+#[test]
+#[ignore = "open: p light at 61 bands, angle free, 1 pixel per mode at n2 1.59"]
 fn noise_free_extremes_at_61_bands_p_light() {
     let mut wrong = vec![];
     for n2 in [1.01, 1.2, 1.37, 1.59] {

@@ -59,6 +59,10 @@ const SUB_FRINGE_BELOW: f64 = 40.0;
 /// (thousands) never runs it.
 const MIRROR_BELOW: f64 = 200.0;
 
+/// A mirror angle's scan start is refined where its residual lies within
+/// this many times the fit's fringe signal of the fit's (see `mirror_gate`).
+const MIRROR_SCAN_SLACK: f64 = 1.5;
+
 /// Refinement iterations for an alternative start.
 const ITERS: usize = 25;
 
@@ -117,10 +121,18 @@ impl Solver {
         // other basin far beyond it, so ordinary pixels pay the scan only.
         let threshold = self.chi2.threshold(n_ok.saturating_sub(2).max(1));
         let gate = best.sse + WEAK_FRINGES * threshold * sigma * sigma;
+        // A mirror angle's scan points sit up to a sixteenth of a wave of
+        // optical thickness from its basin's floor (a phase of up to
+        // ~π/3 at the bluest band), where the residual climbs by up to
+        // about the fringes' whole signal: the gate lets that much
+        // through.
+        let mirror_gate =
+            best.sse + (MIRROR_SCAN_SLACK * signal).max(WEAK_FRINGES) * threshold * sigma * sigma;
         let in_range = (self.d_min, self.d_max);
         let mut push = |n: &mut usize,
                         start: Option<(f64, f64, f64)>,
                         bounds: (f64, f64),
+                        gate: f64,
                         scratch: &mut Scratch| {
             let Some((d, th, e)) = start else { return };
             if *n >= out.len() || e > gate {
@@ -144,7 +156,7 @@ impl Solver {
             let bounds = (self.d_min, 2.0 * g_res / q);
             let span = (g_res, 2.0 * g_res);
             let start = self.scan_start(model, best.theta, span, step, None, bounds, free, scratch);
-            push(&mut n, start, bounds, scratch);
+            push(&mut n, start, bounds, gate, scratch);
         }
         if !free {
             return n;
@@ -174,8 +186,33 @@ impl Solver {
                 } else {
                     (g0 - 3.0 * step, g0 + 3.0 * step)
                 };
-                let start = self.scan_start(model, tm, span, step, None, in_range, true, scratch);
-                push(&mut n, start, in_range, scratch);
+                // The scan's angle moves stay on the mirror's side, short
+                // of half-way to the Brewster angle, where the fringes fade
+                // and any thickness fits about as well as another.
+                let side = brewster(n1, ni, nj).map_or(self.theta_range, |tb| {
+                    let (lo, hi) = self.theta_range;
+                    let mid = 0.5 * (tb + tm);
+                    if tm > tb {
+                        (mid.min(tm), hi)
+                    } else {
+                        (lo, mid.max(tm))
+                    }
+                });
+                let start =
+                    self.scan_start_in(model, tm, span, step, None, in_range, side, scratch);
+                push(&mut n, start, in_range, mirror_gate, scratch);
+                // And the next best away from it: near a Brewster angle the
+                // scan's best can lead back to the fitted side (noise-free
+                // p light at 61 bands, n2 1.37: a 200 nm film at 54.7° read
+                // 79 nm at 52.2°, valid, while the mirror side's second
+                // basin refines to the truth). Weak fringes scan the whole
+                // range below instead.
+                if let Some((d, th, _)) = start.filter(|_| !weak) {
+                    let away = Some((d * model.q2_mid(th), 1.5 * step));
+                    let next =
+                        self.scan_start_in(model, tm, span, step, away, in_range, side, scratch);
+                    push(&mut n, next, in_range, mirror_gate, scratch);
+                }
             }
         }
         if weak {
@@ -190,7 +227,7 @@ impl Solver {
                 true,
                 scratch,
             );
-            push(&mut n, start, in_range, scratch);
+            push(&mut n, start, in_range, gate, scratch);
         }
         if thin {
             // A film below its first fringe: its phase hardly changes
@@ -208,7 +245,7 @@ impl Solver {
                 true,
                 scratch,
             );
-            push(&mut n, start, in_range, scratch);
+            push(&mut n, start, in_range, gate, scratch);
         }
         n
     }
@@ -232,7 +269,31 @@ impl Solver {
         free: bool,
         scratch: &mut Scratch,
     ) -> Option<(f64, f64, f64)> {
-        let (lo, hi) = self.theta_range;
+        let th_range = if free {
+            self.theta_range
+        } else {
+            (theta, theta)
+        };
+        self.scan_start_in(
+            model, theta, span, step, exclude, d_range, th_range, scratch,
+        )
+    }
+
+    /// [`Self::scan_start`] with the angle free within `(lo, hi)` (fixed
+    /// where they are equal).
+    #[allow(clippy::too_many_arguments)]
+    fn scan_start_in(
+        &self,
+        model: &FilmModel,
+        theta: f64,
+        span: (f64, f64),
+        step: f64,
+        exclude: Option<(f64, f64)>,
+        d_range: (f64, f64),
+        (lo, hi): (f64, f64),
+        scratch: &mut Scratch,
+    ) -> Option<(f64, f64, f64)> {
+        let free = hi > lo;
         let q = model.q2_mid(theta);
         let mut best = (f64::NAN, f64::NAN, f64::INFINITY);
         let k0 = (span.0.max(0.0) / step).ceil() as i64;
@@ -277,17 +338,21 @@ fn rp_abs(n1: f64, ni: f64, nj: f64, theta: f64) -> f64 {
     ((nj * ci - ni * cj) / (nj * ci + ni * cj)).abs()
 }
 
+/// The external angle at which the interface from index `ni` to `nj`
+/// reflects no p light, seen from an ambient of index `n1` (lossless,
+/// mid-band); `None` where no external angle reaches it.
+fn brewster(n1: f64, ni: f64, nj: f64) -> Option<f64> {
+    // tan θ_i = nj / ni inside medium i; outside, by Snell.
+    let sb = ni * nj / (n1 * (ni * ni + nj * nj).sqrt());
+    (sb.is_finite() && sb < 1.0).then(|| sb.asin())
+}
+
 /// The external angle on the other side of the interface's Brewster angle
 /// (within `range`) at which |r_p| equals its value at `theta`, by
 /// bisection (|r_p| rises away from the Brewster angle on either side);
 /// `None` if there is none.
 fn mirror_angle(n1: f64, ni: f64, nj: f64, theta: f64, range: (f64, f64)) -> Option<f64> {
-    // Brewster: tan θ_i = nj / ni inside medium i; outside, by Snell.
-    let sb = ni * nj / (n1 * (ni * ni + nj * nj).sqrt());
-    if !(sb.is_finite() && sb < 1.0 && theta.is_finite()) {
-        return None;
-    }
-    let tb = sb.asin();
+    let tb = brewster(n1, ni, nj).filter(|_| theta.is_finite())?;
     let target = rp_abs(n1, ni, nj, theta);
     let f = |t: f64| rp_abs(n1, ni, nj, t) - target;
     // From the Brewster angle (f < 0) to the far end of the other side.
