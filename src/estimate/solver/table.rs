@@ -1365,4 +1365,47 @@ mod tests {
             assert!((d - d_true).abs() < 0.01, "{d_true}: {d} ({e2})");
         }
     }
+
+    /// `fast`'s walk from the previous pixel's grid point: from a few grid
+    /// points either side of the minimum it reaches the same fit as the
+    /// scan's; from a neighbouring fringe order (a full fringe away, more
+    /// than the walk may go) it lands on that order's own minimum or gives
+    /// up, never on this one; a spectrum with a missing band is left to
+    /// the weighted path.
+    #[test]
+    fn the_walk_from_a_hint_reaches_the_scans_minimum() {
+        let m = model();
+        let th = 0.3;
+        let t = ThicknessTable::new(&m, th, 0.0, 2000.0);
+        let mut out = ModelOut::new(31);
+        let mut buf = GridScratch::default();
+        for d_true in [187.3, 611.1, 1499.9] {
+            m.eval(d_true, th, &mut out, false);
+            let j = t.index_of(d_true);
+            let (d_scan, e_scan, a_scan) = t.fit(&out.r, &[1.0; 31], j, 10, &mut buf);
+            for off in [-4i64, -1, 0, 1, 4] {
+                let j0 = (j as i64 + off) as usize;
+                let (d, e2, a) = t.fit_near(&out.r, &[1.0; 31], j0).expect("walks");
+                assert!(
+                    (d - d_scan).abs() < 1e-9,
+                    "{d_true} from {off}: {d} vs {d_scan}"
+                );
+                assert!((e2 - e_scan).abs() <= 1e-12 + 1e-9 * e_scan);
+                assert!((a - a_scan).abs() <= 1e-9 * a_scan);
+            }
+            // A fringe (2π of the fastest band's phase) is ≥ 20 grid points.
+            let fringe = (2.0 * std::f64::consts::PI / PHASE_STEP) as usize;
+            if let Some(j0) = j.checked_sub(fringe) {
+                if let Some((d, _, _)) = t.fit_near(&out.r, &[1.0; 31], j0) {
+                    assert!(
+                        (d - d_true).abs() > 10.0,
+                        "{d_true}: reached {d} from a fringe away"
+                    );
+                }
+            }
+            let mut w = [1.0; 31];
+            w[7] = 0.0;
+            assert!(t.fit_near(&out.r, &w, j).is_none());
+        }
+    }
 }
