@@ -174,3 +174,72 @@ fn noise_free_extremes_at_61_bands_p_light() {
     }
     assert!(wrong.is_empty(), "valid and wrong:\n{}", wrong.join("\n"));
 }
+
+/// With one noise variance for every band, a fit on a thickness table is
+/// judged from its own residual (χ² = SSE/σ², `FlatNoise::uniform`); with
+/// per-band variances, from the model values again. Both judge alike: a
+/// noisy image (σ = 0.002, 0–3000 nm, 0–89.5°, the angle known) judged
+/// against a uniform σ and against the same σ with one band differing by
+/// 1e-9 gives every pixel the same validity, thickness and σ, in every
+/// mode.
+#[test]
+fn a_uniform_noise_judges_table_fits_as_the_per_band_path_does() {
+    use irid::estimate::noise::{NoiseModel, NoiseSource};
+    let text = r#"
+[ambient]
+n = 1.0
+[substrate]
+n = 1.6
+[film]
+n = 1.37
+[light]
+polarization = "u"
+[bands]
+start_nm = 400
+stop_nm = 700
+step_nm = 10
+fwhm_nm = 0
+[truth]
+width = 31
+height = 19
+thickness_nm = { linear_x = [0.0, 3000.0] }
+angle_deg = { linear_y = [0.0, 89.5] }
+noise_sigma = 0.002
+seed = 3
+"#;
+    let s = with_known_angle(Scene::from_toml(text, "<uniform>", Path::new(".")).unwrap());
+    let bands = scene_bands(&s).unwrap();
+    let cube = Renderer::new(&s).unwrap().render_cube(&bands).unwrap();
+    let nb = bands.len();
+    for &mode in &ALL {
+        let fit = |per_band: bool| {
+            let mut solver = Solver::new(&s, &bands, mode).unwrap();
+            let noise = if per_band {
+                let mut sig = vec![0.002; nb];
+                sig[nb / 2] *= 1.0 + 1e-9;
+                NoiseModel::per_band(&sig, NoiseSource::Given)
+            } else {
+                NoiseModel::uniform(0.002, nb, NoiseSource::Given)
+            };
+            solver.set_noise(noise);
+            solver.fit_cube(&cube).unwrap()
+        };
+        let (a, b) = (fit(false), fit(true));
+        let mut valid = 0;
+        for i in 0..a.width * a.height {
+            assert_eq!(a.valid[i], b.valid[i], "{mode:?} pixel {i}");
+            if a.valid[i] > 0.5 {
+                valid += 1;
+                let (da, db) = (a.thickness_nm[i], b.thickness_nm[i]);
+                assert!((da - db).abs() <= 1e-3, "{mode:?} pixel {i}: {da} vs {db}");
+                let (sa, sb) = (a.sigma_thickness_nm[i], b.sigma_thickness_nm[i]);
+                assert!(
+                    (sa - sb).abs() <= 1e-4 * sa,
+                    "{mode:?} pixel {i}: σ {sa} vs {sb}"
+                );
+            }
+        }
+        // Not passed by flagging everything.
+        assert!(valid > a.width * a.height / 2, "{mode:?}: {valid} valid");
+    }
+}

@@ -83,6 +83,13 @@ pub struct FlatNoise {
 }
 
 impl FlatNoise {
+    /// The one variance of every band and its inverse, where all bands
+    /// share it (then χ² is a residual sum over it).
+    pub fn uniform(&self) -> Option<(f64, f64)> {
+        let (&v, &inv) = (self.var.first()?, self.inv_var.first()?);
+        self.var.iter().all(|&x| x == v).then_some((v, inv))
+    }
+
     /// As [`NoiseModel::chi2_and_mean_var`] (the model values `r` only
     /// enter through the residual).
     pub fn chi2_and_mean_var(&self, y: &[f64], w: &[f64], r: &[f64]) -> (f64, f64) {
@@ -595,6 +602,16 @@ mod tests {
             source: NoiseSource::Camera,
         };
         assert!(shot.flat().is_none());
+        // One variance for every band, or not.
+        let u = NoiseModel::uniform(2e-3, 5, NoiseSource::Given)
+            .flat()
+            .unwrap();
+        let v = 2e-3 * 2e-3;
+        assert_eq!(u.uniform(), Some((v, 1.0 / v)));
+        let per = NoiseModel::per_band(&[1e-3, 2e-3], NoiseSource::Data)
+            .flat()
+            .unwrap();
+        assert_eq!(per.uniform(), None);
         assert!(NoiseModel::uniform(1e-3, 3, NoiseSource::Given)
             .with_accuracy(0.05)
             .flat()

@@ -180,8 +180,8 @@ impl Solver {
         theta: f64,
         theta_known: Option<f64>,
     ) -> Option<Reason> {
-        let g = d * prep.model.q2_mid(theta);
-        if g > self.g_max.0 {
+        // q2 ≤ n2: most films are resolved whatever the angle, and skip it.
+        if d * prep.model.n2_mid() > self.g_max.0 && d * prep.model.q2_mid(theta) > self.g_max.0 {
             return Some(Reason::Unresolved);
         }
         let span = (self.d_max - self.d_min).max(1.0);

@@ -7,6 +7,7 @@ use super::closed_form::angle_start;
 use super::refine::sse;
 use super::search::{Candidate, MAX_CANDIDATES};
 use super::{Fit, Job, Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
+use crate::estimate::noise::FlatNoise;
 use crate::estimate::{PixelEstimate, Reason};
 use std::f64::consts::PI;
 
@@ -309,7 +310,6 @@ impl Solver {
         if !(best.sse.is_finite() && best.d.is_finite() && best.theta.is_finite()) {
             return (PixelEstimate::invalid(Reason::PoorFit), f64::NAN);
         }
-        let q2 = prep.model.q2_mid(best.theta);
         let dof = (n_ok - n_par).max(1) as f64;
         let model = match (&prep.integrated, best.integrated) {
             (Some(m), true) => m,
@@ -318,7 +318,17 @@ impl Solver {
         // The fit is judged against the noise model, and its σ never claims
         // more precision than the instrument's noise allows.
         let judging = noise.is_some() && self.judging();
-        let (chi2, noise_var) = if judging {
+        // A fit on a table at its own angle left its residual on the very
+        // interpolant χ² would evaluate again; with one variance for every
+        // band, χ² is that residual over it.
+        let uniform = self
+            .flat_noise
+            .as_ref()
+            .and_then(FlatNoise::uniform)
+            .filter(|_| best.tabled && prep.tables.get(best.theta).is_some());
+        let (chi2, noise_var) = if let (true, Some((v, inv))) = (judging, uniform) {
+            (best.sse * inv, v)
+        } else if judging {
             let mut trial = std::mem::take(&mut scratch.trial);
             match prep.tables.get(best.theta).filter(|_| best.tabled) {
                 Some(t) => t.values(best.d, &mut trial.r),
@@ -400,6 +410,7 @@ impl Solver {
         let mut reason = Reason::Ok;
         // A second order that fits as well as the best is an ambiguity.
         if let Some(second) = order.get(1).map(|&i| fits[i]) {
+            let q2 = prep.model.q2_mid(best.theta);
             let apart = (second.d - best.d).abs() > 0.25 * lam_min / (2.0 * q2);
             if apart && second.sse - best.sse < 4.0 * var {
                 reason = Reason::AmbiguousOrder;
