@@ -16,6 +16,11 @@ use std::path::Path;
 /// A 31 × 19 image: thickness 0–3000 nm across, angle 0–89.5° down,
 /// 400–700 nm in bands `step` nm apart.
 fn scene(n2: f64, pol: &str, known: bool, step: u32) -> Scene {
+    noisy_scene(n2, pol, known, step, 0.0, 1)
+}
+
+/// [`scene`] with noise of σ `noise` drawn from `seed`.
+fn noisy_scene(n2: f64, pol: &str, known: bool, step: u32, noise: f64, seed: u64) -> Scene {
     let text = format!(
         r#"
 [ambient]
@@ -36,8 +41,8 @@ width = 31
 height = 19
 thickness_nm = {{ linear_x = [0.0, 3000.0] }}
 angle_deg = {{ linear_y = [0.0, 89.5] }}
-noise_sigma = 0.0
-seed = 1
+noise_sigma = {noise}
+seed = {seed}
 "#
     );
     let s = Scene::from_toml(&text, "<extremes>", Path::new(".")).expect("scene parses");
@@ -185,29 +190,7 @@ fn noise_free_extremes_at_61_bands_p_light() {
 #[test]
 fn a_uniform_noise_judges_table_fits_as_the_per_band_path_does() {
     use irid::estimate::noise::{NoiseModel, NoiseSource};
-    let text = r#"
-[ambient]
-n = 1.0
-[substrate]
-n = 1.6
-[film]
-n = 1.37
-[light]
-polarization = "u"
-[bands]
-start_nm = 400
-stop_nm = 700
-step_nm = 10
-fwhm_nm = 0
-[truth]
-width = 31
-height = 19
-thickness_nm = { linear_x = [0.0, 3000.0] }
-angle_deg = { linear_y = [0.0, 89.5] }
-noise_sigma = 0.002
-seed = 3
-"#;
-    let s = with_known_angle(Scene::from_toml(text, "<uniform>", Path::new(".")).unwrap());
+    let s = noisy_scene(1.37, "u", true, 10, 0.002, 3);
     let bands = scene_bands(&s).unwrap();
     let cube = Renderer::new(&s).unwrap().render_cube(&bands).unwrap();
     let nb = bands.len();

@@ -593,37 +593,56 @@ impl ThicknessTable {
         kept
     }
 
-    /// R and dR/dd of every band at `d` (inside the grid) by cubic Hermite
-    /// interpolation.
-    fn interp(&self, d: f64, r: &mut [f64], dr: &mut [f64]) {
-        let nb = self.nb;
+    /// Grid interval `j` (points `j`, `j + 1`) holding `d`, clamped to the
+    /// grid, and `d`'s position `t ∈ [0, 1]` in it.
+    fn interval_of(&self, d: f64) -> (usize, f64) {
         let x = ((d - self.d0) / self.h).clamp(0.0, (self.m - 1) as f64);
         let j = (x.floor() as usize).min(self.m - 2);
-        let t = x - j as f64;
-        let (t2, t3) = (t * t, t * t * t);
-        let h = self.h;
-        let (h00, h10, h01, h11) = (
+        (j, x - j as f64)
+    }
+
+    /// Values `[A, B]` and slopes `[P, Q]` of every band at the two ends of
+    /// grid interval `j`.
+    fn ends(&self, j: usize) -> ([&[f32]; 2], [&[f32]; 2]) {
+        let (nb, nbp) = (self.nb, self.nbp);
+        (
+            [
+                &self.r[j * nbp..j * nbp + nb],
+                &self.r[(j + 1) * nbp..(j + 1) * nbp + nb],
+            ],
+            [
+                &self.dr[j * nb..(j + 1) * nb],
+                &self.dr[(j + 1) * nb..(j + 2) * nb],
+            ],
+        )
+    }
+
+    /// The cubic Hermite basis at `t` (slope terms scaled by the step):
+    /// `R = h00·A + h10·P + h01·B + h11·Q`.
+    fn hermite(&self, t: f64) -> [f64; 4] {
+        let (t2, t3, h) = (t * t, t * t * t, self.h);
+        [
             2.0 * t3 - 3.0 * t2 + 1.0,
             (t3 - 2.0 * t2 + t) * h,
             -2.0 * t3 + 3.0 * t2,
             (t3 - t2) * h,
-        );
+        ]
+    }
+
+    /// R and dR/dd of every band at `d` (inside the grid) by cubic Hermite
+    /// interpolation.
+    fn interp(&self, d: f64, r: &mut [f64], dr: &mut [f64]) {
+        let (j, t) = self.interval_of(d);
+        let [h00, h10, h01, h11] = self.hermite(t);
+        let (t2, h) = (t * t, self.h);
         let (g00, g10, g01, g11) = (
             (6.0 * t2 - 6.0 * t) / h,
             3.0 * t2 - 4.0 * t + 1.0,
             (-6.0 * t2 + 6.0 * t) / h,
             3.0 * t2 - 2.0 * t,
         );
-        let nbp = self.nbp;
-        let (ra, rb) = (
-            &self.r[j * nbp..j * nbp + nb],
-            &self.r[(j + 1) * nbp..(j + 1) * nbp + nb],
-        );
-        let (da, db) = (
-            &self.dr[j * nb..(j + 1) * nb],
-            &self.dr[(j + 1) * nb..(j + 2) * nb],
-        );
-        for k in 0..nb {
+        let ([ra, rb], [da, db]) = self.ends(j);
+        for k in 0..self.nb {
             let (a, b, p, q) = (
                 f64::from(ra[k]),
                 f64::from(rb[k]),
@@ -635,32 +654,14 @@ impl ThicknessTable {
         }
     }
 
-    /// R of every band at `d` on the interpolant (as the fit saw it).
-    /// (The interpolant of [`Self::interp`] without the slopes.)
+    /// R of every band at `d` on the interpolant (as the fit saw it): the
+    /// interpolant of [`Self::interp`] without the slopes.
     pub fn values(&self, d: f64, r: &mut [f64]) {
-        let nb = self.nb;
-        let x = ((d - self.d0) / self.h).clamp(0.0, (self.m - 1) as f64);
-        let j = (x.floor() as usize).min(self.m - 2);
-        let t = x - j as f64;
-        let (t2, t3) = (t * t, t * t * t);
-        let h = self.h;
-        let (h00, h10, h01, h11) = (
-            2.0 * t3 - 3.0 * t2 + 1.0,
-            (t3 - 2.0 * t2 + t) * h,
-            -2.0 * t3 + 3.0 * t2,
-            (t3 - t2) * h,
-        );
-        let nbp = self.nbp;
-        let (ra, rb) = (
-            &self.r[j * nbp..j * nbp + nb],
-            &self.r[(j + 1) * nbp..(j + 1) * nbp + nb],
-        );
-        let (da, db) = (
-            &self.dr[j * nb..(j + 1) * nb],
-            &self.dr[(j + 1) * nb..(j + 2) * nb],
-        );
-        let centre = &self.centre[..nb];
-        for (k, v) in r[..nb].iter_mut().enumerate() {
+        let (j, t) = self.interval_of(d);
+        let [h00, h10, h01, h11] = self.hermite(t);
+        let ([ra, rb], [da, db]) = self.ends(j);
+        let centre = &self.centre[..self.nb];
+        for (k, v) in r[..self.nb].iter_mut().enumerate() {
             let (a, b, p, q) = (
                 f64::from(ra[k]),
                 f64::from(rb[k]),
@@ -738,16 +739,9 @@ impl ThicknessTable {
     /// `i`, `i + 1`) as a polynomial in the interval's `t`: four dot
     /// products over the bands, the rest from the interval's cross sums.
     fn interval_poly(&self, y: &[f64], i: usize) -> [f64; 7] {
-        let (nb, nbp, h) = (self.nb, self.nbp, self.h);
-        let (ra, rb) = (
-            &self.r[i * nbp..i * nbp + nb],
-            &self.r[(i + 1) * nbp..(i + 1) * nbp + nb],
-        );
-        let (da, db) = (
-            &self.dr[i * nb..(i + 1) * nb],
-            &self.dr[(i + 1) * nb..(i + 2) * nb],
-        );
-        let [ee, e1, e2, e3] = interval_dots([ra, rb], [da, db], &y[..nb], &self.centre[..nb], h);
+        let nb = self.nb;
+        let (r, dr) = self.ends(i);
+        let [ee, e1, e2, e3] = interval_dots(r, dr, &y[..nb], &self.centre[..nb], self.h);
         residual_poly(ee, e1, e2, e3, &self.gram[i])
     }
 
