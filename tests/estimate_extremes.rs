@@ -227,17 +227,12 @@ fn a_uniform_noise_judges_table_fits_as_the_per_band_path_does() {
     }
 }
 
-/// A thick dispersive film near normal incidence with the angle free: the
-/// fringes fix the optical thickness d·n2·cos θ2 tightly and the angle
-/// barely (σ_θ ~ 1–3°), so the residual's valley is a thin parabola in
-/// (d, θ). On data without noise its floor is the truth, and a refinement
-/// that reaches the floor reads it: every valid pixel within 0.1 nm (the
-/// convergence test stops at steps of 0.005 nm; a fit stalled on the
-/// valley's wall was 4–14 nm off), the angle within 0.2°, and the films the
-/// 5 nm bands resolve (d·n2 ≲ 6.5 µm) valid.
-#[test]
-fn a_thick_film_near_normal_incidence_reaches_the_valley_floor() {
-    let text = r#"
+/// Silicon nitride 1–3 µm thick on fused silica, unpolarised, 61 bands at
+/// 5 nm, the angle free (0–80°) and rows `width` × `height` from `theta0`°
+/// down in 2° steps, noise σ `noise` from `seed`.
+fn thick_scene(noise: f64, seed: u64, width: usize, height: usize, theta0: f64) -> Scene {
+    let text = format!(
+        r#"
 [ambient]
 n = 1.0
 [substrate]
@@ -254,15 +249,29 @@ stop_nm = 700
 step_nm = 5
 fwhm_nm = 0
 [truth]
-width = 21
-height = 8
+width = {width}
+height = {height}
 film_material = "Si3N4-Luke"
-thickness_nm = { linear_x = [1000.0, 3000.0] }
-angle_deg = { rows = [0.0, 2.0] }
-noise_sigma = 0.0
-seed = 1
-"#;
-    let s = Scene::from_toml(text, "<thick>", Path::new(".")).expect("scene parses");
+thickness_nm = {{ linear_x = [1000.0, 3000.0] }}
+angle_deg = {{ rows = [{theta0}, 2.0] }}
+noise_sigma = {noise}
+seed = {seed}
+"#
+    );
+    Scene::from_toml(&text, "<thick>", Path::new(".")).expect("scene parses")
+}
+
+/// A thick dispersive film near normal incidence with the angle free: the
+/// fringes fix the optical thickness d·n2·cos θ2 tightly and the angle
+/// barely (σ_θ ~ 1–3°), so the residual's valley is a thin parabola in
+/// (d, θ). On data without noise its floor is the truth, and a refinement
+/// that reaches the floor reads it: every valid pixel within 0.1 nm (the
+/// convergence test stops at steps of 0.005 nm; a fit stalled on the
+/// valley's wall was 4–14 nm off), the angle within 0.2°, and the films the
+/// 5 nm bands resolve (d·n2 ≲ 6.5 µm) valid.
+#[test]
+fn a_thick_film_near_normal_incidence_reaches_the_valley_floor() {
+    let s = thick_scene(0.0, 1, 21, 8, 0.0);
     let bands = scene_bands(&s).unwrap();
     let r = Renderer::new(&s).unwrap();
     let cube = r.render_cube(&bands).unwrap();
@@ -288,4 +297,90 @@ seed = 1
         }
         assert!(valid >= n * 9 / 10, "{mode:?}: {valid} of {n} valid");
     }
+}
+
+/// The same film with noise (σ = 0.001), 5–19°: the thickness is as good as
+/// the data allow and σ says how good. The Cramér–Rao bound of each pixel
+/// (d and θ unknown, from the model's exact derivatives at the truth)
+/// gives an efficient estimator's mean |Δd| of 0.798·σ_CRB; the fits reach
+/// it within 15 % (the issue's `balanced` target; 2 400 pixels put the
+/// sampling error of a mean near 2 %). 2σ covers between 90 % and 98.5 %
+/// of them (Gaussian: 95.4 %, binomial σ 0.4 %: the upper end is seven σ
+/// above it). Before the refinement stepped along the valley the mean was
+/// 1.5× efficient, every mode; with σ from the (d, θ) linearisation
+/// widened by the angle's profile 98.9 % were covered here (99.2 % on the
+/// scene matrix's hard coat).
+#[test]
+fn a_thick_film_near_normal_incidence_is_efficient_and_its_sigma_honest() {
+    use irid::estimate::model::{FilmModel, ModelOut};
+    use irid::estimate::noise::{NoiseModel, NoiseSource};
+    use irid::scene::FilmKnowledge;
+    const SIGMA_R: f64 = 0.001;
+    let (mut err_sum, mut eff_sum, mut covered, mut valid, mut n) = (0.0, 0.0, 0, 0, 0);
+    for seed in 1..=4 {
+        let s = thick_scene(SIGMA_R, seed, 75, 8, 5.0);
+        let bands = scene_bands(&s).unwrap();
+        let r = Renderer::new(&s).unwrap();
+        let cube = r.render_cube(&bands).unwrap();
+        let truth = r.truth_maps(&bands);
+        let FilmKnowledge::Known(film) = &s.film else {
+            panic!("the film's material is known")
+        };
+        let model = FilmModel::new(
+            &bands,
+            &s.ambient,
+            film,
+            &s.substrate,
+            s.polarization,
+            &vec![false; bands.len()],
+        )
+        .unwrap();
+        let mut out = ModelOut::new(bands.len());
+        // The instrument's noise, as `irid run` measures it from its
+        // calibration frames: estimated from this image without a model it
+        // reads 1.7× high (27 nm of film per pixel and 2° per row leave
+        // fringes in every difference), and σ is then wide by as much.
+        let mut solver = Solver::new(&s, &bands, Mode::Balanced).unwrap();
+        solver.set_noise(NoiseModel::uniform(
+            SIGMA_R,
+            bands.len(),
+            NoiseSource::Given,
+        ));
+        let maps = solver.fit_cube(&cube).unwrap();
+        for i in 0..maps.width * maps.height {
+            n += 1;
+            if maps.valid[i] < 0.5 {
+                continue;
+            }
+            valid += 1;
+            let (d, th) = (
+                f64::from(truth.thickness_nm[i]),
+                f64::from(truth.theta_deg[i]).to_radians(),
+            );
+            model.eval(d, th, &mut out, true);
+            let (mut a, mut b, mut c) = (0.0, 0.0, 0.0);
+            for k in 0..bands.len() {
+                a += out.dr_dd[k] * out.dr_dd[k];
+                b += out.dr_dd[k] * out.dr_dth[k];
+                c += out.dr_dth[k] * out.dr_dth[k];
+            }
+            eff_sum += 0.798 * SIGMA_R * (c / (a * c - b * b)).sqrt();
+            let err = (f64::from(maps.thickness_nm[i]) - d).abs();
+            err_sum += err;
+            if err <= 2.0 * f64::from(maps.sigma_thickness_nm[i]) {
+                covered += 1;
+            }
+        }
+    }
+    let (mae, efficient) = (err_sum / valid as f64, eff_sum / valid as f64);
+    let coverage = covered as f64 / valid as f64;
+    eprintln!(
+        "{valid} of {n} valid: MAE {mae:.3} nm, efficient {efficient:.3} nm, 2σ {coverage:.3}"
+    );
+    assert!(valid >= n * 9 / 10, "{valid} of {n} valid");
+    assert!(
+        mae <= 1.15 * efficient,
+        "MAE {mae} nm, efficient {efficient} nm"
+    );
+    assert!((0.90..=0.985).contains(&coverage), "2σ covers {coverage}");
 }

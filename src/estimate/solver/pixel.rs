@@ -4,7 +4,7 @@
 //! covariance, validity flags.
 
 use super::closed_form::angle_start;
-use super::refine::sse;
+use super::refine::{free_angle_sigma, sse};
 use super::search::{Candidate, MAX_CANDIDATES};
 use super::{Fit, Job, Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
 use crate::estimate::noise::FlatNoise;
@@ -341,22 +341,10 @@ impl Solver {
             (f64::NAN, 0.0)
         };
         let var = (best.sse / dof).max(noise_var).max(1e-14);
-        // Covariance with a weak prior on the angle (its search range as a
-        // uniform distribution) so a flat direction gives a large, finite σ.
         let (sig_d, sig_th) = if theta_known.is_some() {
             ((var / best.jtj[0].max(1e-300)).sqrt(), 0.0)
         } else {
-            let (lo, hi) = self.theta_range;
-            let prior = 12.0 / ((hi - lo) * (hi - lo)).max(1e-6);
-            let a = best.jtj[0];
-            let b = best.jtj[1];
-            let c = best.jtj[2] + prior * var;
-            let det = a * c - b * b;
-            if det > 0.0 {
-                ((var * c / det).sqrt(), (var * a / det).sqrt())
-            } else {
-                (f64::INFINITY, (hi - lo) / 12f64.sqrt())
-            }
+            free_angle_sigma(model, &best, var, self.theta_range)
         };
         // Near d = 0 the reflectance is even in d (dR/dd = 0 at d = 0), so
         // the linearised σ is meaningless: take the one-sided profile bound
@@ -366,46 +354,6 @@ impl Solver {
         } else {
             sig_d
         };
-        // A weak angle: the linearised σ_θ says little (at θ = 0, R is even
-        // in θ and dR/dθ vanishes). Take the profile bound instead — the
-        // angle at which the residual, with the optical thickness held,
-        // grows by one variance — and carry its share into d, which at
-        // fixed optical thickness moves as 1/(n2 cos θ2).
-        let (sig_d, sig_th) =
-            if theta_known.is_none() && sig_th.to_degrees() > ANGLE_SIGMA_LIMIT_DEG {
-                let (lo, hi) = self.theta_range;
-                // At a bound (where the slope vanishes or the clamp hides
-                // the other side) the profile replaces the linearised σ.
-                // Inside the range it may only widen it: R is even in θ,
-                // so towards normal incidence the residual can stay flat
-                // far beyond the linearised σ (unpolarised, 61 bands, a
-                // 2.2 µm film at 0° fitted 14.6° ± 0.9°, 50 nm off with
-                // σ 8.5 nm). The profile is a bisection (~20 evaluations),
-                // so there it runs only where a cheap probe says the
-                // valley is wider (`angle_valley_wider`).
-                let at_bound = best.theta - lo < sig_th || hi - best.theta < sig_th;
-                let sig_th = if !sig_th.is_finite() || at_bound {
-                    let th_bound = self.profile_sigma_theta(model, best, var, scratch);
-                    if sig_th.is_finite() {
-                        sig_th.min(th_bound.max(1e-6))
-                    } else {
-                        th_bound
-                    }
-                } else if self.angle_valley_wider(model, best, var, sig_th, scratch) {
-                    sig_th.max(self.profile_sigma_theta(model, best, var, scratch))
-                } else {
-                    sig_th
-                };
-                let q = |t: f64| model.q2_mid(t.clamp(lo, hi));
-                let q0 = q(best.theta);
-                let shift = [best.theta - sig_th, best.theta + sig_th]
-                    .iter()
-                    .map(|&t| (best.d * (q0 / q(t) - 1.0)).abs())
-                    .fold(0.0, f64::max);
-                ((sig_d * sig_d + shift * shift).sqrt(), sig_th)
-            } else {
-                (sig_d, sig_th)
-            };
         let rms = (best.sse / n_ok as f64).sqrt();
         let mut reason = Reason::Ok;
         // A second order that fits as well as the best is an ambiguity.

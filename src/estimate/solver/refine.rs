@@ -1,6 +1,8 @@
 //! Stage 3, the refinement: Levenberg–Marquardt on the thickness (and the
-//! angle when unknown) with the exact model, and the profile bounds that
-//! stand in for a linearised σ where it says little.
+//! angle when unknown) with the exact model — with the angle free in the
+//! coordinates where its valley is straight (optical thickness, sin²θ),
+//! and σ formed there — and the profile bound that stands in for a
+//! linearised σ near zero thickness.
 
 use super::{Fit, Scratch, Solver};
 use crate::estimate::model::{FilmModel, ModelOut};
@@ -170,78 +172,6 @@ impl Solver {
         }
         0.5 * (lo + hi) - best.d
     }
-
-    /// Whether the residual, the optical thickness held, stays within one
-    /// variance of the best towards normal incidence beyond the linearised
-    /// σ_θ: at the range's low end, or 3 σ_θ below the fit (R is even in
-    /// θ, so near normal incidence the valley is flatter than its
-    /// curvature at the fit says). Two model evaluations at most.
-    pub(super) fn angle_valley_wider(
-        &self,
-        model: &FilmModel,
-        best: Fit,
-        var: f64,
-        sig_th: f64,
-        s: &mut Scratch,
-    ) -> bool {
-        let lo = self.theta_range.0;
-        let g = best.d * model.q2_mid(best.theta);
-        let target = best.sse + var;
-        [lo, best.theta - 3.0 * sig_th]
-            .into_iter()
-            .filter(|&t| t >= lo && t < best.theta)
-            .any(|t| {
-                model.eval(g / model.q2_mid(t), t, &mut s.trial, false);
-                sse(&s.spectrum, &s.weight, &s.trial.r) <= target
-            })
-    }
-
-    /// Profile bound on a weak angle: the larger of the two distances from
-    /// the fitted angle (within the search range) at which the residual,
-    /// with the optical thickness `g = d·n2 cos θ2` held, exceeds the best
-    /// by one variance; the range's extent if it never does.
-    pub(super) fn profile_sigma_theta(
-        &self,
-        model: &FilmModel,
-        best: Fit,
-        var: f64,
-        s: &mut Scratch,
-    ) -> f64 {
-        let (lo, hi) = self.theta_range;
-        let g = best.d * model.q2_mid(best.theta);
-        let target = best.sse + var;
-        let mut bound: f64 = 0.0;
-        for dir in [1.0, -1.0] {
-            let limit = if dir > 0.0 {
-                hi - best.theta
-            } else {
-                best.theta - lo
-            };
-            if limit <= 0.0 {
-                continue;
-            }
-            let mut sse_at = |step: f64| {
-                let t = best.theta + dir * step;
-                model.eval(g / model.q2_mid(t), t, &mut s.trial, false);
-                sse(&s.spectrum, &s.weight, &s.trial.r)
-            };
-            if sse_at(limit) <= target {
-                bound = bound.max(limit);
-                continue;
-            }
-            let (mut a, mut b) = (0.0, limit);
-            for _ in 0..10 {
-                let m = 0.5 * (a + b);
-                if sse_at(m) > target {
-                    b = m;
-                } else {
-                    a = m;
-                }
-            }
-            bound = bound.max(0.5 * (a + b));
-        }
-        bound
-    }
 }
 
 #[inline]
@@ -290,6 +220,43 @@ impl ValleyJacobian {
 /// a hair off zero both are finite (θ = 1e-6 rad reads 0.00006°).
 const MIN_STEP_THETA: f64 = 1e-6;
 
+/// σ of thickness and angle (rad) with the angle free, from the fit's
+/// Gauss–Newton matrix `jtj` in (d, θ) and the residual variance `var`,
+/// with the angle's search range `(lo, hi)` as a uniform prior on sin²θ (a
+/// flat direction gives a large, finite σ). The covariance is formed in
+/// (g, s), where the model is nearly linear even at normal incidence (in θ
+/// the thickness moves as θ² there and a linearised σ says nothing), and
+/// carried to d = g/q(s); σ_θ is half the angle spanned by s ± σ_s.
+pub(super) fn free_angle_sigma(
+    model: &FilmModel,
+    best: &Fit,
+    var: f64,
+    (lo, hi): (f64, f64),
+) -> (f64, f64) {
+    let v = Valley::new(model);
+    let m = v.jacobian(best.d, best.theta, true);
+    let [a, b, c] = best.jtj;
+    // Mᵀ·JᵀJ·M with M = ∂(d, θ)/∂(g, s).
+    let a2 = m.dd_dg * m.dd_dg * a;
+    let b2 = m.dd_dg * (a * m.dd_ds + b * m.dth_ds);
+    let c2 = m.dd_ds * m.dd_ds * a + 2.0 * m.dd_ds * m.dth_ds * b + m.dth_ds * m.dth_ds * c;
+    let (s_lo, s_hi) = (lo.sin().powi(2), hi.sin().powi(2));
+    let c2 = c2 + 12.0 / ((s_hi - s_lo) * (s_hi - s_lo)).max(1e-12) * var;
+    let det = a2 * c2 - b2 * b2;
+    if det.is_nan() || det <= 0.0 {
+        return (f64::INFINITY, (hi - lo) / 12f64.sqrt());
+    }
+    // d = g/q(s): its variance through (∂d/∂g, ∂d/∂s) = (dd_dg, dd_ds).
+    let var_d = var
+        * (m.dd_dg * m.dd_dg * c2 - 2.0 * m.dd_dg * m.dd_ds * b2 + m.dd_ds * m.dd_ds * a2)
+        / det;
+    let sig_s = (var * a2 / det).sqrt();
+    let s0 = best.theta.sin().powi(2);
+    let th_at = |s: f64| s.clamp(0.0, 1.0).sqrt().asin();
+    let sig_th = 0.5 * (th_at(s0 + sig_s) - th_at(s0 - sig_s));
+    (var_d.max(0.0).sqrt(), sig_th)
+}
+
 impl Valley {
     fn new(model: &FilmModel) -> Valley {
         Valley {
@@ -315,7 +282,7 @@ impl Valley {
         ValleyJacobian {
             dd_dg: 1.0 / q,
             dd_ds: d * self.n1_sq / (2.0 * q * q),
-            dth_ds: 1.0 / (2.0 * sn * cs).max(1e-300),
+            dth_ds: 1.0 / (2.0 * sn * cs).max(1e-12),
         }
     }
 
