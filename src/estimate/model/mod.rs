@@ -828,6 +828,49 @@ impl FilmModel {
         }
     }
 
+    /// The levels a cosine fit of the fringes reads at the middle band:
+    /// `A ± B` of the mean `A` and first harmonic `B` of R over one period
+    /// of the phase Δ (32-point quadrature), at `cos Δ = 1` and `−1`. Not
+    /// the envelopes: a contrasty film's Airy fringes are far from a
+    /// cosine (silicon nitride on silica: a cosine's swing is ~15 % below
+    /// the extremes' and centred lower), so a fringe search's levels are
+    /// matched to these.
+    pub fn cosine_levels(&self, theta: f64) -> (f64, f64) {
+        const N: usize = 32;
+        let mid = self.n_bands / 2;
+        let Some(n) = self.nodes.iter().find(|n| n.band == mid) else {
+            return (f64::NAN, f64::NAN);
+        };
+        let real = self.real_at(theta).then(|| {
+            let (s, c) = theta.sin_cos();
+            let (cs, cp, _) = self.coeffs(n, s, c);
+            (cs, cp)
+        });
+        let m = Media {
+            n1: n.n1,
+            n2: n.n2,
+            n3: n.n3,
+        };
+        let pol = Polarization::Mixed {
+            s_weight: self.s_weight,
+        };
+        let period = n.lambda / (2.0 * self.q2_mid(theta));
+        let ws = self.s_weight;
+        let (mut mean, mut first) = (0.0, 0.0);
+        for j in 0..N {
+            let phase = 2.0 * std::f64::consts::PI * j as f64 / N as f64;
+            let cd = phase.cos();
+            let r = match &real {
+                Some((cs, cp)) => ws * cs.eval(cd).0 + (1.0 - ws) * cp.eval(cd).0,
+                None => airy::reflectance(m, period * j as f64 / N as f64, theta, n.lambda, pol),
+            };
+            mean += r;
+            first += r * cd;
+        }
+        let (a, b) = (mean / N as f64, 2.0 * first / N as f64);
+        (a + b, a - b)
+    }
+
     /// Reflectance at the half-wave (`cos Δ = 1`) and quarter-wave
     /// (`cos Δ = −1`) points at the middle band: the two envelopes the
     /// fringes swing between.
@@ -873,6 +916,62 @@ mod tests {
                 fwhm_nm: 0.0,
             })
             .collect()
+    }
+
+    /// The cosine levels against a second formulation: the mean and first
+    /// harmonic of R over one fringe, from the complex Airy sum
+    /// (`airy::reflectance`) sampled at 720 thicknesses across one period
+    /// at the middle band; and the weak-film limit, where R is a cosine in
+    /// the phase and the levels are the envelopes.
+    #[test]
+    fn cosine_levels_are_the_fringes_mean_and_first_harmonic() {
+        for (n2, n3) in [(2.05, 1.46), (1.37, 1.6), (1.45, 1.46)] {
+            for pol in [Polarization::S, Polarization::P, Polarization::Unpolarized] {
+                let m = FilmModel::new(
+                    &bands(),
+                    &Dispersion::constant(1.0),
+                    &Dispersion::constant(n2),
+                    &Dispersion::constant(n3),
+                    pol,
+                    &[false; 31],
+                )
+                .unwrap();
+                for th in [0.0f64, 0.4, 1.0] {
+                    let lambda = bands()[15].center_nm;
+                    let period = lambda / (2.0 * m.q2_mid(th));
+                    let media = Media {
+                        n1: Complex64::new(1.0, 0.0),
+                        n2: Complex64::new(n2, 0.0),
+                        n3: Complex64::new(n3, 0.0),
+                    };
+                    let pol_mix = Polarization::Mixed {
+                        s_weight: pol.s_weight(),
+                    };
+                    let (mut mean, mut first) = (0.0, 0.0);
+                    const N: usize = 720;
+                    for j in 0..N {
+                        let d = period * j as f64 / N as f64;
+                        let r = airy::reflectance(media, d, th, lambda, pol_mix);
+                        let phase = 2.0 * std::f64::consts::PI * j as f64 / N as f64;
+                        mean += r / N as f64;
+                        first += 2.0 * r * phase.cos() / N as f64;
+                    }
+                    let (hi, lo) = m.cosine_levels(th);
+                    assert!(
+                        (hi - (mean + first)).abs() < 1e-9 && (lo - (mean - first)).abs() < 1e-9,
+                        "n2 {n2} n3 {n3} {pol:?} θ {th}: {hi} {lo} vs {} {}",
+                        mean + first,
+                        mean - first
+                    );
+                    let (eh, el) = m.envelopes(th);
+                    let swing = (eh - el).abs();
+                    if n2 == 1.45 {
+                        // |r23| ~ 0.003: second harmonic ~ r12·r23 of the swing.
+                        assert!((hi - eh).abs() < 0.01 * swing && (lo - el).abs() < 0.01 * swing);
+                    }
+                }
+            }
+        }
     }
 
     #[test]

@@ -297,6 +297,9 @@ struct Prepared {
     sign: f64,
     /// Angle table for the start: (θ, R(cos Δ = 1), R(cos Δ = −1)).
     table: Vec<(f64, f64, f64)>,
+    /// The same for a fringe search's cosine fit: (θ, A + B, A − B) of
+    /// R's mean and first harmonic ([`FilmModel::cosine_levels`]).
+    cosine_table: Vec<(f64, f64, f64)>,
     /// The half-wave envelope's slope dR/dθ between table entries.
     slopes: Slopes,
     /// The range of reflectance the model can produce over every thickness
@@ -452,7 +455,7 @@ impl Solver {
                 search::BASIS_BUDGET_BYTES >> 20
             )));
         }
-        let basis = FringeBasis::new(bands, g_search);
+        let basis = FringeBasis::new(bands, &film_dispersion_ratios(&scene.film, bands), g_search);
         let mut solver = Solver {
             scene: scene.clone(),
             bands: bands.to_vec(),
@@ -566,6 +569,13 @@ impl Solver {
                 (th, h, l)
             })
             .collect();
+        let cosine_table: Vec<(f64, f64, f64)> = table
+            .iter()
+            .map(|&(th, _, _)| {
+                let (h, l) = model.cosine_levels(th);
+                (th, h, l)
+            })
+            .collect();
         let mid_th = match self.scene.angle {
             AngleKnowledge::Uniform(t) => t,
             _ => 0.5 * (lo + hi),
@@ -621,6 +631,7 @@ impl Solver {
             sign,
             slopes,
             table,
+            cosine_table,
             closed_form,
             integrated,
             fringe_amplitude,
@@ -865,4 +876,30 @@ impl Solver {
     pub fn thickness_range(&self) -> (f64, f64, f64) {
         (self.d_min, self.d_max, self.g_max.0)
     }
+}
+
+/// A known film's index at each band over its index at the middle band
+/// (where the model's `n2_mid` is taken), real parts; empty for a film of
+/// unknown, constant index or where the index cannot be evaluated.
+fn film_dispersion_ratios(film: &FilmKnowledge, bands: &[Band]) -> Vec<f64> {
+    let FilmKnowledge::Known(disp) = film else {
+        return Vec::new();
+    };
+    let Some(mid) = bands.get(bands.len() / 2) else {
+        return Vec::new();
+    };
+    let n_at = |nm: f64| {
+        disp.index_at(nm)
+            .ok()
+            .map(|n| n.re)
+            .filter(|n| n.is_finite() && *n > 0.0)
+    };
+    let Some(n_mid) = n_at(mid.center_nm) else {
+        return Vec::new();
+    };
+    bands
+        .iter()
+        .map(|b| n_at(b.center_nm).map(|n| n / n_mid))
+        .collect::<Option<Vec<f64>>>()
+        .unwrap_or_default()
 }

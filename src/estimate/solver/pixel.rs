@@ -209,7 +209,7 @@ impl Solver {
                         ..Default::default()
                     }
                 };
-                angle_start(&prep.table, Some(c.a + c.b), Some(c.a - c.b))
+                angle_start(&prep.cosine_table, Some(c.a + c.b), Some(c.a - c.b))
             }
         };
         let q2 = prep.model.q2_mid(theta0);

@@ -1,12 +1,14 @@
-//! Stage 1, the fringe search: the spectrum projected on `A + B·cos(4π g / λ)`
-//! over a grid of optical thicknesses; the local minima of the residual with
-//! the allowed fringe sign are the candidate fringe orders.
+//! Stage 1, the fringe search: the spectrum projected on
+//! `A + B·cos(4π g·ρ_k / λ_k)` over a grid of optical thicknesses `g` (at
+//! the middle band; `ρ_k` the film's index at band k over its index there,
+//! 1 for a film of unknown, constant index); the local minima of the
+//! residual with the allowed fringe sign are the candidate fringe orders.
 
 use super::{Scratch, Solver, MAX_BANDS};
 use crate::optics::band::Band;
 use std::f64::consts::PI;
 
-/// The fringe-search basis: `cos(4π g_j / λ_k)` for a grid of optical
+/// The fringe-search basis: `cos(4π g_j ρ_k / λ_k)` for a grid of optical
 /// thicknesses, with the inverse normal equations of `[1, cos]` per grid
 /// point for a complete spectrum.
 #[derive(Clone, Debug)]
@@ -29,9 +31,16 @@ impl FringeBasis {
     /// Grid step (nm of optical thickness) and grid points for `bands` up
     /// to `g_max`, computed in f64 so a nonsense band set cannot overflow.
     fn grid(bands: &[Band], g_max: f64) -> (f64, f64) {
+        Self::grid_with(bands, &[], g_max)
+    }
+
+    /// [`FringeBasis::grid`] with the bands' relative indices `rho`
+    /// (empty: all 1).
+    fn grid_with(bands: &[Band], rho: &[f64], g_max: f64) -> (f64, f64) {
         let lam_min = bands
             .iter()
-            .map(|b| b.center_nm)
+            .enumerate()
+            .map(|(k, b)| b.center_nm / rho.get(k).copied().unwrap_or(1.0).max(1e-3))
             .fold(f64::INFINITY, f64::min);
         // Phase step at the shortest wavelength ≤ 0.35 rad: the residual's
         // minimum is never missed between grid points.
@@ -46,9 +55,13 @@ impl FringeBasis {
         n * (bands.len() as f64 * 4.0 + 32.0)
     }
 
-    pub(super) fn new(bands: &[Band], g_max: f64) -> FringeBasis {
+    /// The basis for `bands` up to `g_max`; `rho` is each band's film
+    /// index over the middle band's (a dispersive film's fringes are
+    /// chirped: past a few µm a constant index puts them radians off at
+    /// the band set's ends), empty for a film of constant index.
+    pub(super) fn new(bands: &[Band], rho: &[f64], g_max: f64) -> FringeBasis {
         let nb = bands.len();
-        let (step, n) = Self::grid(bands, g_max);
+        let (step, n) = Self::grid_with(bands, rho, g_max);
         let n = n as usize;
         let mut g = Vec::with_capacity(n);
         let mut basis = Vec::with_capacity(n * nb);
@@ -56,8 +69,9 @@ impl FringeBasis {
         for j in 0..n {
             let gj = j as f64 * step;
             let (mut s1, mut s2) = (0.0, 0.0);
-            for b in bands {
-                let c = (4.0 * PI * gj / b.center_nm).cos();
+            for (k, b) in bands.iter().enumerate() {
+                let r = rho.get(k).copied().unwrap_or(1.0);
+                let c = (4.0 * PI * gj * r / b.center_nm).cos();
                 basis.push(c as f32);
                 s1 += c;
                 s2 += c * c;
