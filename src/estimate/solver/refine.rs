@@ -5,6 +5,7 @@
 //! linearised σ near zero thickness.
 
 use super::{Fit, Scratch, Solver};
+use crate::estimate::fastmath::sin_cos;
 use crate::estimate::model::{FilmModel, ModelOut};
 
 /// The smallest angle a free-angle refinement starts from (rad, ~3°).
@@ -94,7 +95,7 @@ impl Solver {
                 } else {
                     (gd / (a * (1.0 + mu) + 1e-12), 0.0)
                 };
-                let (nd, nt) = valley.step(d, th, sd, st, max_dd, free_theta);
+                let (nd, nt) = valley.step(&jac, d, th, sd, st, max_dd, free_theta);
                 let nd = nd.clamp(d_lo, d_hi);
                 let nt = nt.clamp(lo, hi);
                 eval(nd, nt, &mut s.trial);
@@ -200,6 +201,9 @@ struct ValleyJacobian {
     dd_ds: f64,
     /// `∂θ/∂s`.
     dth_ds: f64,
+    /// `s = sin²θ` and `g` at the point.
+    s0: f64,
+    g0: f64,
 }
 
 impl ValleyJacobian {
@@ -275,27 +279,42 @@ impl Valley {
                 dd_dg: 1.0,
                 dd_ds: 0.0,
                 dth_ds: 0.0,
+                s0: 0.0,
+                g0: d,
             };
         }
-        let (sn, cs) = th.max(MIN_STEP_THETA).sin_cos();
-        let q = self.q(sn * sn);
+        let (sn, cs) = sin_cos(th.max(MIN_STEP_THETA));
+        let s0 = sn * sn;
+        let q = self.q(s0);
         ValleyJacobian {
             dd_dg: 1.0 / q,
             dd_ds: d * self.n1_sq / (2.0 * q * q),
             dth_ds: 1.0 / (2.0 * sn * cs).max(1e-12),
+            s0,
+            g0: d * q,
         }
     }
 
     /// The point `(d, θ)` a step `(Δg, Δs)` leads to (with the angle known,
     /// `Δd`), the step shortened along its direction so that `d` moves at
     /// most `max_dd` and θ at most 0.1 rad.
-    fn step(&self, d: f64, th: f64, sd: f64, st: f64, max_dd: f64, free_theta: bool) -> (f64, f64) {
+    /// `at` is the point's [`Valley::jacobian`].
+    #[allow(clippy::too_many_arguments)]
+    fn step(
+        &self,
+        at: &ValleyJacobian,
+        d: f64,
+        th: f64,
+        sd: f64,
+        st: f64,
+        max_dd: f64,
+        free_theta: bool,
+    ) -> (f64, f64) {
         if !free_theta {
             return (d + sd.clamp(-max_dd, max_dd), th);
         }
         let th = th.max(MIN_STEP_THETA);
-        let s0 = th.sin().powi(2);
-        let g0 = d * self.q(s0);
+        let (s0, g0) = (at.s0, at.g0);
         let at = |t: f64| {
             let s = (s0 + t * st).clamp(MIN_STEP_THETA * MIN_STEP_THETA, 1.0);
             ((g0 + t * sd) / self.q(s), s.sqrt().asin())
