@@ -201,8 +201,10 @@ struct ValleyJacobian {
     dd_ds: f64,
     /// `∂θ/∂s`.
     dth_ds: f64,
-    /// `s = sin²θ` and `g` at the point.
+    /// `s = sin²θ`, `sin θ`, `cos θ` and `g` at the point.
     s0: f64,
+    sn: f64,
+    cs: f64,
     g0: f64,
 }
 
@@ -280,6 +282,8 @@ impl Valley {
                 dd_ds: 0.0,
                 dth_ds: 0.0,
                 s0: 0.0,
+                sn: 0.0,
+                cs: 1.0,
                 g0: d,
             };
         }
@@ -291,6 +295,8 @@ impl Valley {
             dd_ds: d * self.n1_sq / (2.0 * q * q),
             dth_ds: 1.0 / (2.0 * sn * cs).max(1e-12),
             s0,
+            sn,
+            cs,
             g0: d * q,
         }
     }
@@ -314,10 +320,21 @@ impl Valley {
             return (d + sd.clamp(-max_dd, max_dd), th);
         }
         let th = th.max(MIN_STEP_THETA);
-        let (s0, g0) = (at.s0, at.g0);
+        let (s0, g0, sn0, cs0) = (at.s0, at.g0, at.sn, at.cs);
         let at = |t: f64| {
             let s = (s0 + t * st).clamp(MIN_STEP_THETA * MIN_STEP_THETA, 1.0);
-            ((g0 + t * sd) / self.q(s), s.sqrt().asin())
+            // θ from the angle moved: sin(θ − θ0) = sin θ cos θ0 − cos θ sin θ0,
+            // its arcsine by series for the usual small move (the next
+            // term at 0.2 rad is 1e-8 rad; the pair evaluated is (d, θ)
+            // either way), the library's beyond.
+            let x = s.sqrt() * cs0 - (1.0 - s).max(0.0).sqrt() * sn0;
+            let dth = if x.abs() < 0.2 {
+                let x2 = x * x;
+                x * (1.0 + x2 * (1.0 / 6.0 + x2 * (3.0 / 40.0 + x2 * (5.0 / 112.0))))
+            } else {
+                x.clamp(-1.0, 1.0).asin()
+            };
+            ((g0 + t * sd) / self.q(s), th + dth)
         };
         let (nd, nt) = at(1.0);
         let over = ((nd - d).abs() / max_dd).max((nt - th).abs() / 0.1);
