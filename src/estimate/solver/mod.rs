@@ -442,7 +442,8 @@ impl Solver {
         // Sized before allocating: wavelengths in the wrong unit (a header
         // giving 0.001–0.031 "nm") or all bands at one centre would ask for
         // gigabytes.
-        let need = FringeBasis::bytes_needed(bands, g_search);
+        let rho = film_dispersion_ratios(&scene.film, bands);
+        let need = FringeBasis::bytes_needed(bands, &rho, g_search);
         if need.is_nan() || need > search::BASIS_BUDGET_BYTES as f64 {
             let (lo, hi) = bands.iter().fold((f64::INFINITY, 0.0f64), |(a, b), x| {
                 (a.min(x.center_nm), b.max(x.center_nm))
@@ -455,7 +456,7 @@ impl Solver {
                 search::BASIS_BUDGET_BYTES >> 20
             )));
         }
-        let basis = FringeBasis::new(bands, &film_dispersion_ratios(&scene.film, bands), g_search);
+        let basis = FringeBasis::new(bands, &rho, g_search);
         let mut solver = Solver {
             scene: scene.clone(),
             bands: bands.to_vec(),

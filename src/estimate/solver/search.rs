@@ -28,21 +28,16 @@ pub(super) struct FringeBasis {
 pub const BASIS_BUDGET_BYTES: usize = 64 << 20;
 
 impl FringeBasis {
-    /// Grid step (nm of optical thickness) and grid points for `bands` up
-    /// to `g_max`, computed in f64 so a nonsense band set cannot overflow.
-    fn grid(bands: &[Band], g_max: f64) -> (f64, f64) {
-        Self::grid_with(bands, &[], g_max)
-    }
-
-    /// [`FringeBasis::grid`] with the bands' relative indices `rho`
-    /// (empty: all 1).
-    fn grid_with(bands: &[Band], rho: &[f64], g_max: f64) -> (f64, f64) {
+    /// Grid step (nm of optical thickness) and grid points for `bands`
+    /// with relative indices `rho` (empty: all 1) up to `g_max`, computed
+    /// in f64 so a nonsense band set cannot overflow.
+    fn grid(bands: &[Band], rho: &[f64], g_max: f64) -> (f64, f64) {
         let lam_min = bands
             .iter()
             .enumerate()
             .map(|(k, b)| b.center_nm / rho.get(k).copied().unwrap_or(1.0).max(1e-3))
             .fold(f64::INFINITY, f64::min);
-        // Phase step at the shortest wavelength ≤ 0.35 rad: the residual's
+        // Phase step at the fastest band (smallest λ/ρ) ≤ 0.35 rad: the residual's
         // minimum is never missed between grid points.
         let step = 0.35 * lam_min / (4.0 * PI);
         (step, (g_max / step).ceil() + 1.0)
@@ -50,8 +45,8 @@ impl FringeBasis {
 
     /// Bytes the basis for `bands` up to `g_max` would take (f64: may be
     /// far beyond memory, or NaN for nonsense input).
-    pub(super) fn bytes_needed(bands: &[Band], g_max: f64) -> f64 {
-        let (_, n) = Self::grid(bands, g_max);
+    pub(super) fn bytes_needed(bands: &[Band], rho: &[f64], g_max: f64) -> f64 {
+        let (_, n) = Self::grid(bands, rho, g_max);
         n * (bands.len() as f64 * 4.0 + 32.0)
     }
 
@@ -61,7 +56,7 @@ impl FringeBasis {
     /// the band set's ends), empty for a film of constant index.
     pub(super) fn new(bands: &[Band], rho: &[f64], g_max: f64) -> FringeBasis {
         let nb = bands.len();
-        let (step, n) = Self::grid_with(bands, rho, g_max);
+        let (step, n) = Self::grid(bands, rho, g_max);
         let n = n as usize;
         let mut g = Vec::with_capacity(n);
         let mut basis = Vec::with_capacity(n * nb);
