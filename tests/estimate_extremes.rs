@@ -227,12 +227,49 @@ fn a_uniform_noise_judges_table_fits_as_the_per_band_path_does() {
     }
 }
 
-/// Silicon nitride 1–3 µm thick on fused silica, unpolarised, 61 bands at
-/// 5 nm, the angle free (0–80°) and rows `width` × `height` from `theta0`°
-/// down in 2° steps, noise σ `noise` from `seed`.
-fn thick_scene(noise: f64, seed: u64, width: usize, height: usize, theta0: f64) -> Scene {
-    let text = format!(
-        r#"
+/// Silicon nitride on fused silica, unpolarised, 400–700 nm, the angle
+/// free (0–80°): `width` × `height` pixels, thickness `d` across, angles
+/// `rows` (first, step) down, bands `step_nm` apart, noise σ `noise` from
+/// `seed`.
+struct ThickImage {
+    step_nm: u32,
+    width: usize,
+    height: usize,
+    d: [f64; 2],
+    rows: [f64; 2],
+    noise: f64,
+    seed: u64,
+}
+
+impl Default for ThickImage {
+    /// 61 bands at 5 nm, 1–3 µm, from normal incidence in 2° steps, no
+    /// noise.
+    fn default() -> Self {
+        ThickImage {
+            step_nm: 5,
+            width: 21,
+            height: 8,
+            d: [1000.0, 3000.0],
+            rows: [0.0, 2.0],
+            noise: 0.0,
+            seed: 1,
+        }
+    }
+}
+
+impl ThickImage {
+    fn scene(&self) -> Scene {
+        let ThickImage {
+            step_nm,
+            width,
+            height,
+            d: [d0, d1],
+            rows: [t0, dt],
+            noise,
+            seed,
+        } = self;
+        let text = format!(
+            r#"
 [ambient]
 n = 1.0
 [substrate]
@@ -246,19 +283,20 @@ polarization = "u"
 [bands]
 start_nm = 400
 stop_nm = 700
-step_nm = 5
+step_nm = {step_nm}
 fwhm_nm = 0
 [truth]
 width = {width}
 height = {height}
 film_material = "Si3N4-Luke"
-thickness_nm = {{ linear_x = [1000.0, 3000.0] }}
-angle_deg = {{ rows = [{theta0}, 2.0] }}
+thickness_nm = {{ linear_x = [{d0:.1}, {d1:.1}] }}
+angle_deg = {{ rows = [{t0:.1}, {dt:.1}] }}
 noise_sigma = {noise}
 seed = {seed}
 "#
-    );
-    Scene::from_toml(&text, "<thick>", Path::new(".")).expect("scene parses")
+        );
+        Scene::from_toml(&text, "<thick>", Path::new(".")).expect("scene parses")
+    }
 }
 
 /// A thick dispersive film near normal incidence with the angle free: the
@@ -271,7 +309,7 @@ seed = {seed}
 /// 5 nm bands resolve (d·n2 ≲ 6.5 µm) valid.
 #[test]
 fn a_thick_film_near_normal_incidence_reaches_the_valley_floor() {
-    let s = thick_scene(0.0, 1, 21, 8, 0.0);
+    let s = ThickImage::default().scene();
     let bands = scene_bands(&s).unwrap();
     let r = Renderer::new(&s).unwrap();
     let cube = r.render_cube(&bands).unwrap();
@@ -318,7 +356,14 @@ fn a_thick_film_near_normal_incidence_is_efficient_and_its_sigma_honest() {
     const SIGMA_R: f64 = 0.001;
     let (mut err_sum, mut eff_sum, mut covered, mut valid, mut n) = (0.0, 0.0, 0, 0, 0);
     for seed in 1..=4 {
-        let s = thick_scene(SIGMA_R, seed, 75, 8, 5.0);
+        let s = ThickImage {
+            width: 75,
+            rows: [5.0, 2.0],
+            noise: SIGMA_R,
+            seed,
+            ..ThickImage::default()
+        }
+        .scene();
         let bands = scene_bands(&s).unwrap();
         let r = Renderer::new(&s).unwrap();
         let cube = r.render_cube(&bands).unwrap();
@@ -357,14 +402,7 @@ fn a_thick_film_near_normal_incidence_is_efficient_and_its_sigma_honest() {
                 f64::from(truth.thickness_nm[i]),
                 f64::from(truth.theta_deg[i]).to_radians(),
             );
-            model.eval(d, th, &mut out, true);
-            let (mut a, mut b, mut c) = (0.0, 0.0, 0.0);
-            for k in 0..bands.len() {
-                a += out.dr_dd[k] * out.dr_dd[k];
-                b += out.dr_dd[k] * out.dr_dth[k];
-                c += out.dr_dth[k] * out.dr_dth[k];
-            }
-            eff_sum += 0.798 * SIGMA_R * (c / (a * c - b * b)).sqrt();
+            eff_sum += 0.798 * model.thickness_crb(d, th, SIGMA_R, &mut out).0;
             let err = (f64::from(maps.thickness_nm[i]) - d).abs();
             err_sum += err;
             if err <= 2.0 * f64::from(maps.sigma_thickness_nm[i]) {
@@ -394,32 +432,15 @@ fn a_thick_film_near_normal_incidence_is_efficient_and_its_sigma_honest() {
 #[test]
 fn thick_dispersive_films_at_a_spectrometers_sampling_are_found_with_the_angle_free() {
     use irid::estimate::noise::{NoiseModel, NoiseSource};
-    let text = r#"
-[ambient]
-n = 1.0
-[substrate]
-material = "SiO2-Malitson"
-[film]
-material = "Si3N4-Luke"
-[angle]
-search_deg = [0.0, 80.0]
-[light]
-polarization = "u"
-[bands]
-start_nm = 400
-stop_nm = 700
-step_nm = 1
-fwhm_nm = 0
-[truth]
-width = 8
-height = 2
-film_material = "Si3N4-Luke"
-thickness_nm = { linear_x = [5000.0, 12000.0] }
-angle_deg = { rows = [5.0, 25.0] }
-noise_sigma = 0.0
-seed = 1
-"#;
-    let s = Scene::from_toml(text, "<thick>", Path::new(".")).expect("scene parses");
+    let s = ThickImage {
+        step_nm: 1,
+        width: 8,
+        height: 2,
+        d: [5000.0, 12000.0],
+        rows: [5.0, 25.0],
+        ..ThickImage::default()
+    }
+    .scene();
     let bands = scene_bands(&s).unwrap();
     let r = Renderer::new(&s).unwrap();
     let cube = r.render_cube(&bands).unwrap();

@@ -153,14 +153,7 @@ pub fn crb(scene: &Scene, bands: &[Band], truth: &TruthMaps, sigma_r: f64) -> (f
     for i in 0..truth.thickness_nm.len() {
         let d = f64::from(truth.thickness_nm[i]);
         let th = f64::from(truth.theta_deg[i]).to_radians();
-        model.eval(d, th, &mut out, true);
-        let (mut a, mut b, mut c) = (0.0, 0.0, 0.0);
-        for k in 0..bands.len() {
-            a += out.dr_dd[k] * out.dr_dd[k];
-            b += out.dr_dd[k] * out.dr_dth[k];
-            c += out.dr_dth[k] * out.dr_dth[k];
-        }
-        let unknown = sigma_r * (c / (a * c - b * b)).sqrt();
+        let (unknown, known) = model.thickness_crb(d, th, sigma_r, &mut out);
         // A flat angle direction (θ ≈ 0) leaves d unbounded: cap at the
         // scene's span so one pixel does not swamp the mean.
         s2 += if unknown.is_finite() {
@@ -168,7 +161,7 @@ pub fn crb(scene: &Scene, bands: &[Band], truth: &TruthMaps, sigma_r: f64) -> (f
         } else {
             1e4
         };
-        s1 += sigma_r / a.sqrt();
+        s1 += known;
         n += 1.0;
     }
     (s2 / n, s1 / n)

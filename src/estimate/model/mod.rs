@@ -846,14 +846,6 @@ impl FilmModel {
             let (cs, cp, _) = self.coeffs(n, s, c);
             (cs, cp)
         });
-        let m = Media {
-            n1: n.n1,
-            n2: n.n2,
-            n3: n.n3,
-        };
-        let pol = Polarization::Mixed {
-            s_weight: self.s_weight,
-        };
         let period = n.lambda / (2.0 * self.q2_mid(theta));
         let ws = self.s_weight;
         let (mut mean, mut first) = (0.0, 0.0);
@@ -862,7 +854,7 @@ impl FilmModel {
             let cd = phase.cos();
             let r = match &real {
                 Some((cs, cp)) => ws * cs.eval(cd).0 + (1.0 - ws) * cp.eval(cd).0,
-                None => airy::reflectance(m, period * j as f64 / N as f64, theta, n.lambda, pol),
+                None => self.airy_at(n, period * j as f64 / N as f64, theta),
             };
             mean += r;
             first += r * cd;
@@ -887,21 +879,48 @@ impl FilmModel {
             let lo = ws * cs.eval(-1.0).0 + (1.0 - ws) * cp.eval(-1.0).0;
             (hi, lo)
         } else {
-            let m = Media {
-                n1: n.n1,
-                n2: n.n2,
-                n3: n.n3,
-            };
-            let pol = Polarization::Mixed {
-                s_weight: self.s_weight,
-            };
-            let q2 = self.q2_mid(theta);
-            let half = n.lambda / (2.0 * q2);
+            let half = n.lambda / (2.0 * self.q2_mid(theta));
             (
-                airy::reflectance(m, half, theta, n.lambda, pol),
-                airy::reflectance(m, half / 2.0, theta, n.lambda, pol),
+                self.airy_at(n, half, theta),
+                self.airy_at(n, half / 2.0, theta),
             )
         }
+    }
+
+    /// Node `n`'s reflectance at thickness `d` and angle `theta` from the
+    /// complex Airy sum, in the model's polarisation mix.
+    fn airy_at(&self, n: &Node, d: f64, theta: f64) -> f64 {
+        let m = Media {
+            n1: n.n1,
+            n2: n.n2,
+            n3: n.n3,
+        };
+        let pol = Polarization::Mixed {
+            s_weight: self.s_weight,
+        };
+        airy::reflectance(m, d, theta, n.lambda, pol)
+    }
+
+    /// The Cramér–Rao bound on a pixel's thickness at `(d, theta)` with
+    /// reflectance noise `sigma_r` in every band, `σ_R² (JᵀJ)⁻¹` from the
+    /// model's exact Jacobian: `(angle unknown, angle known)`, nm (the
+    /// first infinite where the angle's direction is flat, at θ = 0).
+    /// `out` is working memory.
+    pub fn thickness_crb(
+        &self,
+        d: f64,
+        theta: f64,
+        sigma_r: f64,
+        out: &mut ModelOut,
+    ) -> (f64, f64) {
+        self.eval(d, theta, out, true);
+        let (mut a, mut b, mut c) = (0.0, 0.0, 0.0);
+        for k in 0..self.n_bands {
+            a += out.dr_dd[k] * out.dr_dd[k];
+            b += out.dr_dd[k] * out.dr_dth[k];
+            c += out.dr_dth[k] * out.dr_dth[k];
+        }
+        (sigma_r * (c / (a * c - b * b)).sqrt(), sigma_r / a.sqrt())
     }
 }
 
