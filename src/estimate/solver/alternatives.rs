@@ -95,13 +95,7 @@ impl Solver {
             (Some(m), true) => m,
             _ => &prep.model,
         };
-        // Fringe signal in χ² thresholds.
-        let signal = {
-            let (h, q) = prep.envelopes_at(best.theta);
-            let c = (h - q).abs();
-            let energy = n_ok as f64 * c * c / (8.0 * sigma * sigma);
-            energy / self.chi2.threshold(n_ok.saturating_sub(2).max(1))
-        };
+        let signal = self.fringe_signal(prep, best.theta, n_ok, sigma);
         let weak = signal < WEAK_FRINGES;
         if !weak && !free {
             // The angle known and the fringes strong: no alternative.
@@ -248,6 +242,34 @@ impl Solver {
             push(&mut n, start, in_range, gate, scratch);
         }
         n
+    }
+
+    /// The fringe signal at angle `theta` in χ² thresholds: the energy of
+    /// the deepest modulation any thickness gives there (`n_ok·c²/8` over
+    /// the noise variance, `c` the envelopes' difference).
+    pub(super) fn fringe_signal(
+        &self,
+        prep: &Prepared,
+        theta: f64,
+        n_ok: usize,
+        sigma: f64,
+    ) -> f64 {
+        let (h, q) = prep.envelopes_at(theta);
+        let c = (h - q).abs();
+        let energy = n_ok as f64 * c * c / (8.0 * sigma * sigma);
+        energy / self.chi2.threshold(n_ok.saturating_sub(2).max(1))
+    }
+
+    /// Whether a local fit's fringes are strong enough that none of the
+    /// alternatives above could pass the χ² test beside it: at or above
+    /// every check's gate that applies to this light.
+    pub(super) fn fringes_exclude_alternatives(&self, signal: f64) -> bool {
+        let gate = if self.scene.polarization.s_weight() < 0.5 {
+            MIRROR_BELOW
+        } else {
+            SUB_FRINGE_BELOW
+        };
+        signal >= gate.max(WEAK_FRINGES)
     }
 
     /// The best start on a grid of optical thickness (`span`, in `step`s)

@@ -151,6 +151,9 @@ pub struct Scratch {
     /// `fast`: the previous pixel's table (angle bits) and grid point,
     /// within the current row.
     hint: Option<(u64, usize)>,
+    /// The previous pixel's valid fit (d, θ) within the current row, the
+    /// fitted path's first start (see `warm_start`).
+    warm: Option<(f64, f64)>,
     /// The thickness of the last pixel's best fit, judged or not (NaN: no
     /// fit was made).
     last_fit_d: f64,
@@ -165,6 +168,14 @@ impl Scratch {
     /// bands, a spectrum beyond the model).
     pub fn fit_thickness(&self) -> &[f64] {
         &self.fits
+    }
+
+    /// After a pixel of a row: its fit as the next pixel's warm start if
+    /// valid, none otherwise.
+    fn note_warm(&mut self, est: &PixelEstimate) {
+        self.warm = est
+            .is_valid()
+            .then(|| (est.thickness_nm, est.theta_deg.to_radians()));
     }
 
     fn ensure(&mut self, n: usize) {
@@ -208,6 +219,9 @@ struct Effort {
     /// After a closed-form start, also refine the best other fringe order
     /// and flag the pixel if it fits as well.
     verify_order: bool,
+    /// Where the closed form does not apply, start from the previous
+    /// pixel's valid fit in the row before searching (see `warm_start`).
+    warm: bool,
 }
 
 impl Effort {
@@ -223,6 +237,7 @@ impl Effort {
                 iters: 25,
                 table: true,
                 verify_order: false,
+                warm: true,
             },
             Mode::Balanced => Effort {
                 closed_form: true,
@@ -231,6 +246,7 @@ impl Effort {
                 iters: 25,
                 table: true,
                 verify_order: false,
+                warm: true,
             },
             Mode::Accurate => Effort {
                 closed_form: true,
@@ -239,6 +255,7 @@ impl Effort {
                 iters: 25,
                 table: true,
                 verify_order: true,
+                warm: false,
             },
         }
     }
@@ -254,6 +271,7 @@ impl Effort {
         iters: 25,
         table: false,
         verify_order: false,
+        warm: false,
     };
 }
 
@@ -287,6 +305,9 @@ struct Fit {
     /// Fitted on the thickness table at `theta` (judged on its
     /// interpolant, within 1e-5 of the fringe amplitude of the model).
     tabled: bool,
+    /// The refinement ran out of iterations still moving (not at a
+    /// minimum).
+    stalled: bool,
 }
 
 /// Everything that depends on the film index.

@@ -7,6 +7,7 @@ use super::closed_form::angle_start;
 use super::refine::{free_angle_sigma, sse};
 use super::search::{Candidate, MAX_CANDIDATES};
 use super::{Fit, Job, Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
+use crate::estimate::model::FilmModel;
 use crate::estimate::noise::FlatNoise;
 use crate::estimate::{PixelEstimate, Reason};
 use std::f64::consts::PI;
@@ -139,41 +140,15 @@ impl Solver {
                         f.integrated = true;
                         f
                     };
-                    // The neighbouring orders on the lattice: the same fringe
-                    // phase at the band-range centre, one fringe more or
-                    // fewer. The better one is refined; if it fits as well,
-                    // the order is ambiguous.
-                    let q2 = prep.model.q2_mid(fit.theta);
-                    let g = fit.d * q2;
-                    let dg = 0.5 / self.table.sigma_center;
-                    let mut alt = None;
-                    let mut alt_sse = f64::INFINITY;
-                    for ga in [g - dg, g + dg] {
-                        if ga < 0.0 || ga / q2 > self.d_max {
-                            continue;
-                        }
-                        model.eval(ga / q2, fit.theta, &mut scratch.trial, false);
-                        let e = sse(&scratch.spectrum, &scratch.weight, &scratch.trial.r);
-                        if e < alt_sse {
-                            alt_sse = e;
-                            alt = Some(ga / q2);
-                        }
-                    }
-                    let mut fits = [fit, fit];
-                    let mut n_fits = 1;
-                    if let Some(d_alt) = alt {
-                        // Two steps tell a clearly worse order; only a close
-                        // one is refined to convergence.
-                        let free = theta_known.is_none();
-                        let mut f = self.refine(model, d_alt, fit.theta, free, 2, scratch);
-                        let var = fit.sse / (n_ok.saturating_sub(2).max(1)) as f64;
-                        if f.sse < fit.sse + 25.0 * var {
-                            f = self.refine(model, f.d, f.theta, free, effort.iters, scratch);
-                        }
-                        f.integrated = fit.integrated;
-                        fits[1] = f;
-                        n_fits = 2;
-                    }
+                    let (fits, n_fits) = self.with_neighbour_order(
+                        prep,
+                        model,
+                        fit,
+                        theta_known,
+                        n_ok,
+                        effort.iters,
+                        scratch,
+                    );
                     return self.finish(
                         &fits[..n_fits],
                         n_ok,
@@ -185,6 +160,31 @@ impl Solver {
                     );
                 }
             }
+        }
+        // The previous pixel's fit in the row: the start itself where it
+        // is trusted (`warm_accept`), else one more fit beside the
+        // search's.
+        let mut warm_fit = None;
+        if let Some((d0, th0)) = scratch.warm.filter(|_| judging && job_start.is_none()) {
+            let th0 = theta_known.unwrap_or(th0);
+            let free = theta_known.is_none();
+            let fit = self.refine(&prep.model, d0, th0, free, effort.iters, scratch);
+            if effort.warm && pre.is_none() {
+                if let Some((fits, n_fits)) =
+                    self.warm_accept(prep, fit, theta_known, n_ok, noise, effort, scratch)
+                {
+                    return self.finish(
+                        &fits[..n_fits],
+                        n_ok,
+                        theta_known,
+                        noise,
+                        prep,
+                        lam_min,
+                        scratch,
+                    );
+                }
+            }
+            warm_fit = Some(fit);
         }
         let mut cands = [Candidate::default(); MAX_CANDIDATES];
         let n_cands = match pre {
@@ -247,6 +247,19 @@ impl Solver {
             );
             n_fits += 1;
         }
+        if let Some(f) = warm_fit {
+            // The neighbour's basin competes with the search's: a thin
+            // film's search starts can lead to a shallower basin of the
+            // (d, θ) valley, and a weak one's to a twin.
+            if n_fits < fits.len() {
+                fits[n_fits] = f;
+                n_fits += 1;
+            } else if let Some(worst) = fits.iter_mut().max_by(|a, b| a.sse.total_cmp(&b.sse)) {
+                if f.sse < worst.sse {
+                    *worst = f;
+                }
+            }
+        }
         if effort.verify_order {
             // As on the closed-form path: fits whose fringes the passband
             // affects are redone with the integrated model.
@@ -267,6 +280,105 @@ impl Solver {
             lam_min,
             scratch,
         )
+    }
+
+    /// Whether the fit refined from the previous pixel's valid fit in the
+    /// row (where the closed form does not apply: a film below two
+    /// extrema, the angle free) stands without the fringe search: a film
+    /// changes little from one pixel to the next, so the refinement starts
+    /// next to its minimum. It stands only where it converged, its fringes
+    /// are too strong for another basin to pass beside it, and it passes
+    /// the χ² test against the noise model; its neighbouring orders are
+    /// then weighed against it as after a closed form (an order as good
+    /// flags the pixel ambiguous). Otherwise (an edge, a jump of order, a
+    /// flagged neighbour, weak fringes) the pixel takes the fringe search.
+    /// `finish` runs the same alternative checks on either path.
+    #[allow(clippy::too_many_arguments)]
+    fn warm_accept(
+        &self,
+        prep: &Prepared,
+        fit: Fit,
+        theta_known: Option<f64>,
+        n_ok: usize,
+        noise: Option<f64>,
+        effort: super::Effort,
+        scratch: &mut Scratch,
+    ) -> Option<([Fit; 2], usize)> {
+        let sigma = noise?;
+        if fit.stalled || !(fit.sse.is_finite() && fit.d.is_finite() && fit.theta.is_finite()) {
+            return None;
+        }
+        // Only where the fringes are strong enough that no other basin
+        // passes the χ² test beside a local fit (weak fringes leave flat
+        // valleys and twin basins a local refinement cannot tell apart: a
+        // film index-matched to its ambient read 75 nm for 100 nm from
+        // its neighbour's start, valid).
+        if !self.fringes_exclude_alternatives(self.fringe_signal(prep, fit.theta, n_ok, sigma)) {
+            return None;
+        }
+        // The refinement leaves the model at its fit in `cur`.
+        let cur = std::mem::take(&mut scratch.cur);
+        let (chi2, _) = self.chi2_and_noise_var(scratch, &cur.r);
+        scratch.cur = cur;
+        if !self.fit_passes(chi2, n_ok, if theta_known.is_none() { 2 } else { 1 }) {
+            return None;
+        }
+        Some(self.with_neighbour_order(
+            prep,
+            &prep.model,
+            fit,
+            theta_known,
+            n_ok,
+            effort.iters,
+            scratch,
+        ))
+    }
+
+    /// `fit` and its neighbouring orders on the lattice: the same fringe
+    /// phase at the band-range centre, one fringe more or fewer. The better
+    /// one is refined (two steps tell a clearly worse order; only a close
+    /// one is refined to convergence), for `finish` to flag the pixel
+    /// ambiguous if it fits as well.
+    #[allow(clippy::too_many_arguments)]
+    fn with_neighbour_order(
+        &self,
+        prep: &Prepared,
+        model: &FilmModel,
+        fit: Fit,
+        theta_known: Option<f64>,
+        n_ok: usize,
+        iters: usize,
+        scratch: &mut Scratch,
+    ) -> ([Fit; 2], usize) {
+        let q2 = prep.model.q2_mid(fit.theta);
+        let g = fit.d * q2;
+        let dg = 0.5 / self.table.sigma_center;
+        let mut alt = None;
+        let mut alt_sse = f64::INFINITY;
+        for ga in [g - dg, g + dg] {
+            if ga < 0.0 || ga / q2 > self.d_max {
+                continue;
+            }
+            model.eval(ga / q2, fit.theta, &mut scratch.trial, false);
+            let e = sse(&scratch.spectrum, &scratch.weight, &scratch.trial.r);
+            if e < alt_sse {
+                alt_sse = e;
+                alt = Some(ga / q2);
+            }
+        }
+        let mut fits = [fit, fit];
+        let Some(d_alt) = alt else {
+            return (fits, 1);
+        };
+        let free = theta_known.is_none();
+        let mut f = self.refine(model, d_alt, fit.theta, free, 2, scratch);
+        let var = fit.sse / (n_ok.saturating_sub(2).max(1)) as f64;
+        if f.sse < fit.sse + 25.0 * var {
+            f = self.refine(model, f.d, f.theta, free, iters, scratch);
+        }
+        f.integrated = fit.integrated;
+        fits[1] = f;
+        (fits, 2)
     }
 
     /// From refined fits to an estimate: best fit, covariance, flags.

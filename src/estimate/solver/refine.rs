@@ -59,6 +59,7 @@ impl Solver {
         // Never jump more than a quarter fringe in one step.
         let max_dd = 0.25 * 400.0 / (2.0 * model.n2_mid());
         let valley = Valley::new(model);
+        let mut stalled = true;
         for _ in 0..iters {
             // With the angle free the steps are taken in (g, s): the
             // optical thickness g = d·n2·cos θ2 and s = sin²θ. The fringes
@@ -117,6 +118,7 @@ impl Solver {
                 mu = (mu * 10.0).max(1e-3);
             }
             if !accepted {
+                stalled = false;
                 break;
             }
         }
@@ -136,6 +138,7 @@ impl Solver {
             jtj: [a, b, c],
             integrated: false,
             tabled: false,
+            stalled: stalled && iters > 0,
         }
     }
 

@@ -35,6 +35,7 @@ impl Solver {
         // Each row starts afresh: a row's result never depends on which
         // thread solved which row before it.
         scratch.hint = None;
+        scratch.warm = None;
         let mut pixel = std::mem::take(&mut scratch.pixel);
         pixel.resize(cube.bands.len(), 0.0);
         let mut done = 0;
@@ -57,6 +58,7 @@ impl Solver {
             cube.spectrum_into(x, y, &mut pixel);
             scratch.last_fit_d = f64::NAN;
             *o = self.solve_pixel(&pixel, self.scene.angle.known_at(x, y), scratch);
+            scratch.note_warm(o);
             fits.push(if o.is_valid() {
                 o.thickness_nm
             } else {
@@ -74,6 +76,7 @@ impl Solver {
             }
         }
         scratch.pixel = pixel;
+        scratch.warm = None;
         // Every path (`irid fit`, the live runner, the line) widens alike.
         self.widen_for_scale(cube, y, out, scratch);
     }
@@ -205,6 +208,7 @@ impl Solver {
                         self.solve_pixel_with(pixel, theta_known, scratch, effort, None)
                     }
                 };
+                scratch.note_warm(&out[x]);
             }
             x0 += m;
         }

@@ -1070,6 +1070,7 @@ impl Solver {
                         jtj: [a, 0.0, 0.0],
                         integrated: false,
                         tabled: true,
+                        stalled: false,
                     };
                     let out = self.finish(&[fit], n_ok, Some(theta), noise, prep, lam_min, scratch);
                     if out.0.is_valid() {
@@ -1169,6 +1170,7 @@ impl Solver {
             jtj: [a, 0.0, 0.0],
             integrated: false,
             tabled: true,
+            stalled: false,
         }
     }
 }
