@@ -290,7 +290,8 @@ impl Solver {
     /// are too strong for another basin to pass beside it, and it passes
     /// the χ² test against the noise model; its neighbouring orders are
     /// then weighed against it as after a closed form (an order as good
-    /// flags the pixel ambiguous). Otherwise (an edge, a jump of order, a
+    /// flags the pixel ambiguous), except in `fast`, which weighs one fit
+    /// on its search path too. Otherwise (an edge, a jump of order, a
     /// flagged neighbour, weak fringes) the pixel takes the fringe search.
     /// `finish` runs the same alternative checks on either path.
     #[allow(clippy::too_many_arguments)]
@@ -322,6 +323,10 @@ impl Solver {
         scratch.cur = cur;
         if !self.fit_passes(chi2, n_ok, if theta_known.is_none() { 2 } else { 1 }) {
             return None;
+        }
+        if effort.n_refine < 2 {
+            // `fast` weighs one fit, as on its search path.
+            return Some(([fit, fit], 1));
         }
         Some(self.with_neighbour_order(
             prep,
