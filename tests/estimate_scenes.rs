@@ -679,6 +679,10 @@ fn a_wide_thickness_range_keeps_orders_and_honest_sigma_in_every_mode() {
 #[test]
 fn fast_rows_agree_with_the_per_pixel_fast_path() {
     // The band-major row path must compute what the per-pixel path does.
+    // Where its closed form is found wanting, the row path refines from
+    // the previous pixel's fit first (a lone pixel has none and refines
+    // from the closed form): both converge to the same minimum, to the
+    // refinement's tolerance (5e-3 nm, under a fiftieth of σ here).
     let s = Scene::paper_cylinder();
     let bands = scene_bands(&s).unwrap();
     let cube = Renderer::new(&s).unwrap().render_cube(&bands).unwrap();
@@ -687,7 +691,7 @@ fn fast_rows_agree_with_the_per_pixel_fast_path() {
     let mut scratch = irid::estimate::solver::Scratch::default();
     let mut row = vec![irid::estimate::PixelEstimate::invalid(Reason::Masked); cube.width];
     let mut spec = vec![0.0; bands.len()];
-    let (mut same, mut total) = (0, 0);
+    let (mut same, mut valid, mut total) = (0, 0, 0);
     for y in 0..cube.height {
         solver.solve_row(&cube, y, &mut row, &mut scratch);
         for (x, r) in row.iter().enumerate() {
@@ -697,22 +701,27 @@ fn fast_rows_agree_with_the_per_pixel_fast_path() {
             assert_eq!(r.is_valid(), p.is_valid(), "({x}, {y})");
             if !r.is_valid() {
                 assert_eq!(r.reason, p.reason, "({x}, {y})");
-                same += 1;
                 continue;
             }
-            if (r.thickness_nm - p.thickness_nm).abs() < 1e-9 {
-                same += 1;
-            } else {
-                // Only where both paths are legitimate closed forms of the
-                // same data: never more than a fraction of σ apart.
-                assert!(
-                    (r.thickness_nm - p.thickness_nm).abs() < r.sigma_thickness_nm,
-                    "({x}, {y}): {r:?} vs {p:?}"
-                );
-            }
+            valid += 1;
+            let dd = (r.thickness_nm - p.thickness_nm).abs();
+            same += usize::from(dd < 1e-9);
+            assert!(
+                dd < 0.05 * r.sigma_thickness_nm,
+                "({x}, {y}): {r:?} vs {p:?}"
+            );
+            assert!(
+                (r.sigma_thickness_nm - p.sigma_thickness_nm).abs() < 0.05 * r.sigma_thickness_nm,
+                "({x}, {y}): {r:?} vs {p:?}"
+            );
         }
     }
-    assert!(same as f64 > 0.99 * total as f64, "{same} of {total}");
+    eprintln!("{same} of {valid} valid pixels identical, {total} pixels");
+    // Not passed by flagging everything.
+    assert!(
+        valid as f64 > 0.95 * total as f64,
+        "{valid} of {total} valid"
+    );
 }
 
 #[test]

@@ -85,6 +85,34 @@ impl Solver {
                 return self.solve_table(prep, table, tt, t, n_ok, noise, effort, lam_min, scratch);
             }
         }
+        // `fast`'s closed form, found wanting by the caller: the previous
+        // pixel's fit first, where it is trusted.
+        let mut warm_fit = None;
+        if job_start.is_some() && effort.warm {
+            match self.try_warm(
+                prep,
+                theta_known,
+                n_ok,
+                noise,
+                effort,
+                pre.is_none(),
+                scratch,
+            ) {
+                Ok(fits) => {
+                    let (fits, n_fits) = fits;
+                    return self.finish(
+                        &fits[..n_fits],
+                        n_ok,
+                        theta_known,
+                        noise,
+                        prep,
+                        lam_min,
+                        scratch,
+                    );
+                }
+                Err(f) => warm_fit = f,
+            }
+        }
         if effort.closed_form && n_ok == nb {
             // The closed form: given by the caller (who found it wanting),
             // or found here.
@@ -163,16 +191,20 @@ impl Solver {
         }
         // The previous pixel's fit in the row: the start itself where it
         // is trusted (`warm_accept`), else one more fit beside the
-        // search's.
-        let mut warm_fit = None;
-        if let Some((d0, th0)) = scratch.warm.filter(|_| judging && job_start.is_none()) {
-            let th0 = theta_known.unwrap_or(th0);
-            let free = theta_known.is_none();
-            let fit = self.refine(&prep.model, d0, th0, free, effort.iters, scratch);
-            if effort.warm && pre.is_none() {
-                if let Some((fits, n_fits)) =
-                    self.warm_accept(prep, fit, theta_known, n_ok, noise, effort, scratch)
-                {
+        // search's (tried already above where the caller gave a start).
+        let mut warm_fit = warm_fit;
+        if warm_fit.is_none() && job_start.is_none() {
+            match self.try_warm(
+                prep,
+                theta_known,
+                n_ok,
+                noise,
+                effort,
+                pre.is_none(),
+                scratch,
+            ) {
+                Ok(fits) => {
+                    let (fits, n_fits) = fits;
                     return self.finish(
                         &fits[..n_fits],
                         n_ok,
@@ -183,8 +215,8 @@ impl Solver {
                         scratch,
                     );
                 }
+                Err(f) => warm_fit = f,
             }
-            warm_fit = Some(fit);
         }
         let mut cands = [Candidate::default(); MAX_CANDIDATES];
         let n_cands = match pre {
@@ -280,6 +312,39 @@ impl Solver {
             lam_min,
             scratch,
         )
+    }
+
+    /// The previous pixel's fit in the row (`scratch.warm`), refined:
+    /// `Ok` with the fits to finish where it stands on its own
+    /// ([`Solver::warm_accept`], only if `alone` and the effort allows),
+    /// else `Err` with the refined fit (none without a judged warm start)
+    /// to weigh beside the search's.
+    #[allow(clippy::too_many_arguments, clippy::type_complexity)]
+    fn try_warm(
+        &self,
+        prep: &Prepared,
+        theta_known: Option<f64>,
+        n_ok: usize,
+        noise: Option<f64>,
+        effort: super::Effort,
+        alone: bool,
+        scratch: &mut Scratch,
+    ) -> Result<([Fit; 2], usize), Option<Fit>> {
+        let judging = noise.is_some() && self.judging();
+        let Some((d0, th0)) = scratch.warm.filter(|_| judging) else {
+            return Err(None);
+        };
+        let th0 = theta_known.unwrap_or(th0);
+        let free = theta_known.is_none();
+        let fit = self.refine(&prep.model, d0, th0, free, effort.iters, scratch);
+        if effort.warm && alone {
+            if let Some(fits) =
+                self.warm_accept(prep, fit, theta_known, n_ok, noise, effort, scratch)
+            {
+                return Ok(fits);
+            }
+        }
+        Err(Some(fit))
     }
 
     /// Whether the fit refined from the previous pixel's valid fit in the
