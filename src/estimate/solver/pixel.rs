@@ -192,7 +192,6 @@ impl Solver {
         // The previous pixel's fit in the row: the start itself where it
         // is trusted (`warm_accept`), else one more fit beside the
         // search's (tried already above where the caller gave a start).
-        let mut warm_fit = warm_fit;
         if warm_fit.is_none() && job_start.is_none() {
             match self.try_warm(
                 prep,
