@@ -99,6 +99,12 @@ impl Solver {
                 let (nd, nt) = valley.step(&jac, d, th, sd, st, max_dd, free_theta);
                 let nd = nd.clamp(d_lo, d_hi);
                 let nt = nt.clamp(lo, hi);
+                if mu <= 1e-3 && (nd - d).abs() < 5e-3 && (nt - th).abs() < 2e-5 {
+                    // An undamped step already below the convergence
+                    // tolerance: the fit stays where it is, sparing the
+                    // evaluation that would only confirm it.
+                    break;
+                }
                 eval(nd, nt, &mut s.trial);
                 let new_sse = sse(&s.spectrum, &s.weight, &s.trial.r);
                 if new_sse <= cur_sse {
