@@ -118,6 +118,18 @@ pub(crate) fn marker<DB: DrawingBackend>(
     let e = |e: DrawingAreaErrorKind<DB::ErrorType>| e.to_string();
     let (x, y) = at;
     match mode {
+        // plotters fills its triangle marker whatever the style: a hollow
+        // one (the angle estimated) is drawn as a closed outline.
+        "fast" if !style.filled => {
+            let (h, w) = (7, 6);
+            let pts = vec![
+                (x, y - h),
+                (x - w, y + h / 2),
+                (x + w, y + h / 2),
+                (x, y - h),
+            ];
+            root.draw(&PathElement::new(pts, style)).map_err(e)
+        }
         "fast" => root.draw(&TriangleMarker::new((x, y), 7, style)).map_err(e),
         "accurate" => root
             .draw(&Rectangle::new([(x - 5, y - 5), (x + 5, y + 5)], style))
