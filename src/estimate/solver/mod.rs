@@ -152,7 +152,7 @@ pub struct Scratch {
     /// within the current row.
     hint: Option<(u64, usize)>,
     /// The previous pixel's valid fit (d, θ) within the current row, the
-    /// fitted path's first start (see `warm_start`).
+    /// fitted path's first start (see `Solver::try_warm`).
     warm: Option<(f64, f64)>,
     /// The thickness of the last pixel's best fit, judged or not (NaN: no
     /// fit was made).
@@ -220,7 +220,7 @@ struct Effort {
     /// and flag the pixel if it fits as well.
     verify_order: bool,
     /// Where the closed form does not apply, start from the previous
-    /// pixel's valid fit in the row before searching (see `warm_start`).
+    /// pixel's valid fit in the row before searching (see `Solver::try_warm`).
     warm: bool,
 }
 

@@ -89,27 +89,18 @@ impl Solver {
         // pixel's fit first, where it is trusted.
         let mut warm_fit = None;
         if job_start.is_some() && effort.warm {
-            match self.try_warm(
+            let alone = pre.is_none();
+            match self.warm_solve(
                 prep,
                 theta_known,
                 n_ok,
                 noise,
                 effort,
-                pre.is_none(),
+                alone,
+                lam_min,
                 scratch,
             ) {
-                Ok(fits) => {
-                    let (fits, n_fits) = fits;
-                    return self.finish(
-                        &fits[..n_fits],
-                        n_ok,
-                        theta_known,
-                        noise,
-                        prep,
-                        lam_min,
-                        scratch,
-                    );
-                }
+                Ok(out) => return out,
                 Err(f) => warm_fit = f,
             }
         }
@@ -193,27 +184,18 @@ impl Solver {
         // is trusted (`warm_accept`), else one more fit beside the
         // search's (tried already above where the caller gave a start).
         if warm_fit.is_none() && job_start.is_none() {
-            match self.try_warm(
+            let alone = pre.is_none();
+            match self.warm_solve(
                 prep,
                 theta_known,
                 n_ok,
                 noise,
                 effort,
-                pre.is_none(),
+                alone,
+                lam_min,
                 scratch,
             ) {
-                Ok(fits) => {
-                    let (fits, n_fits) = fits;
-                    return self.finish(
-                        &fits[..n_fits],
-                        n_ok,
-                        theta_known,
-                        noise,
-                        prep,
-                        lam_min,
-                        scratch,
-                    );
-                }
+                Ok(out) => return out,
                 Err(f) => warm_fit = f,
             }
         }
@@ -311,6 +293,34 @@ impl Solver {
             lam_min,
             scratch,
         )
+    }
+
+    /// [`Solver::try_warm`], finished where the warm fit stands: `Ok` with
+    /// the pixel's estimate, else `Err` with the fit to weigh beside the
+    /// search's.
+    #[allow(clippy::too_many_arguments)]
+    fn warm_solve(
+        &self,
+        prep: &Prepared,
+        theta_known: Option<f64>,
+        n_ok: usize,
+        noise: Option<f64>,
+        effort: super::Effort,
+        alone: bool,
+        lam_min: f64,
+        scratch: &mut Scratch,
+    ) -> Result<(PixelEstimate, f64), Option<Fit>> {
+        let (fits, n_fits) =
+            self.try_warm(prep, theta_known, n_ok, noise, effort, alone, scratch)?;
+        Ok(self.finish(
+            &fits[..n_fits],
+            n_ok,
+            theta_known,
+            noise,
+            prep,
+            lam_min,
+            scratch,
+        ))
     }
 
     /// The previous pixel's fit in the row (`scratch.warm`), refined:
