@@ -219,6 +219,10 @@ impl LineOutput {
 }
 
 impl WebRowSink for LineOutput {
+    fn set_map_meta(&mut self, meta: crate::estimate::maps::MapMeta) {
+        self.writer.set_map_meta(meta);
+    }
+
     fn on_row(&mut self, row: &WebRowOut) -> Result<(), String> {
         let stats = row_stats(row, &self.cfg.lanes);
         if row.complete {

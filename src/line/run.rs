@@ -56,6 +56,9 @@ use std::time::{Duration, Instant};
 pub trait WebRowSink {
     /// One row, in web order.
     fn on_row(&mut self, row: &WebRowOut) -> Result<(), String>;
+    /// The estimator's map metadata (mode, bands, film index), given once
+    /// it is known, before the first row.
+    fn set_map_meta(&mut self, _meta: crate::estimate::maps::MapMeta) {}
     /// The run ended (flush what is buffered).
     fn finish(&mut self) -> Result<(), String> {
         Ok(())

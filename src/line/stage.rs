@@ -88,6 +88,8 @@ pub(super) struct RowStage<'s> {
     reads: Vec<Instant>,
     /// When the rows waiting for the warm-up had been solved.
     ready_at: Option<Instant>,
+    /// The sink has the estimator's map metadata.
+    meta_sent: bool,
 }
 
 impl<'s> RowStage<'s> {
@@ -99,6 +101,7 @@ impl<'s> RowStage<'s> {
             rows: Vec::new(),
             reads: Vec::new(),
             ready_at: None,
+            meta_sent: false,
         }
     }
 
@@ -128,6 +131,7 @@ impl<'s> RowStage<'s> {
         if !was_ready && self.solver.ready() {
             self.ready_at = Some(Instant::now());
         }
+        self.send_meta(!solved.is_empty());
         let mut reads = std::mem::take(&mut self.reads).into_iter();
         for row in solved {
             let t_read = reads.next();
@@ -153,11 +157,21 @@ impl<'s> RowStage<'s> {
         Ok(())
     }
 
+    /// The estimator's map metadata to the sink, once, before the first
+    /// row it emits.
+    fn send_meta(&mut self, rows: bool) {
+        if rows && !self.meta_sent {
+            self.sink.set_map_meta(self.solver.solver().map_meta());
+            self.meta_sent = true;
+        }
+    }
+
     /// The run ended: solve the rows still waiting for the warm-up, emit
     /// them, finish the sink.
     pub fn finish(mut self) -> Result<StageReport, String> {
         let mut solved = Vec::new();
         self.solver.flush(&mut |out, _| solved.push(out));
+        self.send_meta(!solved.is_empty());
         for row in solved {
             self.sink.on_row(&row)?;
             self.report.rows_emitted += 1;

@@ -16,6 +16,7 @@
 
 use super::output::Publisher;
 use super::solve::WebRowOut;
+use crate::estimate::maps::MapMeta;
 use crate::estimate::ParamMaps;
 use crate::io::exr_maps::{map_attributes, write_channels, Channels};
 use crossbeam_channel::{Sender, TrySendError};
@@ -38,6 +39,8 @@ pub(super) enum Job {
         topic: String,
         msg: serde_json::Value,
     },
+    /// The map metadata for the segments that follow.
+    Meta(Box<MapMeta>),
 }
 
 /// What does the jobs.
@@ -45,12 +48,15 @@ pub(super) struct Worker {
     out_dir: Option<PathBuf>,
     publishers: Vec<Box<dyn Publisher + Send>>,
     files: Vec<PathBuf>,
+    /// The estimator's map metadata, written with each segment.
+    meta: MapMeta,
 }
 
 impl Worker {
     fn run(&mut self, job: Job) -> Result<(), String> {
         match job {
             Job::Publish { topic, payload } => self.publish(&topic, &payload),
+            Job::Meta(meta) => self.meta = *meta,
             Job::Segment {
                 index,
                 rows,
@@ -58,7 +64,7 @@ impl Worker {
                 mut msg,
             } => {
                 let file = match &self.out_dir {
-                    Some(dir) => Some(write_segment(dir, index, &rows)?),
+                    Some(dir) => Some(write_segment(dir, index, &rows, &self.meta)?),
                     None => None,
                 };
                 msg["file"] = serde_json::json!(file.as_ref().map(|f| f.display().to_string()));
@@ -109,6 +115,7 @@ impl Writer {
             out_dir,
             publishers,
             files: Vec::new(),
+            meta: MapMeta::default(),
         };
         if !background {
             return Writer::Inline(worker);
@@ -150,6 +157,13 @@ impl Writer {
             }
         };
         Writer::Inline(worker)
+    }
+
+    /// The map metadata for the segments that follow (queued in order
+    /// with them). A worker that has failed reports it at the next
+    /// segment's `submit`.
+    pub fn set_map_meta(&mut self, meta: MapMeta) {
+        let _ = self.submit(Job::Meta(Box::new(meta)));
     }
 
     /// Do `job` (inline) or queue it; an error the worker met earlier is
@@ -235,9 +249,15 @@ impl Drop for Writer {
 }
 
 /// Write one segment, atomically (temporary name, renamed).
-fn write_segment(dir: &Path, index: u64, rows: &[WebRowOut]) -> Result<PathBuf, String> {
+fn write_segment(
+    dir: &Path,
+    index: u64,
+    rows: &[WebRowOut],
+    meta: &MapMeta,
+) -> Result<PathBuf, String> {
     let (w, h) = (rows[0].estimates.len(), rows.len());
     let mut maps = ParamMaps::new(w, h);
+    maps.meta = meta.clone();
     for (y, r) in rows.iter().enumerate() {
         for (x, e) in r.estimates.iter().enumerate() {
             maps.set(x, y, e);
