@@ -85,12 +85,11 @@ impl Solver {
                 return self.solve_table(prep, table, tt, t, n_ok, noise, effort, lam_min, scratch);
             }
         }
-        // `fast`'s closed form, found wanting by the caller: the previous
-        // pixel's fit first, where it is trusted.
-        let mut warm_fit = None;
-        if job_start.is_some() && effort.warm {
+        // The previous pixel's fit in the row, refined and finished where it
+        // stands (`warm_solve`).
+        let warm = |scratch: &mut Scratch| {
             let alone = pre.is_none();
-            match self.warm_solve(
+            self.warm_solve(
                 prep,
                 theta_known,
                 n_ok,
@@ -99,7 +98,13 @@ impl Solver {
                 alone,
                 lam_min,
                 scratch,
-            ) {
+            )
+        };
+        // `fast`'s closed form, found wanting by the caller: the previous
+        // pixel's fit first, where it is trusted.
+        let mut warm_fit = None;
+        if job_start.is_some() && effort.warm {
+            match warm(scratch) {
                 Ok(out) => return out,
                 Err(f) => warm_fit = f,
             }
@@ -184,17 +189,7 @@ impl Solver {
         // is trusted (`warm_accept`), else one more fit beside the
         // search's (tried already above where the caller gave a start).
         if warm_fit.is_none() && job_start.is_none() {
-            let alone = pre.is_none();
-            match self.warm_solve(
-                prep,
-                theta_known,
-                n_ok,
-                noise,
-                effort,
-                alone,
-                lam_min,
-                scratch,
-            ) {
+            match warm(scratch) {
                 Ok(out) => return out,
                 Err(f) => warm_fit = f,
             }
