@@ -7,10 +7,15 @@
 //!   stray light). They are estimated once, with the film index, from a
 //!   sample of pixels: Gauss–Newton on the joint problem, the pixels' own
 //!   parameters eliminated by the Schur complement, so the gain is never
-//!   confused with what a pixel's thickness or angle explains. Where the
-//!   sample cannot separate a gain per band (too few pixels, or a uniform
-//!   film), the gain is a quadratic in wavenumber and the offset one
-//!   constant. Their covariance enters every pixel's σ.
+//!   confused with what a pixel's thickness or angle explains. Only the
+//!   parameters the data need are fitted ([`LevelBasis`]): one gain or one
+//!   offset, else both, else a gain quadratic in wavenumber and one offset;
+//!   a gain per band, and then an offset per band too, only where they do
+//!   significantly better and the sample spreads every band's reflectance
+//!   enough to tell them from the pixels' parameters. Every parameter more
+//!   trades with each pixel's angle and the index and costs precision
+//!   (`tools/level_crb.py` gives the bound under each). Their covariance
+//!   enters every pixel's σ.
 //! - `free`: every pixel has its own scale, offset and slow envelope (see
 //!   the solver's free-level path): for normalised or uncalibrated
 //!   intensities.
@@ -148,12 +153,18 @@ impl Level {
 pub enum LevelBasis {
     /// A gain and an offset per band (`2·bands` parameters).
     PerBand,
+    /// A gain per band, no offset (`bands` parameters): a white reference
+    /// whose spectrum is off band by band.
+    PerBandGain,
     /// Gain quadratic in wavenumber, one offset (4 parameters).
     Smooth,
     /// One gain and one offset for every band (2 parameters).
     GainOffset,
     /// One gain for every band (1 parameter): a white reference off.
     Gain,
+    /// One offset for every band (1 parameter): stray light, a dark frame
+    /// off.
+    Offset,
 }
 
 impl LevelBasis {
@@ -161,9 +172,10 @@ impl LevelBasis {
     pub fn n_params(self, nb: usize) -> usize {
         match self {
             LevelBasis::PerBand => 2 * nb,
+            LevelBasis::PerBandGain => nb,
             LevelBasis::Smooth => 4,
             LevelBasis::GainOffset => 2,
-            LevelBasis::Gain => 1,
+            LevelBasis::Gain | LevelBasis::Offset => 1,
         }
     }
 
@@ -175,6 +187,7 @@ impl LevelBasis {
                 if j == 2 * k { 1.0 } else { 0.0 },
                 if j == 2 * k + 1 { 1.0 } else { 0.0 },
             ),
+            LevelBasis::PerBandGain => (if j == k { 1.0 } else { 0.0 }, 0.0),
             LevelBasis::Smooth => match j {
                 0 => (1.0, 0.0),
                 1 => (u, 0.0),
@@ -186,6 +199,7 @@ impl LevelBasis {
                 _ => (0.0, 1.0),
             },
             LevelBasis::Gain => (1.0, 0.0),
+            LevelBasis::Offset => (0.0, 1.0),
         }
     }
 }
@@ -465,6 +479,7 @@ fn params_of(level: &Level, basis: LevelBasis, u: &[f64]) -> Vec<f64> {
             .zip(&level.offset)
             .flat_map(|(g, o)| [g - 1.0, *o])
             .collect(),
+        LevelBasis::PerBandGain => level.gain.iter().map(|g| g - 1.0).collect(),
         LevelBasis::Smooth => {
             // Gain − 1 ≈ c0 + c1 u + c2 u²; offset = mean.
             let mut m = [[0.0; 3]; 3];
@@ -485,14 +500,14 @@ fn params_of(level: &Level, basis: LevelBasis, u: &[f64]) -> Vec<f64> {
             let o = level.offset.iter().sum::<f64>() / level.offset.len().max(1) as f64;
             vec![c[0], c[1], c[2], o]
         }
-        LevelBasis::GainOffset | LevelBasis::Gain => {
+        LevelBasis::GainOffset | LevelBasis::Gain | LevelBasis::Offset => {
             let n = level.gain.len().max(1) as f64;
             let g = level.gain.iter().sum::<f64>() / n - 1.0;
             let o = level.offset.iter().sum::<f64>() / n;
-            if basis == LevelBasis::Gain {
-                vec![g]
-            } else {
-                vec![g, o]
+            match basis {
+                LevelBasis::Gain => vec![g],
+                LevelBasis::Offset => vec![o],
+                _ => vec![g, o],
             }
         }
     }

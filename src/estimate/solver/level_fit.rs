@@ -142,50 +142,51 @@ impl Solver {
         )?;
         let (mut level, mut basis, mut chi2_scaled) =
             (smooth.clone(), LevelBasis::Smooth, chi2_smooth);
-        // Fewer parameters where they do as well: one gain, or one gain
-        // and one offset, each tested against the smooth level (a white
-        // reference off is one gain; every parameter more trades with the
-        // pixels' angles and the index and costs precision).
-        for small in [LevelBasis::Gain, LevelBasis::GainOffset] {
-            let mut est_small = est_abs.clone();
-            if unknown_index {
-                self.set_film_index(est_abs.clone())?;
+        // Fewer parameters where they do as well: one gain or one offset
+        // (whichever fits better), else one gain and one offset, each
+        // tested against the smooth level (a white reference off is one
+        // gain, stray light one offset; every parameter more trades with
+        // the pixels' angles and the index and costs precision). The
+        // smaller levels are nested in the smooth one, so none can beat
+        // absolute by more than it does: where the smooth level's gain is
+        // below the one-parameter test, they are not fitted at all.
+        let one_param = chi2_upper_quantile(1.0, AUTO_PROBABILITY);
+        if chi2_abs - chi2_smooth > one_param {
+            let mut best_one: Option<(Level, LevelBasis, f64, IndexEstimate)> = None;
+            for small in [LevelBasis::Gain, LevelBasis::Offset, LevelBasis::GainOffset] {
+                if small == LevelBasis::GainOffset && best_one.is_some() {
+                    break;
+                }
+                let mut est_small = est_abs.clone();
+                if unknown_index {
+                    self.set_film_index(est_abs.clone())?;
+                }
+                let (lv, _, chi2_small) = self.level_gauss_newton(
+                    sample,
+                    &identity,
+                    Some(abs.clone()),
+                    small,
+                    &mut est_small,
+                    &wn,
+                    &var,
+                )?;
+                let extra = (LevelBasis::Smooth.n_params(nb) - small.n_params(nb)) as f64;
+                let passes =
+                    chi2_small - chi2_smooth <= chi2_upper_quantile(extra, AUTO_PROBABILITY);
+                if passes && best_one.as_ref().is_none_or(|b| chi2_small < b.2) {
+                    best_one = Some((lv, small, chi2_small, est_small));
+                }
             }
-            let (lv, _, chi2_small) = self.level_gauss_newton(
-                sample,
-                &identity,
-                Some(abs.clone()),
-                small,
-                &mut est_small,
-                &wn,
-                &var,
-            )?;
-            let extra = (LevelBasis::Smooth.n_params(nb) - small.n_params(nb)) as f64;
-            if chi2_small - chi2_smooth <= chi2_upper_quantile(extra, AUTO_PROBABILITY) {
+            if let Some((lv, small, chi2_small, est_small)) = best_one {
                 (level, basis, chi2_scaled, est) = (lv, small, chi2_small, est_small);
-                break;
             }
         }
         if unknown_index {
             self.set_film_index(est.clone())?;
         }
         if self.level_basis(&abs, &noise.typical_sigma(0.05)) == LevelBasis::PerBand {
-            let mut est_pb = est.clone();
-            let (per_band, _, chi2_pb) = self.level_gauss_newton(
-                sample,
-                &level,
-                None,
-                LevelBasis::PerBand,
-                &mut est_pb,
-                &wn,
-                &var,
-            )?;
-            let extra = (LevelBasis::PerBand.n_params(nb) - basis.n_params(nb)) as f64;
-            if chi2_scaled - chi2_pb > chi2_upper_quantile(extra, AUTO_PROBABILITY) {
-                (level, basis, chi2_scaled, est) = (per_band, LevelBasis::PerBand, chi2_pb, est_pb);
-            } else if unknown_index {
-                self.set_film_index(est.clone())?;
-            }
+            (level, basis, chi2_scaled, est) =
+                self.per_band_level(sample, level, basis, chi2_scaled, est, &wn, &var)?;
         }
         if unknown_index {
             est.note = format!("{} (estimated jointly with the level)", est.note)
@@ -195,7 +196,8 @@ impl Solver {
         // Against absolute, the chosen level's test decides (a per-band
         // level was only kept where it beat a smooth one significantly, so
         // the smooth one's test stands for it).
-        let tested = if basis == LevelBasis::PerBand {
+        let per_band = matches!(basis, LevelBasis::PerBand | LevelBasis::PerBandGain);
+        let tested = if per_band {
             (LevelBasis::Smooth, chi2_smooth)
         } else {
             (basis, chi2_scaled)
@@ -221,7 +223,7 @@ impl Solver {
         let chi2_abs = level_step(&abs, &identity, tested.0, &wn, &var)
             .map_or(chi2_abs, |s| s.chi2.min(chi2_abs));
         let threshold = chi2_upper_quantile(tested.0.n_params(nb) as f64, AUTO_PROBABILITY);
-        let significant = chi2_abs - tested.1 > threshold || basis == LevelBasis::PerBand;
+        let significant = chi2_abs - tested.1 > threshold || per_band;
         let delta = chi2_abs - chi2_scaled;
         let m = basis.n_params(nb);
         // And it must matter: a level worth modelling moves the sample's
@@ -278,9 +280,11 @@ impl Solver {
                 "scaled ({}, {} parameters): gain {:.4} (per band {:.4}–{:.4}), offset {:.5}; Δχ² = {:.0} against absolute (threshold {:.0}), thicknesses moved by {:.1} σ",
                 match basis {
                     LevelBasis::PerBand => "gain and offset per band",
+                    LevelBasis::PerBandGain => "gain per band",
                     LevelBasis::Smooth => "gain quadratic in wavenumber, one offset",
                     LevelBasis::GainOffset => "one gain, one offset",
                     LevelBasis::Gain => "one gain",
+                    LevelBasis::Offset => "one offset",
                 },
                 m,
                 g,
@@ -312,6 +316,70 @@ impl Solver {
             }
             Ok(None)
         }
+    }
+
+    /// A gain per band, or a gain and an offset per band, where either
+    /// lowers the sample's χ² significantly beyond the level chosen so far
+    /// (`level` of `basis`, χ² `chi2`, index `est`); the fewer parameters
+    /// unless the offsets are needed too. Returns the level in force, with
+    /// the film index set to go with it.
+    #[allow(clippy::too_many_arguments)]
+    fn per_band_level(
+        &mut self,
+        sample: &[SamplePixel],
+        level: Level,
+        basis: LevelBasis,
+        chi2: f64,
+        est: IndexEstimate,
+        wn: &[f64],
+        var: &[f64],
+    ) -> Result<(Level, LevelBasis, f64, IndexEstimate), EstimateError> {
+        let unknown_index = matches!(self.scene.film, FilmKnowledge::Unknown { .. });
+        let nb = self.bands.len();
+        let test = |extra: usize| chi2_upper_quantile(extra as f64, AUTO_PROBABILITY);
+        let mut est_pb = est.clone();
+        let (pb, _, chi2_pb) = self.level_gauss_newton(
+            sample,
+            &level,
+            None,
+            LevelBasis::PerBand,
+            &mut est_pb,
+            wn,
+            var,
+        )?;
+        let m = basis.n_params(nb);
+        let mut chosen = (level.clone(), basis, chi2, est.clone());
+        // A gain per band is nested in a gain and offset per band: where
+        // those do not beat the level so far by the gain-only test's
+        // threshold, gains alone cannot either.
+        if nb > m && chi2 - chi2_pb > test(nb - m) {
+            if unknown_index {
+                self.set_film_index(est.clone())?;
+            }
+            let mut start = level.clone();
+            start.offset.iter_mut().for_each(|o| *o = 0.0);
+            let mut est_g = est.clone();
+            let (pbg, _, chi2_g) = self.level_gauss_newton(
+                sample,
+                &start,
+                None,
+                LevelBasis::PerBandGain,
+                &mut est_g,
+                wn,
+                var,
+            )?;
+            if chi2 - chi2_g > test(nb - m) {
+                chosen = (pbg, LevelBasis::PerBandGain, chi2_g, est_g);
+            }
+        }
+        let m = chosen.1.n_params(nb);
+        if chosen.2 - chi2_pb > test(2 * nb - m) {
+            chosen = (pb, LevelBasis::PerBand, chi2_pb, est_pb);
+        }
+        if unknown_index {
+            self.set_film_index(chosen.3.clone())?;
+        }
+        Ok(chosen)
     }
 
     /// Gauss–Newton on the level and (where unknown) the film index
@@ -359,7 +427,7 @@ impl Solver {
                         self.set_film_index(est.clone())?;
                     }
                     px = self.level_pixels(sample, &level);
-                    if (level.gain[0] - bl.gain[0]).abs() < CONVERGED && back.abs() < 1e-5 {
+                    if level_moved(&level, bl) < CONVERGED && back.abs() < 1e-5 {
                         break;
                     }
                     continue;
@@ -606,6 +674,16 @@ impl Solver {
 }
 
 /// Median over the pixels fitted both ways of |d_b − d_a| / σ_a.
+/// Largest difference of a gain or an offset between two levels.
+fn level_moved(a: &Level, b: &Level) -> f64 {
+    a.gain
+        .iter()
+        .zip(&b.gain)
+        .chain(a.offset.iter().zip(&b.offset))
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max)
+}
+
 fn median_shift(a: &[LevelPixel], b: &[LevelPixel]) -> f64 {
     let by_id: std::collections::HashMap<usize, &LevelPixel> =
         b.iter().map(|p| (p.id, p)).collect();
