@@ -349,16 +349,18 @@ impl Solver {
         )?;
         let m = basis.n_params(nb);
         let mut chosen = (level.clone(), basis, chi2, est.clone());
-        // A gain per band is nested in a gain and offset per band: where
-        // those do not beat the level so far by the gain-only test's
-        // threshold, gains alone cannot either.
-        if nb > m && chi2 - chi2_pb > test(nb - m) {
+        // Only where a gain and an offset per band beat the level so far
+        // significantly: then a gain per band alone where the offsets do
+        // not beat it significantly in turn (fewer parameters, less traded
+        // with the pixels' angles and the index).
+        if chi2 - chi2_pb > test(2 * nb - m) {
+            chosen = (pb, LevelBasis::PerBand, chi2_pb, est_pb);
             if unknown_index {
                 self.set_film_index(est.clone())?;
             }
-            let mut start = level.clone();
+            let mut start = level;
             start.offset.iter_mut().for_each(|o| *o = 0.0);
-            let mut est_g = est.clone();
+            let mut est_g = est;
             let (pbg, _, chi2_g) = self.level_gauss_newton(
                 sample,
                 &start,
@@ -368,13 +370,9 @@ impl Solver {
                 wn,
                 var,
             )?;
-            if chi2 - chi2_g > test(nb - m) {
+            if chi2_g - chi2_pb <= test(nb) {
                 chosen = (pbg, LevelBasis::PerBandGain, chi2_g, est_g);
             }
-        }
-        let m = chosen.1.n_params(nb);
-        if chosen.2 - chi2_pb > test(2 * nb - m) {
-            chosen = (pb, LevelBasis::PerBand, chi2_pb, est_pb);
         }
         if unknown_index {
             self.set_film_index(chosen.3.clone())?;
