@@ -145,3 +145,98 @@ fn a_continuous_angle_map_reaches_the_bound() {
     };
     check(&s, "angle map");
 }
+
+/// A film over several fringe orders at one known angle, in `balanced`:
+/// the row path starts each pixel from the previous pixel's basin and
+/// weighs its neighbouring orders (the scan only where that does not
+/// settle the pixel); a lone pixel always scans the whole range. Both
+/// must judge every pixel alike and agree on every valid one. The steep
+/// ramp moves a quarter fringe and more per pixel, so the previous
+/// pixel's basin is often the wrong one there: the scan must take over.
+#[test]
+fn balanced_rows_from_the_previous_pixel_agree_with_the_scan() {
+    for (label, thickness, width) in [
+        ("ramp", "linear_x = [150.0, 1500.0]", 160),
+        ("steep", "columns = [150.0, 47.0]", 30),
+    ] {
+        let text = format!(
+            r#"
+[ambient]
+n = 1.0
+[substrate]
+material = "PET-Zhang"
+[film]
+material = "SiO2-Malitson"
+[angle]
+deg = 30.0
+[light]
+polarization = "u"
+[bands]
+start_nm = 400
+stop_nm = 700
+step_nm = 10
+fwhm_nm = 0
+[measurement]
+noise_sigma = 0.001
+[truth]
+width = {width}
+height = 6
+thickness_nm = {{ {thickness} }}
+noise_sigma = 0.001
+seed = 3
+"#
+        );
+        let s = Scene::from_toml(&text, "<test>", Path::new(".")).unwrap();
+        let bands = scene_bands(&s).unwrap();
+        let r = Renderer::new(&s).unwrap();
+        let cube = r.render_cube(&bands).unwrap();
+        let truth = r.truth_maps(&bands);
+        let mut solver = Solver::new(&s, &bands, Mode::Balanced).unwrap();
+        solver.estimate_film_index(&cube).unwrap();
+        let mut scratch = irid::estimate::solver::Scratch::default();
+        let mut row = vec![
+            irid::estimate::PixelEstimate::invalid(irid::estimate::Reason::Masked);
+            cube.width
+        ];
+        let mut spec = vec![0.0; bands.len()];
+        let (mut same, mut valid, mut total, mut wrong) = (0, 0, 0, 0);
+        for y in 0..cube.height {
+            solver.solve_row(&cube, y, &mut row, &mut scratch);
+            for (x, r) in row.iter().enumerate() {
+                cube.spectrum_into(x, y, &mut spec);
+                // A fresh scratch: no previous pixel, the whole scan.
+                let mut lone = irid::estimate::solver::Scratch::default();
+                let p = solver.solve_pixel(&spec, solver.scene_angle().known_at(x, y), &mut lone);
+                total += 1;
+                assert_eq!(r.reason, p.reason, "{label} ({x}, {y}): {r:?} vs {p:?}");
+                if !r.is_valid() {
+                    continue;
+                }
+                valid += 1;
+                let dd = (r.thickness_nm - p.thickness_nm).abs();
+                same += usize::from(dd < 1e-9);
+                assert!(
+                    dd < 0.05 * r.sigma_thickness_nm,
+                    "{label} ({x}, {y}): {r:?} vs {p:?}"
+                );
+                assert!(
+                    (r.sigma_thickness_nm - p.sigma_thickness_nm).abs()
+                        < 0.05 * r.sigma_thickness_nm,
+                    "{label} ({x}, {y}): {r:?} vs {p:?}"
+                );
+                let e = (r.thickness_nm - f64::from(truth.thickness_nm[y * cube.width + x])).abs();
+                wrong += usize::from(e > (3.0 * r.sigma_thickness_nm).max(2.0));
+            }
+        }
+        eprintln!("{label}: {same} of {valid} valid pixels identical, {total} pixels, {wrong} valid and wrong");
+        // Not passed by flagging everything, nor by agreeing on wrong numbers.
+        assert!(
+            valid as f64 > 0.9 * total as f64,
+            "{label}: {valid} of {total} valid"
+        );
+        assert!(
+            wrong as f64 <= 0.01 * valid as f64,
+            "{label}: {wrong} valid and wrong"
+        );
+    }
+}

@@ -15,6 +15,7 @@
 //! interpolation error could cost a pixel its validity but never make a
 //! wrong one valid.
 
+use super::refine::sse;
 use super::{Effort, Fit, Prepared, Scratch, Solver};
 use crate::estimate::model::{FilmModel, ModelOut};
 use crate::estimate::PixelEstimate;
@@ -435,6 +436,11 @@ impl ThicknessTable {
     /// Thickness of grid point `j`.
     pub fn d_at(&self, j: usize) -> f64 {
         self.d0 + j as f64 * self.h
+    }
+
+    /// The tabulated thickness range.
+    pub fn d_range(&self) -> (f64, f64) {
+        (self.d0, self.d_at(self.m.saturating_sub(1)))
     }
 
     /// Load a spectrum into the scan's working memory (f32, padded);
@@ -1080,6 +1086,18 @@ impl Solver {
                 }
             }
         }
+        // `balanced`: the previous pixel's basin and its neighbouring
+        // orders, where that settles the pixel; the full scan otherwise.
+        if exact && effort.warm && !effort.closed_form_only && !effort.verify_order {
+            if let Some((_, j0)) = scratch.hint.filter(|h| h.0 == key) {
+                if let Some(out) =
+                    self.table_warm(prep, table, theta, j0, n_ok, noise, lam_min, scratch)
+                {
+                    scratch.hint = Some((key, table.index_of(out.0.thickness_nm)));
+                    return out;
+                }
+            }
+        }
         // The best minima: one in `fast`, two in `balanced` (the second
         // judges the fringe order), three in `accurate`.
         let mut mins = [GridMin { j: 0, sse: 0.0 }; 3];
@@ -1150,6 +1168,77 @@ impl Solver {
         scratch.hint =
             (interpolated && out.0.is_valid()).then(|| (key, table.index_of(out.0.thickness_nm)));
         out
+    }
+
+    /// `balanced` from the previous pixel's grid point `j0` (a film
+    /// changes little from one pixel to the next): the residual's minimum
+    /// walked to from there, and the better of its neighbouring fringe
+    /// orders (one fringe more or fewer in optical thickness) walked to in
+    /// turn, judged together as the scan's two best minima are (an order
+    /// that fits as well flags the pixel ambiguous). `Some` only where that
+    /// settles the pixel: the fringes strong enough that no other basin
+    /// can pass the χ² test beside the fit (the gates of the alternative
+    /// checks, [`Solver::fringes_exclude_alternatives`]), both walks ending
+    /// at a minimum of the interpolant, and the estimate valid; anything
+    /// else (an order jump, an edge, a flag) takes the full scan.
+    #[allow(clippy::too_many_arguments)]
+    fn table_warm(
+        &self,
+        prep: &Prepared,
+        table: &ThicknessTable,
+        theta: f64,
+        j0: usize,
+        n_ok: usize,
+        noise: Option<f64>,
+        lam_min: f64,
+        scratch: &mut Scratch,
+    ) -> Option<(PixelEstimate, f64)> {
+        let sigma = noise.filter(|_| self.judging())?;
+        if !self.fringes_exclude_alternatives(self.fringe_signal(prep, theta, n_ok, sigma)) {
+            return None;
+        }
+        let (d, e, a) = table.fit_near(&scratch.spectrum, &scratch.weight, j0)?;
+        let fit = Fit {
+            d,
+            theta,
+            sse: e,
+            jtj: [a, 0.0, 0.0],
+            integrated: false,
+            tabled: true,
+            stalled: false,
+        };
+        let dd = 0.5 / self.table.sigma_center / prep.model.q2_mid(theta);
+        let (lo, hi) = table.d_range();
+        let mut trial = std::mem::take(&mut scratch.trial);
+        let mut alt: Option<(f64, f64)> = None;
+        for da in [d - dd, d + dd] {
+            if !(lo..=hi).contains(&da) {
+                continue;
+            }
+            table.values(da, &mut trial.r);
+            let e = sse(&scratch.spectrum, &scratch.weight, &trial.r);
+            if alt.is_none_or(|(_, b)| e < b) {
+                alt = Some((da, e));
+            }
+        }
+        scratch.trial = trial;
+        let mut fits = [fit; 2];
+        let n = match alt {
+            Some((da, _)) => {
+                let j = table.index_of(da);
+                let (d2, e2, a2) = table.fit_near(&scratch.spectrum, &scratch.weight, j)?;
+                fits[1] = Fit {
+                    d: d2,
+                    sse: e2,
+                    jtj: [a2, 0.0, 0.0],
+                    ..fit
+                };
+                2
+            }
+            None => 1,
+        };
+        let out = self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch);
+        out.0.is_valid().then_some(out)
     }
 
     /// Refine grid minimum `g` on the interpolant.
