@@ -139,6 +139,8 @@ pub const ANGLE_SIGMA_LIMIT_DEG: f64 = 0.25;
 pub struct Scratch {
     /// The caller's gathered spectrum (solve_row).
     pixel: Vec<f64>,
+    /// The row being solved, band by band (`row[k·width + x]`).
+    row: Vec<f32>,
     /// That spectrum scaled by 1 ± ε (the scale accuracy's refits).
     scaled: Vec<f64>,
     sorted_y: Vec<f64>,
@@ -151,6 +153,10 @@ pub struct Scratch {
     /// `fast`: the previous pixel's table (angle bits) and grid point,
     /// within the current row.
     hint: Option<(u64, usize)>,
+    /// `balanced` on a table: the previous pixel's table (angle bits),
+    /// thickness and how far its neighbouring order fell short of its fit
+    /// (ΔSSE in noise variances), within the current row.
+    order_margin: Option<(u64, f64, f64)>,
     /// The previous pixel's valid fit (d, θ) within the current row, the
     /// fitted path's first start (see `Solver::try_warm`).
     warm: Option<(f64, f64)>,

@@ -35,6 +35,7 @@ impl Solver {
         // Each row starts afresh: a row's result never depends on which
         // thread solved which row before it.
         scratch.hint = None;
+        scratch.order_margin = None;
         scratch.warm = None;
         let mut pixel = std::mem::take(&mut scratch.pixel);
         pixel.resize(cube.bands.len(), 0.0);
@@ -54,8 +55,27 @@ impl Solver {
         let mut fits = std::mem::take(&mut scratch.fits);
         fits.clear();
         fits.extend(out.iter().take(done).map(|o| o.thickness_nm));
+        // The row's samples band by band, each band's row copied whole: a
+        // pixel's spectrum is then gathered from this (a few cache-resident
+        // kilobytes per band) rather than from band planes megabytes apart,
+        // one cache line per band per pixel that no prefetcher follows.
+        let (w, nb) = (cube.width, cube.bands.len());
+        let mut rows = std::mem::take(&mut scratch.row);
+        if done < w {
+            rows.clear();
+            let n = cube.plane_len();
+            if y < cube.height && cube.data.len() >= n * nb {
+                for plane in cube.data.chunks_exact(n.max(1)).take(nb) {
+                    rows.extend_from_slice(&plane[y * w..(y + 1) * w]);
+                }
+            }
+            // A row outside the cube (or a short cube) reads as missing.
+            rows.resize(nb * w, f32::NAN);
+        }
         for (x, o) in out.iter_mut().enumerate().take(cube.width).skip(done) {
-            cube.spectrum_into(x, y, &mut pixel);
+            for (k, v) in pixel.iter_mut().enumerate() {
+                *v = f64::from(rows[k * w + x]);
+            }
             scratch.last_fit_d = f64::NAN;
             *o = self.solve_pixel(&pixel, self.scene.angle.known_at(x, y), scratch);
             scratch.note_warm(o);
@@ -66,6 +86,7 @@ impl Solver {
             });
         }
         scratch.fits = fits;
+        scratch.row = rows;
         // A pixel lost to unusable bands says why, where the calibration
         // tagged them (dark, saturated).
         for (x, o) in out.iter_mut().enumerate().take(cube.width) {

@@ -269,6 +269,11 @@ pub struct GridScratch {
 /// The most minima [`ThicknessTable::minima`] returns.
 pub const MAX_MINIMA: usize = 4;
 
+/// `balanced` on a table weighs a pixel's neighbouring fringe order only
+/// where the previous pixel's fell short of its fit by less than this many
+/// noise variances of ΔSSE, or the fit moved (see `Solver::table_warm`).
+const ORDER_MARGIN_SKIP: f64 = 100.0;
+
 /// The lowest value of the parabola through `(−1, l)`, `(0, c)`, `(1, r)`
 /// (`c` itself where it does not curve upwards), never below zero.
 fn parabola_min(l: f32, c: f32, r: f32) -> f32 {
@@ -1097,6 +1102,7 @@ impl Solver {
                     return out;
                 }
             }
+            scratch.order_margin = None;
         }
         // The best minima: one in `fast`, two in `balanced` (the second
         // judges the fringe order), three in `accurate`.
@@ -1208,35 +1214,53 @@ impl Solver {
             stalled: false,
         };
         let dd = 0.5 / self.table.sigma_center / prep.model.q2_mid(theta);
-        let (lo, hi) = table.d_range();
-        let mut trial = std::mem::take(&mut scratch.trial);
-        let mut alt: Option<(f64, f64)> = None;
-        for da in [d - dd, d + dd] {
-            if !(lo..=hi).contains(&da) {
-                continue;
-            }
-            table.values(da, &mut trial.r);
-            let e = sse(&scratch.spectrum, &scratch.weight, &trial.r);
-            if alt.is_none_or(|(_, b)| e < b) {
-                alt = Some((da, e));
-            }
-        }
-        scratch.trial = trial;
         let mut fits = [fit; 2];
-        let n = match alt {
-            Some((da, _)) => {
-                let j = table.index_of(da);
-                let (d2, e2, a2) = table.fit_near(&scratch.spectrum, &scratch.weight, j)?;
-                fits[1] = Fit {
-                    d: d2,
-                    sse: e2,
-                    jtj: [a2, 0.0, 0.0],
-                    ..fit
-                };
-                2
+        let key = theta.to_bits();
+        // Where the previous pixel's neighbouring order fell short of its
+        // fit by far (ΔSSE ≥ ORDER_MARGIN_SKIP noise variances) and this
+        // fit moved little, that order cannot have come within the
+        // ambiguity margin (4): the noise moves ΔSSE by about 2√ΔSSE
+        // variances. Its margin is then carried at half, so the order is
+        // weighed again within a few pixels.
+        let carried = scratch
+            .order_margin
+            .filter(|&(k, d_prev, m)| {
+                k == key && (d - d_prev).abs() < 0.05 * dd && m >= ORDER_MARGIN_SKIP
+            })
+            .map(|(_, _, m)| 0.5 * m);
+        let (n, margin) = if let Some(m) = carried {
+            (1, m)
+        } else {
+            let (lo, hi) = table.d_range();
+            let mut trial = std::mem::take(&mut scratch.trial);
+            let mut alt: Option<(f64, f64)> = None;
+            for da in [d - dd, d + dd] {
+                if !(lo..=hi).contains(&da) {
+                    continue;
+                }
+                table.values(da, &mut trial.r);
+                let e = sse(&scratch.spectrum, &scratch.weight, &trial.r);
+                if alt.is_none_or(|(_, b)| e < b) {
+                    alt = Some((da, e));
+                }
             }
-            None => 1,
+            scratch.trial = trial;
+            match alt {
+                Some((da, _)) => {
+                    let j = table.index_of(da);
+                    let (d2, e2, a2) = table.fit_near(&scratch.spectrum, &scratch.weight, j)?;
+                    fits[1] = Fit {
+                        d: d2,
+                        sse: e2,
+                        jtj: [a2, 0.0, 0.0],
+                        ..fit
+                    };
+                    (2, (e2 - e) / (sigma * sigma))
+                }
+                None => (1, f64::INFINITY),
+            }
         };
+        scratch.order_margin = Some((key, d, margin));
         let out = self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch);
         out.0.is_valid().then_some(out)
     }
