@@ -1239,9 +1239,9 @@ impl Solver {
                     continue;
                 }
                 table.values(da, &mut trial.r);
-                let e = sse(&scratch.spectrum, &scratch.weight, &trial.r);
-                if alt.is_none_or(|(_, b)| e < b) {
-                    alt = Some((da, e));
+                let ea = sse(&scratch.spectrum, &scratch.weight, &trial.r);
+                if alt.is_none_or(|(_, b)| ea < b) {
+                    alt = Some((da, ea));
                 }
             }
             scratch.trial = trial;
@@ -1260,7 +1260,10 @@ impl Solver {
                 None => (1, f64::INFINITY),
             }
         };
-        scratch.order_margin = Some((key, d, margin));
+        // Capped, so the order is weighed again after at most four pixels
+        // (the fit may drift a fifth of a fringe over them, a neighbouring
+        // order may come into the table's range).
+        scratch.order_margin = Some((key, d, margin.min(16.0 * ORDER_MARGIN_SKIP)));
         let out = self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch);
         out.0.is_valid().then_some(out)
     }
