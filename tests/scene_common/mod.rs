@@ -1,7 +1,31 @@
 //! Helpers shared by the estimation tests: the truth's angle as a known
-//! per-pixel map.
+//! per-pixel map, and two solves of one pixel compared.
 
+#![allow(dead_code)] // each test crate uses some of these
+
+use irid::estimate::PixelEstimate;
 use irid::scene::{AngleKnowledge, Scene};
+
+/// Assert that two solves of the same pixel (`row`, from a row path, and
+/// `lone`, the pixel solved alone) judge it alike — the same reason — and,
+/// where valid, agree on thickness and σ within 0.05 σ. Returns whether
+/// the thickness is identical (`None` for a flagged pixel).
+pub fn assert_agree(at: &str, row: &PixelEstimate, lone: &PixelEstimate) -> Option<bool> {
+    assert_eq!(row.reason, lone.reason, "{at}: {row:?} vs {lone:?}");
+    if !row.is_valid() {
+        return None;
+    }
+    let dd = (row.thickness_nm - lone.thickness_nm).abs();
+    assert!(
+        dd < 0.05 * row.sigma_thickness_nm,
+        "{at}: {row:?} vs {lone:?}"
+    );
+    assert!(
+        (row.sigma_thickness_nm - lone.sigma_thickness_nm).abs() < 0.05 * row.sigma_thickness_nm,
+        "{at}: {row:?} vs {lone:?}"
+    );
+    Some(dd < 1e-9)
+}
 
 /// `s` with its synthetic truth's angles given as a known angle map.
 pub fn with_known_angle(mut s: Scene) -> Scene {
