@@ -8,7 +8,8 @@
 //! `cargo bench --bench scene_matrix` (options after `--`: `--pixels N`
 //! tiles each scene to at least N pixels, default 100 000; `--best-of K`
 //! times each fit K times and keeps the fastest; `--scene NAME` and
-//! `--mode M` and `--angle known|unknown` select rows).
+//! `--mode M` and `--angle known|unknown` select rows; `--threads N` fits
+//! on N threads, all by default).
 //!
 //! Columns: pixels/s of the per-pixel solve on all threads (the film index
 //! and the noise and level estimates are timed apart, once per image);
@@ -30,6 +31,13 @@ fn main() {
     let only_scene: Option<String> = common::arg(&args, "--scene");
     let only_mode: Option<String> = common::arg(&args, "--mode");
     let only_angle: Option<String> = common::arg(&args, "--angle");
+    // `--threads N`: the fits on a pool of N threads (per-core speed, and
+    // steadier timings with a core left idle); all cores by default.
+    let threads: usize = common::arg(&args, "--threads").unwrap_or(0);
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .expect("a thread pool");
     println!("machine: {}", common::machine());
     println!();
     println!("| scene | angle | mode | pixels/s | valid | mean \\|Δd\\| | p99 \\|Δd\\| | efficient | ratio | \\|Δd\\| ≤ 2σ | index+noise+level |");
@@ -69,7 +77,7 @@ fn main() {
                     continue;
                 }
                 let (solver, maps, t_index, t_fit) =
-                    common::run_mode(&sc, &bands, &cube, mode, best_of);
+                    pool.install(|| common::run_mode(&sc, &bands, &cube, mode, best_of));
                 let (_, level_mode, level_note) = solver.level();
                 if args.iter().any(|a| a == "--levels") {
                     eprintln!(

@@ -12,6 +12,23 @@
 //! sample, several when the passband has to be integrated. The model value
 //! of a band is the weighted sum over its nodes.
 
+/// `for $i in 0..$n { $body }` for the vectorised kernels: whole vectors
+/// of four, then the last partial vector again from its end, overlapping
+/// the one before (the body must give the same result twice). A scalar
+/// tail of up to three nodes cost as much as a dozen in vectors. A macro,
+/// not a closure: a closure is not compiled with the kernel's target
+/// features.
+macro_rules! overlapped {
+    ($i:ident in $n:expr => $body:block) => {{
+        #![allow(clippy::needless_range_loop)] // several arrays, indexed alike
+        let n: usize = $n;
+        let whole = n - n % 4;
+        for $i in 0..whole $body
+        let from = if whole < n { n.saturating_sub(4) } else { n };
+        for $i in from..n $body
+    }};
+}
+
 mod node;
 mod real;
 
@@ -133,10 +150,10 @@ fn uniform_kernel(w: &[f64], a: UniformArgs, r: &mut [f64], dd: &mut [f64], dth:
     let n = w.len().min(r.len()).min(dd.len()).min(dth.len());
     let (w, r, dd, dth) = (&w[..n], &mut r[..n], &mut dd[..n], &mut dth[..n]);
     if !deriv {
-        for i in 0..n {
+        overlapped!(i in n => {
             let (_, c) = sin_cos_bounded(w[i] * kd);
             r[i] = pol.value(c);
-        }
+        });
         return;
     }
     // One polarisation (the common case) gets its own loop so it vectorises
@@ -150,7 +167,7 @@ fn uniform_kernel(w: &[f64], a: UniformArgs, r: &mut [f64], dd: &mut [f64], dth:
     };
     match single {
         Some((cf, dc)) => {
-            for i in 0..n {
+            overlapped!(i in n => {
                 let (sn, x) = sin_cos_bounded(w[i] * kd);
                 let inv = 1.0 / (cf.c + cf.b * x);
                 let rv = (cf.a + cf.b * x) * inv;
@@ -160,17 +177,17 @@ fn uniform_kernel(w: &[f64], a: UniformArgs, r: &mut [f64], dd: &mut [f64], dth:
                 let dphase = -sn * w[i];
                 dd[i] = dx * dphase * q2;
                 dth[i] = dcoef + dx * dphase * d * dq2;
-            }
+            });
         }
         None => {
-            for i in 0..n {
+            overlapped!(i in n => {
                 let (sn, x) = sin_cos_bounded(w[i] * kd);
                 let (rv, dx, dcoef) = pol.value_slopes(x);
                 r[i] = rv;
                 let dphase = -sn * w[i];
                 dd[i] = dx * dphase * q2;
                 dth[i] = dcoef + dx * dphase * d * dq2;
-            }
+            });
         }
     }
 }
