@@ -314,6 +314,10 @@ struct Fit {
     /// The refinement ran out of iterations still moving (not at a
     /// minimum).
     stalled: bool,
+    /// χ² against the noise model and the mean noise variance at the fit,
+    /// where the refinement left the model there (its last evaluation):
+    /// `finish` then need not evaluate it again. `None` elsewhere.
+    chi2: Option<(f64, f64)>,
 }
 
 /// Everything that depends on the film index.

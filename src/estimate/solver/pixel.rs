@@ -514,6 +514,9 @@ impl Solver {
             .filter(|_| best.tabled && prep.tables.get(best.theta).is_some());
         let (chi2, noise_var) = if let (true, Some((v, inv))) = (judging, uniform) {
             (best.sse * inv, v)
+        } else if let (true, Some(c)) = (judging, best.chi2) {
+            // Left by the refinement at this very fit.
+            c
         } else if judging {
             let mut trial = std::mem::take(&mut scratch.trial);
             match prep.tables.get(best.theta).filter(|_| best.tabled) {

@@ -145,6 +145,11 @@ impl Solver {
             integrated: false,
             tabled: false,
             stalled: stalled && iters > 0,
+            // The model at the fit is in `cur`: its χ² costs one pass.
+            chi2: self
+                .judging()
+                .then(|| self.chi2_and_noise_var(s, &s.cur.r))
+                .filter(|c| c.0.is_finite()),
         }
     }
 

@@ -1082,6 +1082,7 @@ impl Solver {
                         integrated: false,
                         tabled: true,
                         stalled: false,
+                        chi2: None,
                     };
                     let out = self.finish(&[fit], n_ok, Some(theta), noise, prep, lam_min, scratch);
                     if out.0.is_valid() {
@@ -1212,6 +1213,7 @@ impl Solver {
             integrated: false,
             tabled: true,
             stalled: false,
+            chi2: None,
         };
         let dd = 0.5 / self.table.sigma_center / prep.model.q2_mid(theta);
         let mut fits = [fit; 2];
@@ -1287,6 +1289,7 @@ impl Solver {
             integrated: false,
             tabled: true,
             stalled: false,
+            chi2: None,
         }
     }
 }
