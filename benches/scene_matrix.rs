@@ -9,7 +9,8 @@
 //! tiles each scene to at least N pixels, default 100 000; `--best-of K`
 //! times each fit K times and keeps the fastest; `--scene NAME` and
 //! `--mode M` and `--angle known|unknown` select rows; `--threads N` fits
-//! on N threads, all by default).
+//! on N threads, all by default; `--levels` and `--reasons` print each
+//! fit's level and its pixels' reason codes on stderr).
 //!
 //! Columns: pixels/s of the per-pixel solve on all threads (the film index
 //! and the noise and level estimates are timed apart, once per image);
@@ -86,6 +87,13 @@ fn main() {
                     );
                 }
                 bar.inc(1);
+                if args.iter().any(|a| a == "--reasons") {
+                    let mut counts = std::collections::BTreeMap::new();
+                    for r in &maps.reason {
+                        *counts.entry(*r as i32).or_insert(0usize) += 1;
+                    }
+                    eprintln!("{name} {angle} {}: reason codes {counts:?}", mode.name());
+                }
                 let acc = compare(&maps, &truth);
                 let px = (cube.width * cube.height) as f64 / t_fit;
                 bar.suspend(|| {

@@ -209,3 +209,74 @@ fn balanced_rows_from_the_previous_pixel_agree_with_the_scan() {
         );
     }
 }
+
+/// A run of pixels no thickness fits (here a ripple the model cannot make,
+/// 30× the noise, over the middle of each row): a row flags them "poor
+/// fit" exactly as lone pixels scanning the whole table do, but after the
+/// first it skips the scan where the χ² distance to that pixel proves no
+/// thickness can fit either (their best-fit thickness then reads NaN), and
+/// the pixels past the run are solved afresh and agree with the scan.
+#[test]
+fn poor_runs_in_a_row_are_flagged_as_the_scan_flags_them() {
+    let (w, h) = (90, 4);
+    let mut s = coating("[angle]\ndeg = 30.0", w, h);
+    let t = s.truth.as_mut().unwrap();
+    t.angle_deg = Field::Constant(30.0);
+    t.thickness_nm = Field::LinearX([150.0, 600.0]);
+    t.seed = 5;
+    let bands = scene_bands(&s).unwrap();
+    let mut cube = Renderer::new(&s).unwrap().render_cube(&bands).unwrap();
+    let poor = 30..60;
+    for (k, plane) in cube.data.chunks_exact_mut(w * h).enumerate() {
+        let ripple = 0.03 * (std::f64::consts::TAU * k as f64 / 7.0).sin();
+        for y in 0..h {
+            for x in poor.clone() {
+                plane[y * w + x] += ripple as f32;
+            }
+        }
+    }
+    for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
+        let mut solver = Solver::new(&s, &bands, mode).unwrap();
+        solver.estimate_film_index(&cube).unwrap();
+        let mut scratch = irid::estimate::solver::Scratch::default();
+        let mut row =
+            vec![irid::estimate::PixelEstimate::invalid(irid::estimate::Reason::Masked); w];
+        let mut spec = vec![0.0; bands.len()];
+        let (mut flagged, mut skipped, mut valid_outside) = (0, 0, 0);
+        for y in 0..h {
+            solver.solve_row(&cube, y, &mut row, &mut scratch);
+            for (x, r) in row.iter().enumerate() {
+                cube.spectrum_into(x, y, &mut spec);
+                let mut lone = irid::estimate::solver::Scratch::default();
+                let p = solver.solve_pixel(&spec, solver.scene_angle().known_at(x, y), &mut lone);
+                let at = format!("{} ({x}, {y})", mode.name());
+                let agreed = assert_agree(&at, r, &p);
+                if poor.contains(&x) {
+                    flagged += usize::from(r.reason == irid::estimate::Reason::PoorFit);
+                    skipped += usize::from(scratch.fit_thickness()[x].is_nan());
+                } else {
+                    valid_outside += usize::from(agreed.is_some());
+                }
+            }
+        }
+        let n_poor = poor.len() * h;
+        eprintln!(
+            "{}: {flagged} of {n_poor} flagged, {skipped} without a scan, {valid_outside} valid outside",
+            mode.name()
+        );
+        assert_eq!(
+            flagged,
+            n_poor,
+            "{}: every rippled pixel flagged",
+            mode.name()
+        );
+        // The skip runs (all but the first of each run, less the few the
+        // noise brings close), and only on flagged pixels.
+        assert!(skipped >= n_poor / 2, "{}: {skipped} skipped", mode.name());
+        assert!(
+            valid_outside as f64 >= 0.9 * ((w - poor.len()) * h) as f64,
+            "{}: {valid_outside} valid outside the run",
+            mode.name()
+        );
+    }
+}

@@ -38,7 +38,7 @@ use crate::estimate::model::FilmModel;
 
 /// Fringes below this many χ² thresholds of signal are "weak": the whole
 /// range is scanned for another basin.
-const WEAK_FRINGES: f64 = 10.0;
+pub(super) const WEAK_FRINGES: f64 = 10.0;
 
 /// A film below its first fringe is checked against the sub-fringe range
 /// where its fringes carry less than this many χ² thresholds: the

@@ -160,6 +160,11 @@ pub struct Scratch {
     /// The previous pixel's valid fit (d, θ) within the current row, the
     /// fitted path's first start (see `Solver::try_warm`).
     warm: Option<(f64, f64)>,
+    /// A pixel of the current row that no thickness on a table fitted:
+    /// the table (angle bits) and a floor under its √χ² at every
+    /// thickness; its spectrum in `poor_y` (see `Solver::poor_as_before`).
+    poor: Option<(u64, f64)>,
+    poor_y: Vec<f64>,
     /// The thickness of the last pixel's best fit, judged or not (NaN: no
     /// fit was made).
     last_fit_d: f64,
@@ -171,7 +176,8 @@ impl Scratch {
     /// After [`Solver::solve_row`]: each pixel's best-fit thickness, nm,
     /// whether the fit passed its checks or was flagged (a poor fit still
     /// says where its minimum lies); NaN where no fit was made (missing
-    /// bands, a spectrum beyond the model).
+    /// bands, a spectrum beyond the model, a poor fit settled by its
+    /// distance to an earlier one in the row without a scan).
     pub fn fit_thickness(&self) -> &[f64] {
         &self.fits
     }

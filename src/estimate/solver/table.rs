@@ -15,10 +15,12 @@
 //! interpolation error could cost a pixel its validity but never make a
 //! wrong one valid.
 
+use super::alternatives::WEAK_FRINGES;
 use super::refine::sse;
 use super::{Effort, Fit, Prepared, Scratch, Solver};
 use crate::estimate::model::{FilmModel, ModelOut};
-use crate::estimate::PixelEstimate;
+use crate::estimate::noise::FlatNoise;
+use crate::estimate::{PixelEstimate, Reason};
 use multiversion::multiversion;
 use std::sync::Arc;
 
@@ -1067,6 +1069,11 @@ impl Solver {
         scratch: &mut Scratch,
     ) -> (PixelEstimate, f64) {
         let exact = table_theta.to_bits() == theta.to_bits();
+        if exact {
+            if let Some(out) = self.poor_as_before(prep, theta, n_ok, noise, scratch) {
+                return out;
+            }
+        }
         // `fast`: the previous pixel's order first, where it explains this
         // spectrum (the χ² test); the full scan otherwise.
         let key = theta.to_bits();
@@ -1174,7 +1181,88 @@ impl Solver {
         let out = self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch);
         scratch.hint =
             (interpolated && out.0.is_valid()).then(|| (key, table.index_of(out.0.thickness_nm)));
+        if exact && out.0.reason == Reason::PoorFit {
+            let min_sse = fits[..n]
+                .iter()
+                .map(|f| f.sse)
+                .fold(f64::INFINITY, f64::min);
+            self.note_poor(prep, theta, n_ok, noise, min_sse, scratch);
+        }
         out
+    }
+
+    /// Whether the fringes at `theta` leave a pixel of `n_ok` bands no
+    /// competitor beyond the table (the alternative checks add no fit at a
+    /// known angle), the noise is one variance per band, and the spectrum
+    /// is complete: where a poor pixel's bound below applies.
+    fn poor_bound_applies(
+        &self,
+        prep: &Prepared,
+        theta: f64,
+        n_ok: usize,
+        noise: Option<f64>,
+        scratch: &Scratch,
+    ) -> Option<&FlatNoise> {
+        let sigma = noise.filter(|_| self.judging())?;
+        let flat = self.flat_noise.as_ref().filter(|_| self.noise.is_some())?;
+        let complete = n_ok == scratch.weight.len() && scratch.weight.iter().all(|&w| w == 1.0);
+        (complete && self.fringe_signal(prep, theta, n_ok, sigma) >= WEAK_FRINGES).then_some(flat)
+    }
+
+    /// After the scan found no thickness on the table that fits (flagged
+    /// "poor fit"): the spectrum, and a floor under its √χ² at every
+    /// thickness of the table, `√(SSE_min · min 1/σ²)` (χ² weighs each band
+    /// by at least the smallest inverse variance; the scan's best minimum
+    /// is its least SSE, as every flag the scan gives assumes).
+    fn note_poor(
+        &self,
+        prep: &Prepared,
+        theta: f64,
+        n_ok: usize,
+        noise: Option<f64>,
+        min_sse: f64,
+        scratch: &mut Scratch,
+    ) {
+        let Some(flat) = self.poor_bound_applies(prep, theta, n_ok, noise, scratch) else {
+            return;
+        };
+        let floor = (min_sse * flat.min_inv_var()).sqrt();
+        if floor.is_finite() {
+            scratch.poor_y.clear();
+            scratch.poor_y.extend_from_slice(&scratch.spectrum);
+            scratch.poor = Some((theta.to_bits(), floor));
+        }
+    }
+
+    /// A pixel close to an earlier poor one of the row, flagged "poor fit"
+    /// without a scan where no thickness can fit it either: by the
+    /// triangle inequality in the χ² norm, `√χ²(d)` of this spectrum is at
+    /// least the earlier floor less the distance `√χ²` between the two
+    /// spectra, at every `d`. It stands only where that exceeds twice the
+    /// χ² test's `√threshold` (four times the threshold in χ²); the
+    /// earlier pixel stays the reference until a scan runs again. (A run
+    /// of pixels past the resolved range, a defect, a coating
+    /// the model does not describe: the scan was a fifth of a thick film's
+    /// solve.)
+    fn poor_as_before(
+        &self,
+        prep: &Prepared,
+        theta: f64,
+        n_ok: usize,
+        noise: Option<f64>,
+        scratch: &mut Scratch,
+    ) -> Option<(PixelEstimate, f64)> {
+        let (key, floor) = scratch.poor?;
+        if key != theta.to_bits() || scratch.poor_y.len() != scratch.spectrum.len() {
+            return None;
+        }
+        let flat = self.poor_bound_applies(prep, theta, n_ok, noise, scratch)?;
+        let dist = flat.chi2_between(&scratch.spectrum, &scratch.poor_y).sqrt();
+        let threshold = self.chi2.threshold(n_ok.saturating_sub(1).max(1));
+        (floor - dist > 2.0 * threshold.sqrt()).then(|| {
+            scratch.last_fit_d = f64::NAN;
+            (PixelEstimate::invalid(Reason::PoorFit), f64::NAN)
+        })
     }
 
     /// `balanced` from the previous pixel's grid point `j0` (a film
