@@ -95,15 +95,6 @@ impl FlatNoise {
         self.inv_var.iter().copied().fold(f64::INFINITY, f64::min)
     }
 
-    /// `Σ (a − b)² / var` over the bands.
-    pub fn chi2_between(&self, a: &[f64], b: &[f64]) -> f64 {
-        a.iter()
-            .zip(b)
-            .zip(&self.inv_var)
-            .map(|((a, b), w)| w * (a - b) * (a - b))
-            .sum()
-    }
-
     /// As [`NoiseModel::chi2_and_mean_var`] (the model values `r` only
     /// enter through the residual).
     pub fn chi2_and_mean_var(&self, y: &[f64], w: &[f64], r: &[f64]) -> (f64, f64) {

@@ -1205,7 +1205,8 @@ impl Solver {
     ) -> Option<&FlatNoise> {
         let sigma = noise.filter(|_| self.judging())?;
         let flat = self.flat_noise.as_ref().filter(|_| self.noise.is_some())?;
-        let complete = n_ok == scratch.weight.len() && scratch.weight.iter().all(|&w| w == 1.0);
+        // Weights are 1 on the bands used and 0 elsewhere.
+        let complete = n_ok == scratch.weight.len();
         (complete && self.fringe_signal(prep, theta, n_ok, sigma) >= WEAK_FRINGES).then_some(flat)
     }
 
@@ -1257,7 +1258,10 @@ impl Solver {
             return None;
         }
         let flat = self.poor_bound_applies(prep, theta, n_ok, noise, scratch)?;
-        let dist = flat.chi2_between(&scratch.spectrum, &scratch.poor_y).sqrt();
+        // Every weight is 1 here: the χ² between the two spectra.
+        let (between, _) =
+            flat.chi2_and_mean_var(&scratch.spectrum, &scratch.weight, &scratch.poor_y);
+        let dist = between.sqrt();
         let threshold = self.chi2.threshold(n_ok.saturating_sub(1).max(1));
         (floor - dist > 2.0 * threshold.sqrt()).then(|| {
             scratch.last_fit_d = f64::NAN;
