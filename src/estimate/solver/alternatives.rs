@@ -36,6 +36,57 @@ use super::refine::sse;
 use super::{Fit, Prepared, Scratch, Solver};
 use crate::estimate::model::FilmModel;
 
+/// A fit's neighbouring fringe orders are weighed again only where the
+/// previous pixel's fell short of its fit by less than this many noise
+/// variances of ΔSSE, or the fit moved (see [`OrderMargin`]).
+pub(super) const ORDER_MARGIN_SKIP: f64 = 100.0;
+
+/// How far the previous pixel's neighbouring fringe order (one fringe more
+/// or fewer) fell short of its fit in the row, ΔSSE in noise variances, and
+/// where that fit stood: on a table (`key`: its angle's bits) its
+/// thickness, on the fitted path (`key`: [`OrderMargin::FITTED`]) its
+/// optical thickness. Where the margin was wide (≥ [`ORDER_MARGIN_SKIP`])
+/// and this pixel's fit moved by under a twentieth of a fringe, the order
+/// cannot have come within the ambiguity margin (4): the noise moves ΔSSE
+/// by about 2√ΔSSE variances, and a film does not close 96 of them in one
+/// pixel. The margin is then carried at half, so the order is weighed
+/// again within a few pixels, and at least every fifth (the margin kept
+/// is capped at 16 × [`ORDER_MARGIN_SKIP`]).
+#[derive(Clone, Copy, Debug)]
+pub(super) struct OrderMargin {
+    key: u64,
+    at: f64,
+    margin: f64,
+}
+
+impl OrderMargin {
+    /// The fitted path's key (a NaN pattern: no table's angle).
+    pub(super) const FITTED: u64 = u64::MAX;
+
+    /// A fit at `at` on `key`, its neighbouring order `margin` behind.
+    pub(super) fn new(key: u64, at: f64, margin: f64) -> OrderMargin {
+        OrderMargin {
+            key,
+            at,
+            margin: margin.min(16.0 * ORDER_MARGIN_SKIP),
+        }
+    }
+
+    /// The margin carried from `prev` to a fit at `at` on `key` (`fringe`:
+    /// one fringe in `at`'s unit), where the order need not be weighed.
+    pub(super) fn carried(
+        prev: Option<OrderMargin>,
+        key: u64,
+        at: f64,
+        fringe: f64,
+    ) -> Option<f64> {
+        prev.filter(|p| {
+            p.key == key && (at - p.at).abs() < 0.05 * fringe && p.margin >= ORDER_MARGIN_SKIP
+        })
+        .map(|p| 0.5 * p.margin)
+    }
+}
+
 /// Fringes below this many χ² thresholds of signal are "weak": the whole
 /// range is scanned for another basin.
 pub(super) const WEAK_FRINGES: f64 = 10.0;

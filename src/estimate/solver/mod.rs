@@ -153,10 +153,9 @@ pub struct Scratch {
     /// `fast`: the previous pixel's table (angle bits) and grid point,
     /// within the current row.
     hint: Option<(u64, usize)>,
-    /// `balanced` on a table: the previous pixel's table (angle bits),
-    /// thickness and how far its neighbouring order fell short of its fit
-    /// (ΔSSE in noise variances), within the current row.
-    order_margin: Option<(u64, f64, f64)>,
+    /// `balanced`: how far the previous pixel's neighbouring fringe order
+    /// fell short of its fit, within the current row.
+    order_margin: Option<alternatives::OrderMargin>,
     /// The previous pixel's valid fit (d, θ) within the current row, the
     /// fitted path's first start (see `Solver::try_warm`).
     warm: Option<(f64, f64)>,
@@ -165,6 +164,9 @@ pub struct Scratch {
     /// thickness; its spectrum in `poor_y` (see `Solver::poor_as_before`).
     poor: Option<(u64, f64)>,
     poor_y: Vec<f64>,
+    /// The previous pixel in the row was settled by `balanced`'s closed
+    /// form (its neighbour then looks for one first, before its warm start).
+    closed_form_last: bool,
     /// The thickness of the last pixel's best fit, judged or not (NaN: no
     /// fit was made).
     last_fit_d: f64,

@@ -3,6 +3,7 @@
 //! refinement of the best starts; then the checks (stage 4): best fit,
 //! covariance, validity flags.
 
+use super::alternatives::OrderMargin;
 use super::closed_form::angle_start;
 use super::refine::{free_angle_sigma, sse};
 use super::search::{Candidate, MAX_CANDIDATES};
@@ -11,6 +12,19 @@ use crate::estimate::model::FilmModel;
 use crate::estimate::noise::FlatNoise;
 use crate::estimate::{PixelEstimate, Reason};
 use std::f64::consts::PI;
+
+/// What the warm start needs of its pixel (see [`Solver::try_warm`]).
+#[derive(Clone, Copy)]
+struct WarmJob {
+    theta_known: Option<f64>,
+    n_ok: usize,
+    noise: Option<f64>,
+    effort: super::Effort,
+    /// The pixel solves alone (no candidates found for it by the caller).
+    alone: bool,
+    /// The previous pixel's neighbouring-order margin in the row.
+    prev_margin: Option<OrderMargin>,
+}
 
 impl Solver {
     /// Solve one pixel against a prepared index; returns the estimate (with
@@ -86,24 +100,39 @@ impl Solver {
             }
         }
         // The previous pixel's fit in the row, refined and finished where it
-        // stands (`warm_solve`).
+        // stands (`warm_solve`); the margin of its neighbouring order is
+        // kept only by a pixel that stands there too.
+        let prev_margin = scratch.order_margin.take();
         let warm = |scratch: &mut Scratch| {
             let alone = pre.is_none();
             self.warm_solve(
                 prep,
-                theta_known,
-                n_ok,
-                noise,
-                effort,
-                alone,
+                WarmJob {
+                    theta_known,
+                    n_ok,
+                    noise,
+                    effort,
+                    alone,
+                    prev_margin,
+                },
                 lam_min,
                 scratch,
             )
         };
-        // `fast`'s closed form, found wanting by the caller: the previous
-        // pixel's fit first, where it is trusted.
+        // The previous pixel's fit first, where it is trusted: after
+        // `fast`'s closed form, found wanting by the caller, and in
+        // `balanced` with the angle free before the closed form is looked
+        // for, unless the closed form settled the previous pixel (where
+        // a film shows too few extrema for one, looking costs as much as
+        // the warm fit's refinement).
         let mut warm_fit = None;
-        if job_start.is_some() && effort.warm {
+        let closed_form_last = std::mem::take(&mut scratch.closed_form_last);
+        let warm_first = job_start.is_some()
+            || (!effort.closed_form_only
+                && !closed_form_last
+                && scratch.warm.is_some()
+                && theta_known.is_none());
+        if warm_first && effort.warm {
             match warm(scratch) {
                 Ok(out) => return out,
                 Err(f) => warm_fit = f,
@@ -148,7 +177,9 @@ impl Solver {
                 // the full search worth its cost.
                 let good = noise.is_some_and(|n| rms <= 2.0 * n);
                 if good && !effort.verify_order {
-                    return self.finish(&[fit], n_ok, theta_known, noise, prep, lam_min, scratch);
+                    let out = self.finish(&[fit], n_ok, theta_known, noise, prep, lam_min, scratch);
+                    scratch.closed_form_last = true;
+                    return out;
                 }
                 if good {
                     // Where this pixel's fringes are fast enough for the
@@ -293,25 +324,19 @@ impl Solver {
     /// [`Solver::try_warm`], finished where the warm fit stands: `Ok` with
     /// the pixel's estimate, else `Err` with the fit to weigh beside the
     /// search's.
-    #[allow(clippy::too_many_arguments)]
     fn warm_solve(
         &self,
         prep: &Prepared,
-        theta_known: Option<f64>,
-        n_ok: usize,
-        noise: Option<f64>,
-        effort: super::Effort,
-        alone: bool,
+        job: WarmJob,
         lam_min: f64,
         scratch: &mut Scratch,
     ) -> Result<(PixelEstimate, f64), Option<Fit>> {
-        let (fits, n_fits) =
-            self.try_warm(prep, theta_known, n_ok, noise, effort, alone, scratch)?;
+        let (fits, n_fits) = self.try_warm(prep, job, scratch)?;
         Ok(self.finish(
             &fits[..n_fits],
-            n_ok,
-            theta_known,
-            noise,
+            job.n_ok,
+            job.theta_known,
+            job.noise,
             prep,
             lam_min,
             scratch,
@@ -323,17 +348,20 @@ impl Solver {
     /// ([`Solver::warm_accept`], only if `alone` and the effort allows),
     /// else `Err` with the refined fit (none without a judged warm start)
     /// to weigh beside the search's.
-    #[allow(clippy::too_many_arguments, clippy::type_complexity)]
+    #[allow(clippy::type_complexity)]
     fn try_warm(
         &self,
         prep: &Prepared,
-        theta_known: Option<f64>,
-        n_ok: usize,
-        noise: Option<f64>,
-        effort: super::Effort,
-        alone: bool,
+        job: WarmJob,
         scratch: &mut Scratch,
     ) -> Result<([Fit; 2], usize), Option<Fit>> {
+        let WarmJob {
+            theta_known,
+            noise,
+            effort,
+            alone,
+            ..
+        } = job;
         let judging = noise.is_some() && self.judging();
         let Some((d0, th0)) = scratch.warm.filter(|_| judging) else {
             return Err(None);
@@ -342,9 +370,7 @@ impl Solver {
         let free = theta_known.is_none();
         let fit = self.refine(&prep.model, d0, th0, free, effort.iters, scratch);
         if effort.warm && alone {
-            if let Some(fits) =
-                self.warm_accept(prep, fit, theta_known, n_ok, noise, effort, scratch)
-            {
+            if let Some(fits) = self.warm_accept(prep, fit, job, scratch) {
                 return Ok(fits);
             }
         }
@@ -363,17 +389,21 @@ impl Solver {
     /// on its search path too. Otherwise (an edge, a jump of order, a
     /// flagged neighbour, weak fringes) the pixel takes the fringe search.
     /// `finish` runs the same alternative checks on either path.
-    #[allow(clippy::too_many_arguments)]
     fn warm_accept(
         &self,
         prep: &Prepared,
         fit: Fit,
-        theta_known: Option<f64>,
-        n_ok: usize,
-        noise: Option<f64>,
-        effort: super::Effort,
+        job: WarmJob,
         scratch: &mut Scratch,
     ) -> Option<([Fit; 2], usize)> {
+        let WarmJob {
+            theta_known,
+            n_ok,
+            noise,
+            effort,
+            prev_margin,
+            ..
+        } = job;
         let sigma = noise?;
         if fit.stalled || !(fit.sse.is_finite() && fit.d.is_finite() && fit.theta.is_finite()) {
             return None;
@@ -397,7 +427,17 @@ impl Solver {
             // `fast` weighs one fit, as on its search path.
             return Some(([fit, fit], 1));
         }
-        Some(self.with_neighbour_order(
+        // The neighbouring orders, unless the previous pixel's fell far
+        // short of its fit and this one's fringe phase moved little
+        // ([`OrderMargin`]; here in optical thickness, which the angle
+        // shares with the thickness).
+        let g = fit.d * prep.model.q2_mid(fit.theta);
+        let fringe = 0.5 / self.table.sigma_center;
+        if let Some(m) = OrderMargin::carried(prev_margin, OrderMargin::FITTED, g, fringe) {
+            scratch.order_margin = Some(OrderMargin::new(OrderMargin::FITTED, g, m));
+            return Some(([fit, fit], 1));
+        }
+        let (fits, n) = self.with_neighbour_order(
             prep,
             &prep.model,
             fit,
@@ -405,7 +445,14 @@ impl Solver {
             n_ok,
             effort.iters,
             scratch,
-        ))
+        );
+        let margin = if n == 2 {
+            (fits[1].sse - fit.sse) / (sigma * sigma)
+        } else {
+            f64::INFINITY
+        };
+        scratch.order_margin = Some(OrderMargin::new(OrderMargin::FITTED, g, margin));
+        Some((fits, n))
     }
 
     /// `fit` and its neighbouring orders on the lattice: the same fringe

@@ -37,6 +37,7 @@ impl Solver {
         scratch.hint = None;
         scratch.order_margin = None;
         scratch.warm = None;
+        scratch.closed_form_last = false;
         scratch.poor = None;
         let mut pixel = std::mem::take(&mut scratch.pixel);
         pixel.resize(cube.bands.len(), 0.0);

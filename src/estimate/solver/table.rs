@@ -15,7 +15,7 @@
 //! interpolation error could cost a pixel its validity but never make a
 //! wrong one valid.
 
-use super::alternatives::WEAK_FRINGES;
+use super::alternatives::{OrderMargin, WEAK_FRINGES};
 use super::refine::sse;
 use super::{Effort, Fit, Prepared, Scratch, Solver};
 use crate::estimate::model::{FilmModel, ModelOut};
@@ -270,11 +270,6 @@ pub struct GridScratch {
 
 /// The most minima [`ThicknessTable::minima`] returns.
 pub const MAX_MINIMA: usize = 4;
-
-/// `balanced` on a table weighs a pixel's neighbouring fringe order only
-/// where the previous pixel's fell short of its fit by less than this many
-/// noise variances of ΔSSE, or the fit moved (see `Solver::table_warm`).
-const ORDER_MARGIN_SKIP: f64 = 100.0;
 
 /// The lowest value of the parabola through `(−1, l)`, `(0, c)`, `(1, r)`
 /// (`c` itself where it does not curve upwards), never below zero.
@@ -1310,18 +1305,9 @@ impl Solver {
         let dd = 0.5 / self.table.sigma_center / prep.model.q2_mid(theta);
         let mut fits = [fit; 2];
         let key = theta.to_bits();
-        // Where the previous pixel's neighbouring order fell short of its
-        // fit by far (ΔSSE ≥ ORDER_MARGIN_SKIP noise variances) and this
-        // fit moved little, that order cannot have come within the
-        // ambiguity margin (4): the noise moves ΔSSE by about 2√ΔSSE
-        // variances. Its margin is then carried at half, so the order is
-        // weighed again within a few pixels.
-        let carried = scratch
-            .order_margin
-            .filter(|&(k, d_prev, m)| {
-                k == key && (d - d_prev).abs() < 0.05 * dd && m >= ORDER_MARGIN_SKIP
-            })
-            .map(|(_, _, m)| 0.5 * m);
+        // Where the previous pixel's neighbouring order fell far short of
+        // its fit and this fit moved little, it is not weighed again.
+        let carried = OrderMargin::carried(scratch.order_margin, key, d, dd);
         let (n, margin) = if let Some(m) = carried {
             (1, m)
         } else {
@@ -1354,10 +1340,7 @@ impl Solver {
                 None => (1, f64::INFINITY),
             }
         };
-        // Capped, so the order is weighed again after at most four pixels
-        // (the fit may drift a fifth of a fringe over them, a neighbouring
-        // order may come into the table's range).
-        scratch.order_margin = Some((key, d, margin.min(16.0 * ORDER_MARGIN_SKIP)));
+        scratch.order_margin = Some(OrderMargin::new(key, d, margin));
         let out = self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch);
         out.0.is_valid().then_some(out)
     }
