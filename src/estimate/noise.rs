@@ -181,6 +181,27 @@ impl NoiseModel {
         self.var0.len()
     }
 
+    /// The smallest variance of any band at a reflectance in [0, 1] (the
+    /// ends and the vertex of the quadratic; 0 with no band).
+    pub fn min_var(&self) -> f64 {
+        let at = |k: usize| {
+            let vertex = if self.rel2 > 0.0 {
+                (-self.shot[k] / (2.0 * self.rel2)).clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
+            self.var(k, 0.0)
+                .min(self.var(k, 1.0))
+                .min(self.var(k, vertex))
+        };
+        let min = (0..self.var0.len()).map(at).fold(f64::INFINITY, f64::min);
+        if min.is_finite() {
+            min
+        } else {
+            0.0
+        }
+    }
+
     /// Variance of band `k` at reflectance `r`.
     #[inline]
     pub fn var(&self, k: usize, r: f64) -> f64 {

@@ -269,7 +269,7 @@ impl Effort {
                 iters: 25,
                 table: true,
                 verify_order: true,
-                warm: false,
+                warm: true,
             },
         }
     }
@@ -382,6 +382,10 @@ pub struct Solver {
     /// The same, where its variances do not depend on R (χ² without a
     /// division per band).
     flat_noise: Option<FlatNoise>,
+    /// The smallest noise variance of any band (0 without a noise model):
+    /// a refinement whose next step would lower χ² by less than
+    /// [`refine::STEP_CHI2`] of it has converged.
+    min_noise_var: f64,
     /// The χ² test.
     chi2: Chi2Test,
     /// The image-wide level in force (identity unless `scaled`).
@@ -511,6 +515,7 @@ impl Solver {
             g_max,
             noise: None,
             flat_noise: None,
+            min_noise_var: 0.0,
             chi2: Chi2Test::flagging(MAX_BANDS),
             level: Level::identity(bands.len()),
             level_mode: match scene.level {
@@ -860,6 +865,7 @@ impl Solver {
         let noise = noise.with_accuracy(self.scene.reflectance_accuracy);
         let typical = noise.typical_sigma(0.05);
         self.flat_noise = noise.flat();
+        self.min_noise_var = noise.min_var();
         self.noise = Some(noise);
         if let Some(i) = &mut self.index {
             i.noise_sigma = typical;

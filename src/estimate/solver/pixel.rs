@@ -427,6 +427,30 @@ impl Solver {
             // `fast` weighs one fit, as on its search path.
             return Some(([fit, fit], 1));
         }
+        if effort.verify_order {
+            // `accurate`: refit with the integrated model where this
+            // pixel's fringes are fast enough for the passband to matter,
+            // and weigh the neighbouring orders on every pixel (as after
+            // its closed form).
+            let model = self.model_for(prep, &fit);
+            let fit = if std::ptr::eq(model, &prep.model) {
+                fit
+            } else {
+                let free = theta_known.is_none();
+                let mut f = self.refine(model, fit.d, fit.theta, free, effort.iters, scratch);
+                f.integrated = true;
+                f
+            };
+            return Some(self.with_neighbour_order(
+                prep,
+                model,
+                fit,
+                theta_known,
+                n_ok,
+                effort.iters,
+                scratch,
+            ));
+        }
         // The neighbouring orders, unless the previous pixel's fell far
         // short of its fit and this one's fringe phase moved little
         // ([`OrderMargin`]; here in optical thickness, which the angle

@@ -99,10 +99,18 @@ impl Solver {
                 let (nd, nt) = valley.step(&jac, d, th, sd, st, max_dd, free_theta);
                 let nd = nd.clamp(d_lo, d_hi);
                 let nt = nt.clamp(lo, hi);
-                if mu <= 1e-3 && (nd - d).abs() < 5e-3 && (nt - th).abs() < 2e-5 {
-                    // An undamped step already below the convergence
-                    // tolerance: the fit stays where it is, sparing the
-                    // evaluation that would only confirm it.
+                // An undamped step already below the convergence
+                // tolerance, or one that would lower χ² by a negligible
+                // amount (to first order, the Gauss–Newton step lowers
+                // the residual by the step times the gradient; a fit off
+                // its minimum by that is off by √STEP_CHI2 = 0.01 σ along
+                // any direction): the fit stays where it is, sparing the
+                // evaluation that would only confirm it.
+                let predicted = sd * gd + st * gt;
+                if mu <= 1e-3
+                    && (((nd - d).abs() < 5e-3 && (nt - th).abs() < 2e-5)
+                        || (self.min_noise_var > 0.0 && predicted < STEP_CHI2 * self.min_noise_var))
+                {
                     break;
                 }
                 eval(nd, nt, &mut s.trial);
@@ -188,6 +196,10 @@ impl Solver {
         0.5 * (lo + hi) - best.d
     }
 }
+
+/// A refinement stops where its next step would lower χ² by less than
+/// this (in noise variances; see `Solver::min_noise_var`).
+pub(super) const STEP_CHI2: f64 = 1e-4;
 
 #[inline]
 pub(super) fn sse(y: &[f64], w: &[f64], r: &[f64]) -> f64 {
