@@ -149,19 +149,25 @@ fn a_continuous_angle_map_reaches_the_bound() {
     check(&s, "angle map");
 }
 
-/// A film over several fringe orders at one known angle, in `balanced`:
-/// the row path starts each pixel from the previous pixel's basin and
-/// weighs its neighbouring orders (the scan only where that does not
-/// settle the pixel); a lone pixel always scans the whole range. Both
+/// A film over several fringe orders at one known angle, in `balanced`
+/// and `accurate`: the row path starts each pixel from the previous
+/// pixel's basin and weighs its neighbouring orders (the scan only where
+/// that does not settle the pixel); a lone pixel always scans the whole
+/// range. Both
 /// must judge every pixel alike and agree on every valid one. The steep
 /// ramp moves a quarter fringe and more per pixel, so the previous
 /// pixel's basin is often the wrong one there: the scan must take over.
 #[test]
 fn balanced_rows_from_the_previous_pixel_agree_with_the_scan() {
-    for (label, thickness, width) in [
+    let cases = [
         ("ramp", Field::LinearX([150.0, 1500.0]), 160),
         ("steep", Field::Columns([150.0, 47.0]), 30),
-    ] {
+    ];
+    let modes = [Mode::Balanced, Mode::Accurate];
+    for ((label, thickness, width), mode) in
+        modes.iter().flat_map(|&m| cases.clone().map(|c| (c, m)))
+    {
+        let label = format!("{label} {mode:?}");
         let mut s = coating("[angle]\ndeg = 30.0", width, 6);
         let t = s.truth.as_mut().unwrap();
         t.angle_deg = Field::Constant(30.0);
@@ -171,7 +177,7 @@ fn balanced_rows_from_the_previous_pixel_agree_with_the_scan() {
         let r = Renderer::new(&s).unwrap();
         let cube = r.render_cube(&bands).unwrap();
         let truth = r.truth_maps(&bands);
-        let mut solver = Solver::new(&s, &bands, Mode::Balanced).unwrap();
+        let mut solver = Solver::new(&s, &bands, mode).unwrap();
         solver.estimate_film_index(&cube).unwrap();
         let mut scratch = irid::estimate::solver::Scratch::default();
         let mut row = vec![

@@ -1096,11 +1096,12 @@ impl Solver {
         }
         // `balanced`: the previous pixel's basin and its neighbouring
         // orders, where that settles the pixel; the full scan otherwise.
-        if exact && effort.warm && !effort.closed_form_only && !effort.verify_order {
+        if exact && effort.warm && !effort.closed_form_only {
             if let Some((_, j0)) = scratch.hint.filter(|h| h.0 == key) {
-                if let Some(out) =
-                    self.table_warm(prep, table, theta, j0, n_ok, noise, lam_min, scratch)
-                {
+                let verify = effort.verify_order;
+                if let Some(out) = self.table_warm(
+                    prep, table, theta, j0, n_ok, noise, lam_min, verify, scratch,
+                ) {
                     scratch.hint = Some((key, table.index_of(out.0.thickness_nm)));
                     return out;
                 }
@@ -1123,59 +1124,29 @@ impl Solver {
             &mut scratch.grid,
             &mut mins[..keep],
         );
-        // `accurate` refines with the exact model (and the passband
-        // integrated where the band criterion asks for it), as does a
-        // pixel between the angles of a binned map.
-        let interpolated = exact && !effort.verify_order;
-        let mut fits = [Fit::default(); 3];
-        // At the table's own angle every minimum is first fitted on the
+        // At the table's own angle every minimum is fitted on the
         // interpolant (as good as exact here); `accurate` then refines with
-        // the exact model only those within 25 residual variances of the
-        // best — a clearly worse order cannot become the best or an
-        // ambiguity (4 variances).
-        let mut close = [true; 3];
+        // the exact model those close to the best ([`Solver::refine_close`]).
+        // Between a binned map's angles, every minimum is refined with the
+        // exact model from its grid point at equal optical thickness.
+        let mut fits = [Fit::default(); 3];
         if exact {
             for (f, g) in fits.iter_mut().zip(&mins[..n]) {
                 *f = self.table_fit(table, *g, theta, effort, scratch);
             }
-            let best = fits[..n]
-                .iter()
-                .map(|f| f.sse)
-                .fold(f64::INFINITY, f64::min);
-            let var = best / n_ok.saturating_sub(1).max(1) as f64;
-            for (c, f) in close.iter_mut().zip(&fits[..n]) {
-                *c = f.sse <= best + 25.0 * var;
+            if effort.verify_order {
+                self.refine_close(prep, theta, n_ok, &mut fits[..n], scratch);
             }
-        }
-        for ((f, g), &c) in fits.iter_mut().zip(&mins[..n]).zip(&close) {
-            *f = if interpolated || !c {
-                if exact {
-                    *f
-                } else {
-                    self.table_fit(table, *g, theta, effort, scratch)
-                }
-            } else {
-                // Between a binned map's angles: equal optical thickness.
-                let d0 = if exact {
-                    f.d
-                } else {
-                    let scale = prep.model.q2_mid(table_theta) / prep.model.q2_mid(theta);
-                    table.d_at(g.j) * scale
-                };
-                let fit = self.refine(&prep.model, d0, theta, false, effort.iters, scratch);
-                let model = self.model_for(prep, &fit);
-                if effort.verify_order && !std::ptr::eq(model, &prep.model) {
-                    let mut f = self.refine(model, fit.d, theta, false, effort.iters, scratch);
-                    f.integrated = true;
-                    f
-                } else {
-                    fit
-                }
-            };
+        } else {
+            let scale = prep.model.q2_mid(table_theta) / prep.model.q2_mid(theta);
+            for (f, g) in fits.iter_mut().zip(&mins[..n]) {
+                let d0 = table.d_at(g.j) * scale;
+                *f = self.exact_refit(prep, d0, theta, effort.verify_order, scratch);
+            }
         }
         let out = self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch);
         scratch.hint =
-            (interpolated && out.0.is_valid()).then(|| (key, table.index_of(out.0.thickness_nm)));
+            (exact && out.0.is_valid()).then(|| (key, table.index_of(out.0.thickness_nm)));
         if exact && out.0.reason == Reason::PoorFit {
             let min_sse = fits[..n]
                 .iter()
@@ -1275,6 +1246,8 @@ impl Solver {
     /// checks, [`Solver::fringes_exclude_alternatives`]), both walks ending
     /// at a minimum of the interpolant, and the estimate valid; anything
     /// else (an order jump, an edge, a flag) takes the full scan.
+    /// `accurate` (`verify`) weighs the order on every pixel and refines
+    /// the fits close to the best with the exact model, as after its scan.
     #[allow(clippy::too_many_arguments)]
     fn table_warm(
         &self,
@@ -1285,6 +1258,7 @@ impl Solver {
         n_ok: usize,
         noise: Option<f64>,
         lam_min: f64,
+        verify: bool,
         scratch: &mut Scratch,
     ) -> Option<(PixelEstimate, f64)> {
         let sigma = noise.filter(|_| self.judging())?;
@@ -1307,7 +1281,7 @@ impl Solver {
         let key = theta.to_bits();
         // Where the previous pixel's neighbouring order fell far short of
         // its fit and this fit moved little, it is not weighed again.
-        let carried = OrderMargin::carried(scratch.order_margin, key, d, dd);
+        let carried = OrderMargin::carried(scratch.order_margin, key, d, dd).filter(|_| !verify);
         let (n, margin) = if let Some(m) = carried {
             (1, m)
         } else {
@@ -1341,8 +1315,52 @@ impl Solver {
             }
         };
         scratch.order_margin = Some(OrderMargin::new(key, d, margin));
+        if verify {
+            self.refine_close(prep, theta, n_ok, &mut fits[..n], scratch);
+        }
         let out = self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch);
         out.0.is_valid().then_some(out)
+    }
+
+    /// `accurate`: the fits on the interpolant within 25 residual variances
+    /// of the best refined with the exact model (and the passband
+    /// integrated where the band criterion asks for it); a clearly worse
+    /// order cannot become the best or an ambiguity (4 variances).
+    fn refine_close(
+        &self,
+        prep: &Prepared,
+        theta: f64,
+        n_ok: usize,
+        fits: &mut [Fit],
+        scratch: &mut Scratch,
+    ) {
+        let best = fits.iter().map(|f| f.sse).fold(f64::INFINITY, f64::min);
+        let var = best / n_ok.saturating_sub(1).max(1) as f64;
+        for f in fits.iter_mut().filter(|f| f.sse <= best + 25.0 * var) {
+            *f = self.exact_refit(prep, f.d, theta, true, scratch);
+        }
+    }
+
+    /// The exact model's fit at the known `theta` from `d0`, refitted with
+    /// the passband integrated where `integrate` and the band criterion
+    /// ask for it.
+    fn exact_refit(
+        &self,
+        prep: &Prepared,
+        d0: f64,
+        theta: f64,
+        integrate: bool,
+        scratch: &mut Scratch,
+    ) -> Fit {
+        let iters = Effort::of(self.mode).iters;
+        let fit = self.refine(&prep.model, d0, theta, false, iters, scratch);
+        let model = self.model_for(prep, &fit);
+        if !integrate || std::ptr::eq(model, &prep.model) {
+            return fit;
+        }
+        let mut f = self.refine(model, fit.d, theta, false, iters, scratch);
+        f.integrated = true;
+        f
     }
 
     /// Refine grid minimum `g` on the interpolant.
