@@ -22,6 +22,15 @@ use rayon::prelude::*;
 const MAX_STEPS: usize = 30;
 /// A step that moves no gain or offset by more than this has converged.
 const CONVERGED: f64 = 2e-5;
+/// Where the pixels' refits wander along valleys the data leave flat (an
+/// angle that trades with the gain), the steps never settle and χ² jitters
+/// by tens around its floor: after this many steps in a row that lower the
+/// best χ² by under [`STALL_CHI2`], the best level seen stands.
+const STALL_STEPS: usize = 3;
+/// χ² units: a fifteenth of the smallest threshold the level's tests use
+/// (one degree of freedom at `AUTO_PROBABILITY`, 15.1), far below the
+/// jitter of the pixels' refits that a test's outcome already carries.
+const STALL_CHI2: f64 = 1.0;
 /// A band's model reflectance must spread over the sample by at least this
 /// (and three noise σ) for a gain and offset of its own to be told apart
 /// from the pixels' parameters; otherwise the level is smooth.
@@ -405,12 +414,23 @@ impl Solver {
         // The best level seen (χ², level, index): a step that raises χ²
         // (the pixels' refits are nonlinear) is halved back toward it.
         let mut best: Option<(f64, Level, IndexEstimate)> = None;
+        let mut stalled = 0;
         for step_no in 0..MAX_STEPS {
             let Some(step) = level_step(&px, &level, basis, wn, var) else {
                 break;
             };
             if step_no == 0 {
                 chi2_start = step.chi2;
+            }
+            if let Some((b, _, _)) = &best {
+                stalled = if step.chi2 > b - STALL_CHI2 {
+                    stalled + 1
+                } else {
+                    0
+                };
+                if stalled >= STALL_STEPS {
+                    break;
+                }
             }
             match &best {
                 Some((b, bl, be)) if step.chi2 > *b => {
