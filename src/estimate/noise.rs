@@ -441,6 +441,30 @@ mod tests {
     use rand::{Rng, SeedableRng};
     use rand_distr::{Distribution, Normal};
 
+    #[test]
+    fn min_var_is_the_least_variance_over_bands_and_reflectance() {
+        let src = NoiseSource::Given;
+        assert_eq!(NoiseModel::uniform(0.002, 5, src).min_var(), 0.002 * 0.002);
+        let per = NoiseModel::per_band(&[0.003, 0.001, 0.002], src);
+        assert_eq!(per.min_var(), 0.001 * 0.001);
+        // A shot term that falls with R (as a fitted one may) against a
+        // scale accuracy that rises: the least lies inside [0, 1], checked
+        // against a dense scan of the variance itself.
+        let mut m = NoiseModel::per_band(&[0.004, 0.003], src).with_accuracy(0.01);
+        m.shot = vec![-8e-6, -1.2e-5];
+        let scan = (0..2)
+            .flat_map(|k| (0..=10_000).map(move |i| (k, f64::from(i) / 10_000.0)))
+            .map(|(k, r)| m.var(k, r))
+            .fold(f64::INFINITY, f64::min);
+        assert!(
+            (m.min_var() - scan).abs() <= 1e-6 * scan,
+            "{} vs {scan}",
+            m.min_var()
+        );
+        assert!(m.min_var() < 0.003 * 0.003);
+        assert_eq!(NoiseModel::per_band(&[], src).min_var(), 0.0);
+    }
+
     fn cube_with(
         w: usize,
         h: usize,
