@@ -121,10 +121,11 @@ impl Solver {
         };
         // The previous pixel's fit first, where it is trusted: after
         // `fast`'s closed form, found wanting by the caller, and in
-        // `balanced` with the angle free before the closed form is looked
-        // for, unless the closed form settled the previous pixel (where
-        // a film shows too few extrema for one, looking costs as much as
-        // the warm fit's refinement).
+        // `balanced` and `accurate` with the angle free before the closed
+        // form is looked for, unless the closed form settled the previous
+        // pixel (only `balanced`'s does; where a film shows too few
+        // extrema for one, looking costs as much as the warm fit's
+        // refinement).
         let mut warm_fit = None;
         let closed_form_last = std::mem::take(&mut scratch.closed_form_last);
         let warm_first = job_start.is_some()

@@ -1094,8 +1094,9 @@ impl Solver {
                 }
             }
         }
-        // `balanced`: the previous pixel's basin and its neighbouring
-        // orders, where that settles the pixel; the full scan otherwise.
+        // `balanced` and `accurate`: the previous pixel's basin and its
+        // neighbouring orders, where that settles the pixel; the full scan
+        // otherwise.
         if exact && effort.warm && !effort.closed_form_only {
             if let Some((_, j0)) = scratch.hint.filter(|h| h.0 == key) {
                 let verify = effort.verify_order;
@@ -1235,8 +1236,9 @@ impl Solver {
         })
     }
 
-    /// `balanced` from the previous pixel's grid point `j0` (a film
-    /// changes little from one pixel to the next): the residual's minimum
+    /// `balanced` (and `accurate`) from the previous pixel's grid point
+    /// `j0` (a film changes little from one pixel to the next): the
+    /// residual's minimum
     /// walked to from there, and the better of its neighbouring fringe
     /// orders (one fringe more or fewer in optical thickness) walked to in
     /// turn, judged together as the scan's two best minima are (an order
