@@ -1238,8 +1238,8 @@ impl Solver {
 
     /// `balanced` (and `accurate`) from the previous pixel's grid point
     /// `j0` (a film changes little from one pixel to the next): the
-    /// residual's minimum
-    /// walked to from there, and the better of its neighbouring fringe
+    /// residual's minimum walked to from there, and the better of its
+    /// neighbouring fringe
     /// orders (one fringe more or fewer in optical thickness) walked to in
     /// turn, judged together as the scan's two best minima are (an order
     /// that fits as well flags the pixel ambiguous). `Some` only where that
