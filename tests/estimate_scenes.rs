@@ -15,7 +15,7 @@ mod scene_common;
 use irid::estimate::{Mode, ParamMaps, Reason, Solver};
 use irid::scene::{AngleKnowledge, FilmKnowledge, Scene};
 use irid::synth::{compare, scene_bands, Accuracy, Renderer, TruthMaps};
-use scene_common::{assert_agree, with_known_angle};
+use scene_common::{assert_agree, assert_rows_trustworthy, valid_and_wrong, with_known_angle};
 use std::path::Path;
 
 fn scene(text: &str) -> Scene {
@@ -785,24 +785,12 @@ fn balanced_rows_with_the_angle_free_agree_with_lone_pixels() {
                     let ds = (r.sigma_thickness_nm - p.sigma_thickness_nm).abs();
                     assert!(ds < 0.05 * r.sigma_thickness_nm, "{at}: {r:?} vs {p:?}");
                 }
-                if r.is_valid() {
-                    valid += 1;
-                    let e =
-                        (r.thickness_nm - f64::from(truth.thickness_nm[y * cube.width + x])).abs();
-                    wrong += usize::from(e > (3.0 * r.sigma_thickness_nm).max(2.0));
-                }
+                valid += usize::from(r.is_valid());
+                wrong += usize::from(valid_and_wrong(r, truth.thickness_nm[y * cube.width + x]));
             }
         }
         eprintln!("{label}: {valid} of {total} valid, {wrong} valid and wrong, {differ} judged otherwise alone");
-        // Not passed by flagging everything, nor by agreeing on wrong numbers.
-        assert!(
-            valid as f64 > 0.9 * total as f64,
-            "{label}: {valid} of {total} valid"
-        );
-        assert!(
-            wrong as f64 <= 0.01 * valid as f64,
-            "{label}: {wrong} valid and wrong"
-        );
+        assert_rows_trustworthy(label, valid, total, wrong);
         assert!(
             differ as f64 <= 0.02 * total as f64,
             "{label}: {differ} judged otherwise"

@@ -41,3 +41,24 @@ pub fn with_known_angle(mut s: Scene) -> Scene {
     };
     s
 }
+
+/// Whether a valid estimate is wrong: farther than max(3σ, 2 nm) from the
+/// truth.
+pub fn valid_and_wrong(est: &PixelEstimate, truth_nm: f32) -> bool {
+    let e = (est.thickness_nm - f64::from(truth_nm)).abs();
+    est.is_valid() && e > (3.0 * est.sigma_thickness_nm).max(2.0)
+}
+
+/// A row path's tally: not passed by flagging everything (over 90 % of the
+/// pixels valid), nor by agreeing on wrong numbers (at most 1 % of the
+/// valid pixels wrong).
+pub fn assert_rows_trustworthy(label: &str, valid: usize, total: usize, wrong: usize) {
+    assert!(
+        valid as f64 > 0.9 * total as f64,
+        "{label}: {valid} of {total} valid"
+    );
+    assert!(
+        wrong as f64 <= 0.01 * valid as f64,
+        "{label}: {wrong} valid and wrong"
+    );
+}

@@ -587,6 +587,26 @@ impl Solver {
         }
     }
 
+    /// `fit` refitted with the passband-integrated model where
+    /// [`Solver::model_for`] asks for it (flagged `integrated`), and the
+    /// model it then stands on.
+    fn integrated_refit<'p>(
+        &self,
+        prep: &'p Prepared,
+        fit: Fit,
+        free_theta: bool,
+        iters: usize,
+        scratch: &mut Scratch,
+    ) -> (Fit, &'p FilmModel) {
+        let model = self.model_for(prep, &fit);
+        if std::ptr::eq(model, &prep.model) {
+            return (fit, model);
+        }
+        let mut f = self.refine(model, fit.d, fit.theta, free_theta, iters, scratch);
+        f.integrated = true;
+        (f, model)
+    }
+
     fn prepare(&self, film: &Dispersion) -> Result<Prepared, EstimateError> {
         self.prepare_with(film, true)
     }

@@ -186,16 +186,9 @@ impl Solver {
                     // Where this pixel's fringes are fast enough for the
                     // passband to matter, refit with the integrated model
                     // (and judge the competing order with it too).
-                    let model = self.model_for(prep, &fit);
-                    let fit = if std::ptr::eq(model, &prep.model) {
-                        fit
-                    } else {
-                        let free = theta_known.is_none();
-                        let mut f =
-                            self.refine(model, fit.d, fit.theta, free, effort.iters, scratch);
-                        f.integrated = true;
-                        f
-                    };
+                    let free = theta_known.is_none();
+                    let (fit, model) =
+                        self.integrated_refit(prep, fit, free, effort.iters, scratch);
                     let (fits, n_fits) = self.with_neighbour_order(
                         prep,
                         model,
@@ -304,11 +297,9 @@ impl Solver {
             // As on the closed-form path: fits whose fringes the passband
             // affects are redone with the integrated model.
             for f in &mut fits[..n_fits] {
-                let model = self.model_for(prep, f);
-                if !std::ptr::eq(model, &prep.model) {
-                    *f = self.refine(model, f.d, f.theta, theta_known.is_none(), iters, scratch);
-                    f.integrated = true;
-                }
+                *f = self
+                    .integrated_refit(prep, *f, theta_known.is_none(), iters, scratch)
+                    .0;
             }
         }
         self.finish(
@@ -433,15 +424,8 @@ impl Solver {
             // pixel's fringes are fast enough for the passband to matter,
             // and weigh the neighbouring orders on every pixel (as after
             // its closed form).
-            let model = self.model_for(prep, &fit);
-            let fit = if std::ptr::eq(model, &prep.model) {
-                fit
-            } else {
-                let free = theta_known.is_none();
-                let mut f = self.refine(model, fit.d, fit.theta, free, effort.iters, scratch);
-                f.integrated = true;
-                f
-            };
+            let free = theta_known.is_none();
+            let (fit, model) = self.integrated_refit(prep, fit, free, effort.iters, scratch);
             return Some(self.with_neighbour_order(
                 prep,
                 model,

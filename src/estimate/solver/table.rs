@@ -1356,13 +1356,10 @@ impl Solver {
     ) -> Fit {
         let iters = Effort::of(self.mode).iters;
         let fit = self.refine(&prep.model, d0, theta, false, iters, scratch);
-        let model = self.model_for(prep, &fit);
-        if !integrate || std::ptr::eq(model, &prep.model) {
+        if !integrate {
             return fit;
         }
-        let mut f = self.refine(model, fit.d, theta, false, iters, scratch);
-        f.integrated = true;
-        f
+        self.integrated_refit(prep, fit, false, iters, scratch).0
     }
 
     /// Refine grid minimum `g` on the interpolant.
