@@ -311,13 +311,35 @@ noise_sigma = 0.0005
 seed = 5
 "#
         );
-        let (maps, _, acc, idx) = fit(&scene(&text), Mode::Accurate);
+        let (maps, truth, acc, idx) = fit(&scene(&text), Mode::Accurate);
         all_finite_or_flagged(&maps);
         assert!(!idx.estimated);
         // MgF2 on silica reflects weakly: fringes of ~0.005, so the error
         // budget is a few times the paper scene's.
-        assert!(acc.valid_fraction > 0.9, "{pol}: {acc:?}");
         assert!(acc.thickness_max_nm < 15.0, "{pol}: {acc:?}");
+        // The last row (50°) nears the film's Brewster angle in p light
+        // (54°): its fringes fade, and another order at another angle
+        // comes within the ambiguity margin (Δχ² < 9) on most of its
+        // pixels — flagged so, never an error. Below it every pixel stays
+        // valid.
+        let n = maps.width * maps.height;
+        let below = (0..n).filter(|&i| truth.theta_deg[i] < 48.0);
+        let (valid_below, count_below) = below.fold((0, 0), |(v, c), i| {
+            (v + usize::from(maps.valid[i] > 0.5), c + 1)
+        });
+        assert!(
+            valid_below as f64 > 0.95 * count_below as f64,
+            "{pol}: {valid_below} of {count_below} valid below 48°"
+        );
+        for i in (0..n).filter(|&i| maps.valid[i] <= 0.5) {
+            assert_eq!(
+                maps.reason[i],
+                Reason::AmbiguousOrder as u8 as f32,
+                "{pol}: pixel {i} at {}°",
+                truth.theta_deg[i]
+            );
+        }
+        assert!(acc.valid_fraction > 0.85, "{pol}: {acc:?}");
         assert!(acc.coverage_2sigma > 0.85, "{pol}: {acc:?}");
     }
 }

@@ -202,6 +202,16 @@ impl NoiseModel {
         }
     }
 
+    /// The largest variance of any band at a reflectance in
+    /// `[0, r_max]` (a variance is convex in the reflectance: the ends;
+    /// 0 with no band).
+    pub fn max_var_below(&self, r_max: f64) -> f64 {
+        let r_max = r_max.max(0.0);
+        (0..self.var0.len())
+            .map(|k| self.var(k, 0.0).max(self.var(k, r_max)))
+            .fold(0.0, f64::max)
+    }
+
     /// Variance of band `k` at reflectance `r`.
     #[inline]
     pub fn var(&self, k: usize, r: f64) -> f64 {
@@ -463,6 +473,28 @@ mod tests {
         );
         assert!(m.min_var() < 0.003 * 0.003);
         assert_eq!(NoiseModel::per_band(&[], src).min_var(), 0.0);
+    }
+
+    /// `max_var_below` against a dense scan of the variance over [0, r_max]
+    /// (a shot term that falls with R against a scale accuracy that rises,
+    /// so neither end alone is the largest for every band).
+    #[test]
+    fn max_var_below_is_the_largest_variance_up_to_r_max() {
+        let src = NoiseSource::Given;
+        let mut m = NoiseModel::per_band(&[0.004, 0.003, 0.001], src).with_accuracy(0.02);
+        m.shot = vec![-8e-6, 2e-5, -1e-6];
+        for r_max in [0.0, 0.05, 0.2, 0.6, 1.0] {
+            let scan = (0..3)
+                .flat_map(|k| (0..=10_000).map(move |i| (k, r_max * f64::from(i) / 10_000.0)))
+                .map(|(k, r)| m.var(k, r))
+                .fold(0.0, f64::max);
+            let got = m.max_var_below(r_max);
+            assert!(
+                (got - scan).abs() <= 1e-9 * scan,
+                "{r_max}: {got} vs {scan}"
+            );
+        }
+        assert_eq!(NoiseModel::per_band(&[], src).max_var_below(0.5), 0.0);
     }
 
     fn cube_with(

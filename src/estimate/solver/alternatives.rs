@@ -47,8 +47,8 @@ pub(super) const ORDER_MARGIN_SKIP: f64 = 100.0;
 /// thickness, on the fitted path (`key`: [`OrderMargin::FITTED`]) its
 /// optical thickness. Where the margin was wide (≥ [`ORDER_MARGIN_SKIP`])
 /// and this pixel's fit moved by under a twentieth of a fringe, the order
-/// cannot have come within the ambiguity margin (4): the noise moves ΔSSE
-/// by about 2√ΔSSE variances, and a film does not close 96 of them in one
+/// cannot have come within the ambiguity margin (9): the noise moves ΔSSE
+/// by about 2√ΔSSE variances, and a film does not close 91 of them in one
 /// pixel. The margin is then carried at half, so the order is weighed
 /// again within a few pixels, and at least every fifth (the margin kept
 /// is capped at 16 × [`ORDER_MARGIN_SKIP`]).
@@ -161,7 +161,7 @@ impl Solver {
         let mut n = 0;
         // A start is refined only where its scan point comes within this
         // of the fit's residual: a basin that far off cannot end within
-        // the ambiguity margin (Δχ² < 4) after a refinement that moves the
+        // the ambiguity margin (Δχ² < 9) after a refinement that moves the
         // thickness by less than a grid step. Strong fringes put every
         // other basin far beyond it, so ordinary pixels pay the scan only.
         let threshold = self.chi2.threshold(n_ok.saturating_sub(2).max(1));
@@ -313,9 +313,11 @@ impl Solver {
 
     /// Whether a local fit's fringes are strong enough that none of the
     /// alternatives above could pass the χ² test beside it: at or above
-    /// every check's gate that applies to this light.
-    pub(super) fn fringes_exclude_alternatives(&self, signal: f64) -> bool {
-        let gate = if self.scene.polarization.s_weight() < 0.5 {
+    /// every check's gate that applies to this light and angle (the
+    /// mirror angles only where the angle is `free`; with it known, the
+    /// sub-fringe gate stands for every light as before).
+    pub(super) fn fringes_exclude_alternatives(&self, signal: f64, free: bool) -> bool {
+        let gate = if free && self.scene.polarization.s_weight() < 0.5 {
             MIRROR_BELOW
         } else {
             SUB_FRINGE_BELOW

@@ -218,7 +218,7 @@ impl Solver {
         scratch.trial = trial;
         let mut reason = Reason::Ok;
         // Another fringe order about as good: ambiguous.
-        if (second - sse) / var < 9.0 || thinner {
+        if (second - sse) / var < fringes::AMBIGUITY_CHI2 || thinner {
             reason = Reason::AmbiguousOrder;
         }
         if self.judging() && !self.fit_passes(chi2, n_ok, n_lin + 1) {

@@ -43,9 +43,10 @@ const ORDER_FIT_RMS: f64 = 0.1;
 /// Prominence of a kept extremum over its neighbours, in σ of the smoothed
 /// spectrum.
 const PROMINENCE_SIGMA: f64 = 4.0;
-/// χ² margin of the best whole orders over the next below which they are
-/// ambiguous (three σ).
-const AMBIGUITY_CHI2: f64 = 9.0;
+/// χ² margin of the best fringe order over the next below which they are
+/// ambiguous (three σ; a ~1 % posterior for the second order), on every
+/// path: the fringe search, the fitted and tabled paths, `free`.
+pub(super) const AMBIGUITY_CHI2: f64 = 9.0;
 /// Fewest extrema whose spacing alone gives a thickness.
 const MIN_SPACING_EXTREMA: usize = 5;
 /// False-alarm probability of a fringe detected in pure noise, over all

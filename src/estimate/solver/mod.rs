@@ -386,6 +386,8 @@ pub struct Solver {
     /// a refinement whose next step would lower χ² by less than
     /// [`refine::STEP_CHI2`] of it has converged.
     min_noise_var: f64,
+    /// With [`Solver::flat_noise`], its largest variance of any band.
+    max_flat_var: f64,
     /// The χ² test.
     chi2: Chi2Test,
     /// The image-wide level in force (identity unless `scaled`).
@@ -516,6 +518,7 @@ impl Solver {
             noise: None,
             flat_noise: None,
             min_noise_var: 0.0,
+            max_flat_var: f64::INFINITY,
             chi2: Chi2Test::flagging(MAX_BANDS),
             level: Level::identity(bands.len()),
             level_mode: match scene.level {
@@ -886,6 +889,10 @@ impl Solver {
         let typical = noise.typical_sigma(0.05);
         self.flat_noise = noise.flat();
         self.min_noise_var = noise.min_var();
+        self.max_flat_var = self
+            .flat_noise
+            .as_ref()
+            .map_or(f64::INFINITY, |f| 1.0 / f.min_inv_var());
         self.noise = Some(noise);
         if let Some(i) = &mut self.index {
             i.noise_sigma = typical;

@@ -5,6 +5,7 @@
 
 use super::alternatives::OrderMargin;
 use super::closed_form::angle_start;
+use super::fringes::AMBIGUITY_CHI2;
 use super::refine::{free_angle_sigma, sse};
 use super::search::{Candidate, MAX_CANDIDATES};
 use super::{Fit, Job, Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
@@ -405,7 +406,8 @@ impl Solver {
         // valleys and twin basins a local refinement cannot tell apart: a
         // film index-matched to its ambient read 75 nm for 100 nm from
         // its neighbour's start, valid).
-        if !self.fringes_exclude_alternatives(self.fringe_signal(prep, fit.theta, n_ok, sigma)) {
+        let signal = self.fringe_signal(prep, fit.theta, n_ok, sigma);
+        if !self.fringes_exclude_alternatives(signal, theta_known.is_none()) {
             return None;
         }
         // The refinement leaves the model at its fit in `cur`.
@@ -605,7 +607,7 @@ impl Solver {
         if let Some(second) = order.get(1).map(|&i| fits[i]) {
             let q2 = prep.model.q2_mid(best.theta);
             let apart = (second.d - best.d).abs() > 0.25 * lam_min / (2.0 * q2);
-            if apart && second.sse - best.sse < 4.0 * var {
+            if apart && second.sse - best.sse < AMBIGUITY_CHI2 * var {
                 reason = Reason::AmbiguousOrder;
             }
         }

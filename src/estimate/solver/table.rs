@@ -22,6 +22,7 @@ use crate::estimate::model::{FilmModel, ModelOut};
 use crate::estimate::noise::FlatNoise;
 use crate::estimate::{PixelEstimate, Reason};
 use multiversion::multiversion;
+use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::Arc;
 
 /// Largest phase change of any band between adjacent grid points, rad.
@@ -45,10 +46,21 @@ const SCAN_STRIDE: usize = 3;
 const HINT_WINDOW: usize = 6;
 
 /// Bytes a table holds per grid point for `nb` bands (values and slopes,
-/// the scan's transposed third, the sums and the interval cross sums).
+/// the scan's transposed third, the sums, the order gap and the interval
+/// cross sums).
 fn bytes_per_point(nb: usize) -> usize {
-    nb * 8 + nb.div_ceil(8) * 32 / SCAN_STRIDE + 8 + 48
+    nb * 8 + nb.div_ceil(8) * 32 / SCAN_STRIDE + 8 + 4 + 48
 }
+
+/// The least separation of the neighbouring fringe orders, in the largest
+/// noise variance, above which `fast` and `balanced` do not weigh them on
+/// a table ([`ThicknessTable::order_gap`]). A noise-free gap `G` (in
+/// variances) leaves a noisy spectrum's neighbouring order `G − 2√G·z`
+/// behind its fit (`z` the noise's standard normal component along the
+/// two orders' difference); at 250, even `z = 5` leaves 92 variances, ten
+/// times the ambiguity margin (9) at the largest residual variance the χ²
+/// test passes (1.8 noise variances at 31 bands).
+const ORDER_GAP_SAFE: f64 = 250.0;
 
 /// Memory all of a solver's tables may take, bytes.
 pub const TABLE_BUDGET_BYTES: usize = 256 << 20;
@@ -86,6 +98,19 @@ pub struct ThicknessTable {
     /// complete spectrum's residual on the interval is a polynomial whose
     /// only pixel-dependent coefficients are four dot products.
     gram: Vec<[f64; 6]>,
+    /// Per grid point `j`, the least `Σ_k (R_k(d') − R_k(d_j))²` over the
+    /// neighbouring fringe orders (`|d' − d_j|` from half to one and a
+    /// half fringes at the band range's centre): what a noise-free
+    /// spectrum of thickness `d_j` separates its neighbouring orders by
+    /// ([`ThicknessTable::order_gap`]). Taken where first asked for (the
+    /// f32's bits; NaN until then): O(fringe · nb) a point, which over a
+    /// whole fine table (a spectrometer's 600 bands to 100 µm) would cost
+    /// seconds that a few spectra never use.
+    gap: Vec<AtomicU32>,
+    /// One fringe at the band range's centre, grid steps.
+    fringe: f64,
+    /// The largest reflectance of any band on the grid.
+    r_max: f64,
 }
 
 /// One band's cubic Hermite interpolant on a grid interval, in the
@@ -401,6 +426,12 @@ impl ThicknessTable {
                 g
             })
             .collect();
+        let gap = (0..m).map(|_| AtomicU32::new(f32::NAN.to_bits())).collect();
+        let fringe = fringe_steps(model, theta, h);
+        let r_max = (0..m)
+            .flat_map(|j| (0..nb).map(move |k| (j, k)))
+            .map(|(j, k)| centre[k] + f64::from(r[j * nbp + k]))
+            .fold(0.0, f64::max);
         ThicknessTable {
             d0: d_lo,
             h,
@@ -414,12 +445,47 @@ impl ThicknessTable {
             coarse,
             coarse_rr,
             gram,
+            gap,
+            fringe,
+            r_max,
         }
+    }
+
+    /// The noise-free separation of the neighbouring fringe orders around
+    /// thickness `d`: the lesser of [`ThicknessTable::gap`] at the grid
+    /// points either side of it (the gap swings by up to a third from one
+    /// point to the next).
+    pub fn order_gap(&self, d: f64) -> f64 {
+        let x = ((d - self.d0) / self.h).floor();
+        let j = if x.is_nan() || x < 0.0 {
+            0
+        } else {
+            (x as usize).min(self.m - 1)
+        };
+        let b = (j + 1).min(self.m - 1);
+        f64::from(self.gap_at(j).min(self.gap_at(b)))
+    }
+
+    /// [`ThicknessTable::gap`] at grid point `j`, computed on first use
+    /// (threads that race compute the same value).
+    fn gap_at(&self, j: usize) -> f32 {
+        let cached = f32::from_bits(self.gap[j].load(Ordering::Relaxed));
+        if !cached.is_nan() {
+            return cached;
+        }
+        let g = order_gap_at(&self.r, self.nbp, self.nb, self.m, self.fringe, j);
+        self.gap[j].store(g.to_bits(), Ordering::Relaxed);
+        g
+    }
+
+    /// The largest reflectance of any band on the grid.
+    pub fn r_max(&self) -> f64 {
+        self.r_max
     }
 
     /// Bytes the table holds.
     fn bytes(&self) -> usize {
-        (self.r.len() + self.dr.len() + self.rr.len()) * 4
+        (self.r.len() + self.dr.len() + self.rr.len() + self.gap.len()) * 4
             + (self.coarse.len() + self.coarse_rr.len()) * 4
             + self.centre.len() * 8
             + self.gram.len() * 48
@@ -816,6 +882,71 @@ impl ThicknessTable {
     }
 }
 
+/// One fringe at the band range's centre in grid steps of `h`: the film's
+/// phase `4π d x` moves 2π over `1/(2 x)` at the centre's phase rate `x`
+/// (the mean of the extreme bands' rates).
+fn fringe_steps(model: &FilmModel, theta: f64, h: f64) -> f64 {
+    let x = model.phase_rates(theta);
+    let (lo, hi) = x
+        .iter()
+        .fold((f64::INFINITY, 0f64), |(a, b), &v| (a.min(v), b.max(v)));
+    let centre = 0.5 * (lo + hi);
+    if centre > 0.0 && h > 0.0 {
+        0.5 / centre / h
+    } else {
+        f64::INFINITY
+    }
+}
+
+/// [`ThicknessTable::gap`] at grid point `j` of rows `r` (stride `nbp`,
+/// `nb` bands, `m` points), one fringe being `fringe` grid steps: the
+/// least squared distance to the points half to one and a half fringes
+/// away on either side (the neighbouring orders' basins; +∞ where neither
+/// side is on the grid), each basin's floor from the parabola through the
+/// three grid points around it. Every point, not every scanned one: the
+/// gap swings with the bands' phases over half a fringe (a third of the
+/// points overstated it by 16 % between them). O(fringe · nb).
+fn order_gap_at(r: &[f32], nbp: usize, nb: usize, m: usize, fringe: f64, j: usize) -> f32 {
+    if !fringe.is_finite() {
+        return f32::INFINITY;
+    }
+    // The window in whole grid steps, taken wide (half a fringe is at
+    // least one step in).
+    let (near, far) = (
+        ((0.5 * fringe).floor() as usize).max(1),
+        (1.5 * fringe).ceil() as usize,
+    );
+    let dist = |b: usize| -> f32 {
+        let (ra, rb) = (&r[j * nbp..j * nbp + nb], &r[b * nbp..b * nbp + nb]);
+        ra.iter().zip(rb).map(|(x, y)| (x - y) * (x - y)).sum()
+    };
+    // The least over one side's window [lo, hi] (grid points): at every
+    // point, and between points the parabola's floor through a bracketed
+    // least (not one extrapolated past a monotone run). A neighbouring
+    // order's basin is a fraction of a fringe wide (the bands dephase away
+    // from its floor).
+    let side = |lo: usize, hi: usize| -> f32 {
+        let (mut least, mut last) = (f32::INFINITY, [f32::NAN; 2]);
+        for i in lo..=hi {
+            let v = dist(i);
+            least = least.min(v);
+            if last[1] <= last[0] && last[1] <= v {
+                least = least.min(parabola_min(last[0], last[1], v));
+            }
+            last = [last[1], v];
+        }
+        least
+    };
+    let mut g = f32::INFINITY;
+    if j >= near {
+        g = g.min(side(j.saturating_sub(far), j - near));
+    }
+    if j + near < m {
+        g = g.min(side(j + near, (j + far).min(m - 1)));
+    }
+    g
+}
+
 /// The residual at every scanned grid point of a complete spectrum,
 /// `Σy² − 2 y·R + ΣR²`, eight grid points per vector: the table's scanned
 /// rows are transposed in blocks of eight ([`ThicknessTable::coarse`]),
@@ -1069,35 +1200,13 @@ impl Solver {
                 return out;
             }
         }
-        // `fast`: the previous pixel's order first, where it explains this
-        // spectrum (the χ² test); the full scan otherwise.
         let key = theta.to_bits();
-        if exact && effort.closed_form_only {
-            if let Some((_, j0)) = scratch.hint.filter(|h| h.0 == key) {
-                let (y, w) = (&scratch.spectrum, &scratch.weight);
-                if let Some((d, sse, a)) = table.fit_near(y, w, j0) {
-                    let fit = Fit {
-                        d,
-                        theta,
-                        sse,
-                        jtj: [a, 0.0, 0.0],
-                        integrated: false,
-                        tabled: true,
-                        stalled: false,
-                        chi2: None,
-                    };
-                    let out = self.finish(&[fit], n_ok, Some(theta), noise, prep, lam_min, scratch);
-                    if out.0.is_valid() {
-                        scratch.hint = Some((key, table.index_of(fit.d)));
-                        return out;
-                    }
-                }
-            }
-        }
-        // `balanced` and `accurate`: the previous pixel's basin and its
-        // neighbouring orders, where that settles the pixel; the full scan
-        // otherwise.
-        if exact && effort.warm && !effort.closed_form_only {
+        // From the previous pixel's basin and its neighbouring orders, where
+        // that settles the pixel; the full scan otherwise. (`fast` once
+        // took the previous pixel's basin alone wherever it passed the χ²
+        // test: at σ = 0.01 on the thin coating 1.2 % of its valid pixels
+        // were a fringe order off.)
+        if exact && effort.warm {
             if let Some((_, j0)) = scratch.hint.filter(|h| h.0 == key) {
                 let verify = effort.verify_order;
                 if let Some(out) = self.table_warm(
@@ -1109,16 +1218,10 @@ impl Solver {
             }
             scratch.order_margin = None;
         }
-        // The best minima: one in `fast`, two in `balanced` (the second
-        // judges the fringe order), three in `accurate`.
+        // The best minima: two in `fast` and `balanced` (the second judges
+        // the fringe order), three in `accurate`.
         let mut mins = [GridMin { j: 0, sse: 0.0 }; 3];
-        let keep = if effort.closed_form_only {
-            1
-        } else if effort.verify_order {
-            3
-        } else {
-            2
-        };
+        let keep = if effort.verify_order { 3 } else { 2 };
         let n = table.minima(
             &scratch.spectrum,
             &scratch.weight,
@@ -1264,7 +1367,7 @@ impl Solver {
         scratch: &mut Scratch,
     ) -> Option<(PixelEstimate, f64)> {
         let sigma = noise.filter(|_| self.judging())?;
-        if !self.fringes_exclude_alternatives(self.fringe_signal(prep, theta, n_ok, sigma)) {
+        if !self.fringes_exclude_alternatives(self.fringe_signal(prep, theta, n_ok, sigma), false) {
             return None;
         }
         let (d, e, a) = table.fit_near(&scratch.spectrum, &scratch.weight, j0)?;
@@ -1284,7 +1387,13 @@ impl Solver {
         // Where the previous pixel's neighbouring order fell far short of
         // its fit and this fit moved little, it is not weighed again.
         let carried = OrderMargin::carried(scratch.order_margin, key, d, dd).filter(|_| !verify);
-        let (n, margin) = if let Some(m) = carried {
+        // Nor where the noise-free orders lie far apart at this thickness.
+        let gap = self
+            .max_noise_var_on(table)
+            .map_or(0.0, |v| table.order_gap(d) / v);
+        let (n, margin) = if !verify && gap >= ORDER_GAP_SAFE {
+            (1, gap)
+        } else if let Some(m) = carried {
             (1, m)
         } else {
             let (lo, hi) = table.d_range();
@@ -1324,10 +1433,20 @@ impl Solver {
         out.0.is_valid().then_some(out)
     }
 
+    /// The largest noise variance of any band at the reflectances `table`
+    /// spans (`None` without a noise model).
+    fn max_noise_var_on(&self, table: &ThicknessTable) -> Option<f64> {
+        if self.flat_noise.is_some() {
+            return Some(self.max_flat_var);
+        }
+        self.noise.as_ref().map(|n| n.max_var_below(table.r_max()))
+    }
+
     /// `accurate`: the fits on the interpolant within 25 residual variances
     /// of the best refined with the exact model (and the passband
     /// integrated where the band criterion asks for it); a clearly worse
-    /// order cannot become the best or an ambiguity (4 variances).
+    /// order cannot become the best or an ambiguity
+    /// ([`super::fringes::AMBIGUITY_CHI2`] variances).
     fn refine_close(
         &self,
         prep: &Prepared,
@@ -1436,6 +1555,62 @@ mod tests {
         }
         // Fringe amplitude here is ≤ 0.05: bound 1e-6 plus f32 storage.
         assert!(worst < 2e-6, "{worst}");
+    }
+
+    /// The order gap against a second formulation: the exact model scanned
+    /// every 0.1 nm over the neighbouring orders' windows (half to one and
+    /// a half fringes away, the fringe from the film's normal wavevector at
+    /// the bands' mean phase rate). The table's gap samples every grid
+    /// point with a parabola through each basin's floor and takes the
+    /// lesser of the two grid points around `d`: it must never claim
+    /// orders farther apart than the scan finds at `d` (which would skip a
+    /// check that was due) beyond the interpolation's few per cent, nor
+    /// fall below the scan's least within a step of `d` (its windows a
+    /// step wider).
+    #[test]
+    fn order_gap_matches_a_dense_model_scan() {
+        let m = model();
+        let th: f64 = 0.5;
+        let t = ThicknessTable::new(&m, th, 0.0, 2500.0);
+        let q = (1.46f64 * 1.46 - th.sin().powi(2)).sqrt();
+        let fringe = 1.0 / (q / 400.0 + q / 700.0);
+        let mut out = ModelOut::new(31);
+        let mut at = |d: f64| -> Vec<f64> {
+            m.eval(d, th, &mut out, false);
+            out.r.clone()
+        };
+        // The scan over offsets [0.5, 1.5] fringes widened by `widen` nm
+        // either way.
+        let mut dense = |d: f64, widen: f64| -> f64 {
+            let r0 = at(d);
+            let mut least = f64::INFINITY;
+            for i in 0..=((fringe + 2.0 * widen) / 0.1) as usize {
+                let off = 0.5 * fringe - widen + 0.1 * i as f64;
+                for d2 in [d - off, d + off] {
+                    if (0.0..=2500.0).contains(&d2) {
+                        let r = at(d2);
+                        let e: f64 = r.iter().zip(&r0).map(|(a, b)| (a - b) * (a - b)).sum();
+                        least = least.min(e);
+                    }
+                }
+            }
+            least
+        };
+        for i in 0..60 {
+            let d = 13.7 + 41.3 * i as f64;
+            let g = t.order_gap(d);
+            let here = dense(d, 0.0);
+            // The table's windows reach up to a grid step past the
+            // scan's, and its grid points up to a step from `d`.
+            let around = (-10..=10)
+                .map(|k| dense(d + 0.1 * f64::from(k) * t.h, t.h))
+                .fold(f64::INFINITY, f64::min);
+            assert!(g <= 1.05 * here + 1e-9, "{d} nm: table {g}, scan {here}");
+            assert!(
+                g >= 0.95 * around - 1e-9,
+                "{d} nm: table {g}, scan {around} around"
+            );
+        }
     }
 
     /// The residual polynomial's exact minimum against Gauss–Newton on the
