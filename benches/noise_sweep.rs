@@ -110,6 +110,7 @@ fn main() {
                     p99_err_nm: measured(acc.thickness_p99_nm),
                     efficient_nm: efficient,
                     coverage_2sigma: measured(acc.coverage_2sigma),
+                    valid_wrong: measured(acc.valid_wrong_fraction),
                 };
                 bar.inc(1);
                 bar.suspend(|| println!("{}", row.markdown()));

@@ -240,6 +240,9 @@ pub struct Accuracy {
     pub theta_max_lt20_unflagged_deg: f64,
     /// Fraction of valid pixels with |thickness error| ≤ 2σ.
     pub coverage_2sigma: f64,
+    /// Fraction of valid pixels that are wrong: |thickness error| above
+    /// max(3σ, 2 nm) (a valid pixel must be right).
+    pub valid_wrong_fraction: f64,
 }
 
 /// Compare fitted maps with the truth.
@@ -248,14 +251,21 @@ pub fn compare(maps: &crate::estimate::ParamMaps, truth: &TruthMaps) -> Accuracy
     let n = maps.width * maps.height;
     let mut errs = Vec::with_capacity(n);
     let (mut th_sum, mut th_n, mut th_max_lt20, mut covered) = (0.0, 0usize, 0.0f64, 0usize);
+    let mut wrong = 0usize;
     for i in 0..n {
         if maps.valid[i] < 0.5 {
             continue;
         }
         let e = (f64::from(maps.thickness_nm[i]) - f64::from(truth.thickness_nm[i])).abs();
         errs.push(e);
-        if e <= 2.0 * f64::from(maps.sigma_thickness_nm[i]) {
+        let sigma = f64::from(maps.sigma_thickness_nm[i]);
+        if e <= 2.0 * sigma {
             covered += 1;
+        }
+        // Not `!(e <= …)`: a NaN σ on a valid pixel is no claim of
+        // precision, and the finite-outputs tests catch it.
+        if e > (3.0 * sigma).max(2.0) {
+            wrong += 1;
         }
         let t = f64::from(truth.theta_deg[i]);
         let te = (f64::from(maps.theta_deg[i]) - t).abs();
@@ -288,5 +298,6 @@ pub fn compare(maps: &crate::estimate::ParamMaps, truth: &TruthMaps) -> Accuracy
         },
         theta_max_lt20_unflagged_deg: th_max_lt20,
         coverage_2sigma: covered as f64 / valid.max(1) as f64,
+        valid_wrong_fraction: wrong as f64 / valid.max(1) as f64,
     }
 }

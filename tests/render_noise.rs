@@ -53,6 +53,7 @@ fn rows(modes: &[&str]) -> Vec<NoiseRow> {
                     p99_err_nm: measured(efficient * 3.87654 * blow_up),
                     efficient_nm: efficient,
                     coverage_2sigma: measured(0.95 + 0.001_23 * k as f64),
+                    valid_wrong: measured(0.001 * k as f64),
                 });
             }
         }
@@ -107,6 +108,7 @@ fn the_table_reads_back_as_printed() {
         for (a, b) in [
             (g.valid_fraction, w.valid_fraction),
             (g.coverage_2sigma, w.coverage_2sigma),
+            (g.valid_wrong, w.valid_wrong),
         ] {
             assert!(
                 (a.is_nan() && b.is_nan()) || (a - b).abs() <= 5e-4,
@@ -125,6 +127,29 @@ fn the_table_reads_back_as_printed() {
     // The scene-matrix reader takes its own table, not this one.
     let trade = irid::render::trade::parse_table(&text).unwrap();
     assert_eq!(trade.len(), 1);
+    // A table measured before the "valid and wrong" column still reads,
+    // that column unknown (NaN) and the others as they were.
+    let old: String = text
+        .lines()
+        .map(|l| match l.rfind(" | ") {
+            Some(i) if l.starts_with('|') && l.matches(" | ").count() == 10 => {
+                format!("{} |", &l[..i])
+            }
+            _ if l.starts_with("|---|") && l.matches("---").count() == 11 => {
+                "|---|---|---|---|---|---|---|---|---|---|".to_string()
+            }
+            _ => l.to_string(),
+        })
+        .collect::<Vec<_>>()
+        .join("\n");
+    assert!(!old.contains("valid and wrong"), "{old}");
+    let before = parse_table(&old).unwrap();
+    assert_eq!(before.len(), got.len());
+    for (b, g) in before.iter().zip(&got) {
+        assert!(b.valid_wrong.is_nan());
+        assert_eq!(b.coverage_2sigma.to_bits(), g.coverage_2sigma.to_bits());
+        assert_eq!(b.mean_err_nm.to_bits(), g.mean_err_nm.to_bits());
+    }
 }
 
 #[test]

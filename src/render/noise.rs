@@ -41,10 +41,13 @@ pub struct NoiseRow {
     pub efficient_nm: f64,
     /// Fraction of valid pixels with |Δd| ≤ 2σ_d, 0..=1.
     pub coverage_2sigma: f64,
+    /// Fraction of valid pixels with |Δd| > max(3σ_d, 2 nm), 0..=1 (NaN
+    /// where a table predates the column).
+    pub valid_wrong: f64,
 }
 
 /// The table's header and rule, as [`parse_table`] finds it.
-pub const HEADER: &str = "| scene | angle | mode | noise σ | valid | mean \\|Δd\\| | p99 \\|Δd\\| | efficient | ratio | \\|Δd\\| ≤ 2σ |\n|---|---|---|---|---|---|---|---|---|---|";
+pub const HEADER: &str = "| scene | angle | mode | noise σ | valid | mean \\|Δd\\| | p99 \\|Δd\\| | efficient | ratio | \\|Δd\\| ≤ 2σ | valid and wrong |\n|---|---|---|---|---|---|---|---|---|---|---|";
 
 /// `v` with `digits` significant digits; `–` when not finite.
 fn sig(v: f64, digits: i32) -> String {
@@ -86,7 +89,7 @@ impl NoiseRow {
     /// The row as a Markdown table line under [`HEADER`].
     pub fn markdown(&self) -> String {
         format!(
-            "| {} | {} | `{}` | {} | {} | {} | {} | {} | {} | {} |",
+            "| {} | {} | `{}` | {} | {} | {} | {} | {} | {} | {} | {} |",
             self.scene.replace('|', "\\|"),
             if self.angle_known { "known" } else { "unknown" },
             self.mode,
@@ -100,6 +103,7 @@ impl NoiseRow {
                 _ => "–".into(),
             },
             percent(self.coverage_2sigma),
+            percent(self.valid_wrong),
         )
     }
 }
@@ -135,6 +139,8 @@ pub fn parse_table(text: &str) -> Result<Vec<NoiseRow>, RenderError> {
         col("efficient")?,
         col("|Δd| ≤ 2σ")?,
     ];
+    // Optional: tables measured before it have no such column.
+    let wrong_col = table.col("valid and wrong").ok();
     let mut rows = Vec::new();
     for (k, line, c) in table.rows() {
         let get = |i: usize| c.get(cols[i]).map(String::as_str).unwrap_or("");
@@ -159,6 +165,13 @@ pub fn parse_table(text: &str) -> Result<Vec<NoiseRow>, RenderError> {
             p99_err_nm: measured(get(6)).ok_or_else(|| bad("p99 |Δd|"))?,
             efficient_nm: positive(number(get(7))).ok_or_else(|| bad("efficient"))?,
             coverage_2sigma: measured(get(8)).ok_or_else(|| bad("|Δd| ≤ 2σ"))? / 100.0,
+            valid_wrong: match wrong_col {
+                Some(i) => {
+                    let cell = c.get(i).map(String::as_str).unwrap_or("");
+                    measured(cell).ok_or_else(|| bad("valid and wrong"))? / 100.0
+                }
+                None => f64::NAN,
+            },
         });
     }
     if rows.is_empty() {
