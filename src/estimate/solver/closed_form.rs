@@ -461,10 +461,14 @@ impl Solver {
             n_film = index.n;
         }
         let sigma_theta = var_theta.sqrt();
-        let reason = if theta_known.is_none() && sigma_theta.to_degrees() > ANGLE_SIGMA_LIMIT_DEG {
-            Reason::AngleNotIdentifiable
-        } else if noise.is_some() && self.film_invisible(prep, theta, self.bands.len(), var_r) {
+        // Fringes too shallow to place flag the pixel whatever its angle's
+        // σ (a weak angle is a valid pixel's note, not a pass: it once
+        // skipped this test).
+        let reason = if noise.is_some() && self.film_invisible(prep, theta, self.bands.len(), var_r)
+        {
             Reason::NoFringe
+        } else if theta_known.is_none() && sigma_theta.to_degrees() > ANGLE_SIGMA_LIMIT_DEG {
+            Reason::AngleNotIdentifiable
         } else {
             Reason::Ok
         };
