@@ -1233,6 +1233,15 @@ impl Solver {
         // the exact model those close to the best ([`Solver::refine_close`]).
         // Between a binned map's angles, every minimum is refined with the
         // exact model from its grid point at equal optical thickness.
+        // Between a binned map's angles the runner-up is not refitted where
+        // it is the best's neighbouring order and the table's noise-free
+        // orders lie far apart there: every other basin scanned worse than
+        // it, so none can come within the ambiguity margin.
+        let n = if !exact && !effort.verify_order && n == 2 && self.order_settled(table, &mins) {
+            1
+        } else {
+            n
+        };
         let mut fits = [Fit::default(); 3];
         if exact {
             for (f, g) in fits.iter_mut().zip(&mins[..n]) {
@@ -1431,6 +1440,23 @@ impl Solver {
         }
         let out = self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch);
         out.0.is_valid().then_some(out)
+    }
+
+    /// Whether the scan's runner-up `mins[1]` is the best's (`mins[0]`)
+    /// neighbouring fringe order (half to one and a half fringes away,
+    /// give or take a grid step; not a second dip of the same basin) and
+    /// the noise-free orders there lie ≥ [`ORDER_GAP_SAFE`] noise
+    /// variances apart ([`ThicknessTable::order_gap`]): then the runner-up
+    /// trails by about that gap, and every basin farther off trails it.
+    fn order_settled(&self, table: &ThicknessTable, mins: &[GridMin]) -> bool {
+        let [best, second, ..] = mins else {
+            return false;
+        };
+        let apart = best.j.abs_diff(second.j) as f64;
+        (0.5 * table.fringe - 1.0..=1.5 * table.fringe + 1.0).contains(&apart)
+            && self
+                .max_noise_var_on(table)
+                .is_some_and(|v| table.order_gap(table.d_at(best.j)) >= ORDER_GAP_SAFE * v)
     }
 
     /// The largest noise variance of any band at the reflectances `table`
