@@ -441,3 +441,96 @@ fn a_scale_accuracy_widens_sigma_on_every_path() {
         }
     }
 }
+
+/// A valid pixel's fringes must be deep enough to place, whatever path
+/// found it: at the pixel's fitted angle, the fringes' whole signal
+/// Σ_k c_k²/8 (c_k band k's peak-to-peak over one fringe of thickness,
+/// found here by scanning the model, a second formulation of the
+/// solver's half- against quarter-wave envelopes) must reach the
+/// visibility bar, 25 noise variances — less a fifth for the two
+/// formulations' difference. The paper's film, its index given and the
+/// angle free, at σ_R = 0.03: `fast`'s closed form once noted a weak
+/// angle ("angle not identifiable", valid) before testing visibility,
+/// and so passed pixels whose fringes the noise buries.
+#[test]
+fn no_valid_pixel_has_fringes_the_noise_buries() {
+    use irid::estimate::model::{FilmModel, ModelOut};
+    use irid::scene::FilmKnowledge;
+    let sigma = 0.03;
+    let text = format!(
+        r#"
+[ambient]
+n = 1.0
+[substrate]
+n = 1.60
+[film]
+n = 1.37
+[angle]
+search_deg = [0.0, 80.0]
+[light]
+polarization = "s"
+[bands]
+start_nm = 400
+stop_nm = 700
+step_nm = 10
+fwhm_nm = 0
+[measurement]
+noise_sigma = {sigma}
+[truth]
+width = 140
+height = 14
+thickness_nm = {{ linear_x = [420.0, 560.0] }}
+angle_deg = {{ rows = [10.0, 2.5] }}
+noise_sigma = {sigma}
+seed = 1
+"#
+    );
+    let s = Scene::from_toml(&text, "<test>", std::path::Path::new(".")).unwrap();
+    let bands = scene_bands(&s).unwrap();
+    let (cube, _) = render(&s);
+    let FilmKnowledge::Known(film) = &s.film else {
+        panic!("film known")
+    };
+    let model = FilmModel::new(
+        &bands,
+        &s.ambient,
+        film,
+        &s.substrate,
+        s.polarization,
+        &vec![false; bands.len()],
+    )
+    .unwrap();
+    let mut out = ModelOut::new(bands.len());
+    for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
+        let mut solver = Solver::new(&s, &bands, mode).unwrap();
+        let maps = solver.fit_cube(&cube).unwrap();
+        let (mut valid, mut buried) = (0, 0);
+        for i in 0..maps.width * maps.height {
+            if maps.valid[i] < 0.5 {
+                continue;
+            }
+            valid += 1;
+            let theta = f64::from(maps.theta_deg[i]).to_radians();
+            // One fringe at the reddest band: 700 / (2·q2) < 300 nm.
+            let (mut lo, mut hi) = (vec![f64::INFINITY; bands.len()], vec![0.0f64; bands.len()]);
+            for j in 0..=600 {
+                model.eval(0.5 * f64::from(j), theta, &mut out, false);
+                for (k, &r) in out.r.iter().enumerate() {
+                    lo[k] = lo[k].min(r);
+                    hi[k] = hi[k].max(r);
+                }
+            }
+            let signal: f64 = lo
+                .iter()
+                .zip(&hi)
+                .map(|(a, b)| (b - a) * (b - a) / 8.0)
+                .sum();
+            if signal / (sigma * sigma) < 0.8 * 25.0 {
+                buried += 1;
+            }
+        }
+        eprintln!("{mode:?}: {valid} valid, {buried} with fringes under the bar");
+        assert!(valid > 0, "{mode:?}: nothing valid to judge");
+        assert_eq!(buried, 0, "{mode:?}: {buried} of {valid} valid pixels");
+    }
+}
