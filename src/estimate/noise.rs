@@ -80,6 +80,11 @@ pub struct NoiseModel {
 pub struct FlatNoise {
     var: Vec<f64>,
     inv_var: Vec<f64>,
+    /// The least and greatest inverse variance of any band.
+    inv_range: (f64, f64),
+    /// The mean variance of every band, as [`FlatNoise::chi2_and_mean_var`]
+    /// gives it for a complete spectrum (to the bit).
+    mean_var: f64,
 }
 
 impl FlatNoise {
@@ -90,9 +95,35 @@ impl FlatNoise {
         self.var.iter().all(|&x| x == v).then_some((v, inv))
     }
 
+    /// Each band's variance and its inverse.
+    pub fn parts(&self) -> (&[f64], &[f64]) {
+        (&self.var, &self.inv_var)
+    }
+
     /// The smallest inverse variance of any band (+∞ with no band).
     pub fn min_inv_var(&self) -> f64 {
-        self.inv_var.iter().copied().fold(f64::INFINITY, f64::min)
+        self.inv_range.0
+    }
+
+    /// Whether a complete spectrum whose residual sum of squares is `sse`
+    /// passes a χ² test at `threshold`, where the bands' spread of variance
+    /// settles it without the residual band by band: `χ² = Σ e²/σ²` lies
+    /// between `sse` over the largest and over the smallest variance
+    /// (a relative 1e-6 spared for the rounding of `sse`). `None` where
+    /// the threshold falls between; the χ² returned lies on the side it
+    /// settles, and the bands' mean variance comes with it.
+    pub fn settle_complete(&self, sse: f64, threshold: f64) -> Option<(f64, f64)> {
+        let (lo, hi) = (sse * self.inv_range.0, sse * self.inv_range.1);
+        if !(lo.is_finite() && hi.is_finite() && sse >= 0.0) {
+            return None;
+        }
+        if hi * (1.0 + 1e-6) <= threshold {
+            Some((hi * (1.0 + 1e-6), self.mean_var))
+        } else if lo * (1.0 - 1e-6) > threshold {
+            Some((lo * (1.0 - 1e-6), self.mean_var))
+        } else {
+            None
+        }
     }
 
     /// As [`NoiseModel::chi2_and_mean_var`] (the model values `r` only
@@ -263,8 +294,20 @@ impl NoiseModel {
             return None;
         }
         let var: Vec<f64> = (0..self.var0.len()).map(|k| self.var(k, 0.0)).collect();
-        let inv_var = var.iter().map(|v| 1.0 / v).collect();
-        Some(FlatNoise { var, inv_var })
+        let inv_var: Vec<f64> = var.iter().map(|v| 1.0 / v).collect();
+        let inv_range = inv_var
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
+                (a.min(v), b.max(v))
+            });
+        let (ones, zeros) = (vec![1.0; var.len()], vec![0.0; var.len()]);
+        let (_, mean_var) = flat_chi2(&var, &inv_var, &zeros, &ones, &zeros);
+        Some(FlatNoise {
+            var,
+            inv_var,
+            inv_range,
+            mean_var,
+        })
     }
 
     /// A typical σ (root mean variance over bands at reflectance `r`).
@@ -450,6 +493,49 @@ mod tests {
     use crate::optics::band::Band;
     use rand::{Rng, SeedableRng};
     use rand_distr::{Distribution, Normal};
+
+    /// Where the bands' spread of variance settles a complete spectrum's
+    /// χ² test, it settles it as the band-by-band χ² does; it settles most
+    /// spectra of noise at the bands' own σ (spread ±10 %), and the mean
+    /// variance it returns is the band-by-band one to the bit.
+    #[test]
+    fn settled_chi2_tests_agree_with_the_band_by_band_chi2() {
+        let sigma: Vec<f64> = (0..31)
+            .map(|k| 0.001 * (0.9 + 0.2 * k as f64 / 30.0))
+            .collect();
+        let flat = NoiseModel::per_band(&sigma, NoiseSource::Given)
+            .flat()
+            .expect("flat");
+        let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+        let (w, r) = (vec![1.0; 31], vec![0.0; 31]);
+        let threshold = 50.9; // χ²(30) at p = 0.01
+        let (mut settled, mut passed, mut failed) = (0, 0, 0);
+        for i in 0..4000 {
+            // Noise at 0.5–2× the bands' σ: clean, noisy and poor pixels.
+            let scale = 0.5 + 1.5 * (i % 40) as f64 / 40.0;
+            let y: Vec<f64> = sigma
+                .iter()
+                .map(|&s| Normal::new(0.0, s * scale).unwrap().sample(&mut rng))
+                .collect();
+            let sse: f64 = y.iter().map(|e| e * e).sum();
+            let (chi2, mean) = flat.chi2_and_mean_var(&y, &w, &r);
+            if let Some((c, m)) = flat.settle_complete(sse, threshold) {
+                settled += 1;
+                assert_eq!(c <= threshold, chi2 <= threshold, "sse {sse}");
+                assert_eq!(m.to_bits(), mean.to_bits());
+                if chi2 <= threshold {
+                    passed += 1;
+                } else {
+                    failed += 1;
+                }
+            }
+        }
+        assert!(settled > 3000, "settled {settled} of 4000");
+        assert!(
+            passed > 500 && failed > 500,
+            "passed {passed}, failed {failed}"
+        );
+    }
 
     #[test]
     fn min_var_is_the_least_variance_over_bands_and_reflectance() {

@@ -146,7 +146,7 @@ impl Solver {
             (Some(m), true) => m,
             _ => &prep.model,
         };
-        let signal = self.fringe_signal(prep, best.theta, n_ok, sigma);
+        let signal = self.fringe_signal(prep, best.theta, n_ok, sigma, scratch);
         let weak = signal < WEAK_FRINGES;
         if !weak && !free {
             // The angle known and the fringes strong: no alternative.
@@ -154,7 +154,7 @@ impl Solver {
         }
 
         let step = 0.125 / self.table.sigma_center;
-        let q2 = prep.model.q2_mid(best.theta);
+        let q2 = scratch.q2_mid(prep, best.theta);
         let (g0, g_max) = (best.d * q2, self.d_max * q2);
         let (lam_min, lam_max) = self.band_span();
         let thin = g0 < 0.5 * lam_max && signal < SUB_FRINGE_BELOW;
@@ -304,11 +304,22 @@ impl Solver {
         theta: f64,
         n_ok: usize,
         sigma: f64,
+        scratch: &Scratch,
     ) -> f64 {
+        let mut memo = scratch.angle_memo(prep, theta);
+        let key = (n_ok, sigma.to_bits());
+        if let Some((n, s, signal)) = memo.signal {
+            if (n, s) == key {
+                return signal;
+            }
+        }
         let (h, q) = prep.envelopes_at(theta);
         let c = (h - q).abs();
         let energy = n_ok as f64 * c * c / (8.0 * sigma * sigma);
-        energy / self.chi2.threshold(n_ok.saturating_sub(2).max(1))
+        let signal = energy / self.chi2.threshold(n_ok.saturating_sub(2).max(1));
+        memo.signal = Some((key.0, key.1, signal));
+        scratch.angle_memo.set(Some(memo));
+        signal
     }
 
     /// Whether a local fit's fringes are strong enough that none of the

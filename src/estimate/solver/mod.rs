@@ -74,6 +74,7 @@ use bands::BandTable;
 use closed_form::Slopes;
 use index::SamplePixel;
 use search::FringeBasis;
+use std::cell::Cell;
 use std::f64::consts::PI;
 
 /// The film index used for a fit: estimated once from the image, or known.
@@ -172,6 +173,9 @@ pub struct Scratch {
     last_fit_d: f64,
     /// Per pixel of the last row solved: that thickness.
     fits: Vec<f64>,
+    /// The last angle's per-angle quantities (a row's pixels mostly share
+    /// one known angle): see [`AngleMemo`].
+    angle_memo: Cell<Option<AngleMemo>>,
 }
 
 impl Scratch {
@@ -213,6 +217,51 @@ impl Scratch {
             n_ok += usize::from(ok);
         }
         n_ok
+    }
+}
+
+/// What depends on the angle alone (and on the bands used and the noise),
+/// kept for the next pixel at the same angle (a row's pixels mostly share
+/// one known angle): the film's normal wave-vector component at the band
+/// range's centre (`FilmModel::q2_mid`) and the fringe signal
+/// (`Solver::fringe_signal`). Keyed by the [`Prepared`] it was computed
+/// from (the index search solves with many models) and the angle's bits.
+#[derive(Clone, Copy, Debug)]
+struct AngleMemo {
+    prep: u64,
+    theta: u64,
+    q2: f64,
+    /// `(n_ok, σ bits, signal)` once asked for.
+    signal: Option<(usize, u64, f64)>,
+}
+
+impl Scratch {
+    /// The memo of `theta` under `prep`, begun afresh where the last one
+    /// was another angle's or another model's.
+    fn angle_memo(&self, prep: &Prepared, theta: f64) -> AngleMemo {
+        let key = theta.to_bits();
+        match self
+            .angle_memo
+            .get()
+            .filter(|m| m.theta == key && m.prep == prep.id)
+        {
+            Some(m) => m,
+            None => {
+                let m = AngleMemo {
+                    prep: prep.id,
+                    theta: key,
+                    q2: prep.model.q2_mid(theta),
+                    signal: None,
+                };
+                self.angle_memo.set(Some(m));
+                m
+            }
+        }
+    }
+
+    /// `FilmModel::q2_mid(theta)` of `prep`'s model.
+    fn q2_mid(&self, prep: &Prepared, theta: f64) -> f64 {
+        self.angle_memo(prep, theta).q2
     }
 }
 
@@ -331,6 +380,8 @@ struct Fit {
 /// Everything that depends on the film index.
 #[derive(Clone, Debug)]
 struct Prepared {
+    /// Unique among the solver's preparations (see [`AngleMemo`]).
+    id: u64,
     model: FilmModel,
     /// Expected sign of the fringe term (+1: half-wave points are peaks).
     sign: f64,
@@ -692,7 +743,9 @@ impl Solver {
         } else {
             table::Tables::default()
         };
+        static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
         Ok(Prepared {
+            id: NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
             tables,
             model,
             envelope_range,
@@ -813,7 +866,7 @@ impl Solver {
         let noise = index.noise_sigma.is_finite().then_some(index.noise_sigma);
         if self.level_mode == LevelMode::Free {
             let mut est = self.solve_free(prep, spectrum, theta_known, scratch);
-            Self::with_index(prep, index, &mut est);
+            Self::with_index(prep, index, &mut est, scratch);
             return est;
         }
         let (mut est, _) = self.solve_with(
@@ -829,20 +882,32 @@ impl Solver {
             scratch,
         );
         self.with_level(&mut est);
-        Self::with_index(prep, index, &mut est);
+        Self::with_index(prep, index, &mut est, scratch);
         est
     }
 
     /// The global index and its share of the thickness error.
-    fn with_index(prep: &Prepared, index: &IndexEstimate, est: &mut PixelEstimate) {
+    fn with_index(
+        prep: &Prepared,
+        index: &IndexEstimate,
+        est: &mut PixelEstimate,
+        scratch: &Scratch,
+    ) {
         if est.is_valid() && index.at_bound {
             *est = PixelEstimate::invalid(Reason::AtBound);
         }
         if est.is_valid() {
             est.n_film = index.n;
+            let twin = index.twin.filter(|_| index.ambiguous);
+            let sigma_n_free = !index.sigma_in_level && index.sigma != 0.0;
+            if !sigma_n_free && index.scale_branches.is_none() && twin.is_none() {
+                // A known index (or one whose error the level carries):
+                // nothing to add.
+                return;
+            }
             // The global index's own error moves the thickness at fixed
             // optical thickness: ∂d/∂n2 = −d·n2/q2².
-            let q2 = prep.model.q2_mid(est.theta_deg.to_radians());
+            let q2 = scratch.q2_mid(prep, est.theta_deg.to_radians());
             let dd_dn = est.thickness_nm * index.n / (q2 * q2);
             // The thickness at the pixel's optical thickness under index t.
             let kx2 = index.n * index.n - q2 * q2;

@@ -406,7 +406,7 @@ impl Solver {
         // valleys and twin basins a local refinement cannot tell apart: a
         // film index-matched to its ambient read 75 nm for 100 nm from
         // its neighbour's start, valid).
-        let signal = self.fringe_signal(prep, fit.theta, n_ok, sigma);
+        let signal = self.fringe_signal(prep, fit.theta, n_ok, sigma, scratch);
         if !self.fringes_exclude_alternatives(signal, theta_known.is_none()) {
             return None;
         }
@@ -565,19 +565,38 @@ impl Solver {
         // A fit on a table at its own angle left its residual on the very
         // interpolant χ² would evaluate again; with one variance for every
         // band, χ² is that residual over it.
+        let tabled = if best.tabled {
+            prep.tables.get(best.theta)
+        } else {
+            None
+        };
         let uniform = self
             .flat_noise
             .as_ref()
             .and_then(FlatNoise::uniform)
-            .filter(|_| best.tabled && prep.tables.get(best.theta).is_some());
+            .filter(|_| tabled.is_some());
+        // `chi2_and_noise_var`'s flat branch.
+        let flat = self.flat_noise.as_ref().filter(|_| self.noise.is_some());
         let (chi2, noise_var) = if let (true, Some((v, inv))) = (judging, uniform) {
             (best.sse * inv, v)
         } else if let (true, Some(c)) = (judging, best.chi2) {
             // Left by the refinement at this very fit.
             c
+        } else if let (true, Some(t), Some(flat)) = (judging, tabled, flat) {
+            // On the interpolant, whose residual the fit left: the bands'
+            // spread of variance settles the test for most pixels.
+            let complete = n_ok == scratch.weight.len();
+            let threshold = self.chi2.threshold(n_ok.saturating_sub(n_par).max(1));
+            match flat
+                .settle_complete(best.sse, threshold)
+                .filter(|_| complete)
+            {
+                Some(out) => out,
+                None => t.chi2_flat(best.d, &scratch.spectrum, &scratch.weight, flat),
+            }
         } else if judging {
             let mut trial = std::mem::take(&mut scratch.trial);
-            match prep.tables.get(best.theta).filter(|_| best.tabled) {
+            match tabled {
                 Some(t) => t.values(best.d, &mut trial.r),
                 None => model.eval(best.d, best.theta, &mut trial, false),
             }
@@ -605,7 +624,7 @@ impl Solver {
         let mut reason = Reason::Ok;
         // A second order that fits as well as the best is an ambiguity.
         if let Some(second) = order.get(1).map(|&i| fits[i]) {
-            let q2 = prep.model.q2_mid(best.theta);
+            let q2 = scratch.q2_mid(prep, best.theta);
             let apart = (second.d - best.d).abs() > 0.25 * lam_min / (2.0 * q2);
             if apart && second.sse - best.sse < AMBIGUITY_CHI2 * var {
                 reason = Reason::AmbiguousOrder;

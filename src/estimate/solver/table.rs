@@ -178,6 +178,69 @@ fn interval_dots(r: [&[f32]; 2], dr: [&[f32]; 2], y: &[f64], centre: &[f64], h: 
     [ee, ep, 3.0 * ed - 2.0 * ep - eq, -2.0 * ed + ep + eq]
 }
 
+/// [`ThicknessTable::chi2_flat`]: per band the interpolant's value
+/// `centre + h00·A + h10·P + h01·B + h11·Q` and `flat_chi2`'s sums over
+/// it, in the same four lanes.
+#[allow(clippy::needless_range_loop, clippy::too_many_arguments)] // four lanes, indexed alike
+#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+fn interp_chi2(
+    r: [&[f32]; 2],
+    dr: [&[f32]; 2],
+    centre: &[f64],
+    [h00, h10, h01, h11]: [f64; 4],
+    y: &[f64],
+    w: &[f64],
+    var: &[f64],
+    inv: &[f64],
+) -> (f64, f64) {
+    let n = centre
+        .len()
+        .min(y.len())
+        .min(w.len())
+        .min(var.len())
+        .min(inv.len());
+    let (ra, rb, da, db) = (&r[0][..n], &r[1][..n], &dr[0][..n], &dr[1][..n]);
+    let (centre, y, w, var, inv) = (&centre[..n], &y[..n], &w[..n], &var[..n], &inv[..n]);
+    let (mut chi2, mut sum_var, mut used) = ([0.0f64; 4], [0.0f64; 4], [0.0f64; 4]);
+    let whole = n - n % 4;
+    // Written out twice, not as a closure (see `interval_dots`).
+    for k0 in (0..whole).step_by(4) {
+        for l in 0..4 {
+            let k = k0 + l;
+            let (a, b, p, q) = (
+                f64::from(ra[k]),
+                f64::from(rb[k]),
+                f64::from(da[k]),
+                f64::from(db[k]),
+            );
+            let rk = centre[k] + h00 * a + h10 * p + h01 * b + h11 * q;
+            let e = y[k] - rk;
+            let on = if w[k] != 0.0 { 1.0 } else { 0.0 };
+            chi2[l] += on * w[k] * e * e * inv[k];
+            sum_var[l] += on * var[k];
+            used[l] += on;
+        }
+    }
+    for k in whole..n {
+        let (a, b, p, q) = (
+            f64::from(ra[k]),
+            f64::from(rb[k]),
+            f64::from(da[k]),
+            f64::from(db[k]),
+        );
+        let rk = centre[k] + h00 * a + h10 * p + h01 * b + h11 * q;
+        let e = y[k] - rk;
+        let on = if w[k] != 0.0 { 1.0 } else { 0.0 };
+        chi2[0] += on * w[k] * e * e * inv[k];
+        sum_var[0] += on * var[k];
+        used[0] += on;
+    }
+    let sum = |a: [f64; 4]| (a[0] + a[1]) + (a[2] + a[3]);
+    let used = sum(used);
+    let mean = if used > 0.0 { sum(sum_var) / used } else { 0.0 };
+    (sum(chi2), mean)
+}
+
 /// `Σ (e − c1 t − c2 t² − c3 t³)²` as a polynomial in `t`, lowest power
 /// first, from `Σe²`, `Σe·c1`, `Σe·c2`, `Σe·c3` and the interval's cross
 /// sums `[Σc1², Σc1c2, Σc1c3, Σc2², Σc2c3, Σc3²]`.
@@ -746,6 +809,18 @@ impl ThicknessTable {
         }
     }
 
+    /// χ² of `y` (weights `w`) against the interpolant at `d` under `flat`
+    /// noise, and the bands' mean variance: [`Self::values`] and
+    /// [`FlatNoise::chi2_and_mean_var`] in one pass, with their arithmetic
+    /// (the same numbers to the bit).
+    pub fn chi2_flat(&self, d: f64, y: &[f64], w: &[f64], flat: &FlatNoise) -> (f64, f64) {
+        let (j, t) = self.interval_of(d);
+        let hm = self.hermite(t);
+        let (r, dr) = self.ends(j);
+        let (var, inv) = flat.parts();
+        interp_chi2(r, dr, &self.centre[..self.nb], hm, y, w, var, inv)
+    }
+
     /// The least-squares thickness near grid point `j` on the interpolant:
     /// for a complete spectrum the exact minimum of the residual polynomial
     /// ([`Self::fit_complete`]), otherwise Gauss–Newton (each step within
@@ -1213,6 +1288,11 @@ impl Solver {
                     prep, table, theta, j0, n_ok, noise, lam_min, verify, scratch,
                 ) {
                     scratch.hint = Some((key, table.index_of(out.0.thickness_nm)));
+                    // A valid pixel ends the run of poor ones: the next
+                    // poor pixel scans and becomes the reference (the
+                    // distance to a stale one would be paid on every
+                    // pixel and seldom settle one).
+                    scratch.poor = None;
                     return out;
                 }
             }
@@ -1260,6 +1340,9 @@ impl Solver {
         let out = self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch);
         scratch.hint =
             (exact && out.0.is_valid()).then(|| (key, table.index_of(out.0.thickness_nm)));
+        if out.0.is_valid() {
+            scratch.poor = None;
+        }
         if exact && out.0.reason == Reason::PoorFit {
             let min_sse = fits[..n]
                 .iter()
@@ -1286,7 +1369,8 @@ impl Solver {
         let flat = self.flat_noise.as_ref().filter(|_| self.noise.is_some())?;
         // Weights are 1 on the bands used and 0 elsewhere.
         let complete = n_ok == scratch.weight.len();
-        (complete && self.fringe_signal(prep, theta, n_ok, sigma) >= WEAK_FRINGES).then_some(flat)
+        (complete && self.fringe_signal(prep, theta, n_ok, sigma, scratch) >= WEAK_FRINGES)
+            .then_some(flat)
     }
 
     /// After the scan found no thickness on the table that fits (flagged
@@ -1320,7 +1404,8 @@ impl Solver {
     /// least the earlier floor less the distance `√χ²` between the two
     /// spectra, at every `d`. It stands only where that exceeds twice the
     /// χ² test's `√threshold` (four times the threshold in χ²); the
-    /// earlier pixel stays the reference until a scan runs again. (A run
+    /// earlier pixel stays the reference until a scan runs again or a pixel
+    /// comes out valid. (A run
     /// of pixels past the resolved range, a defect, a coating
     /// the model does not describe: the scan was a fifth of a thick film's
     /// solve.)
@@ -1376,7 +1461,10 @@ impl Solver {
         scratch: &mut Scratch,
     ) -> Option<(PixelEstimate, f64)> {
         let sigma = noise.filter(|_| self.judging())?;
-        if !self.fringes_exclude_alternatives(self.fringe_signal(prep, theta, n_ok, sigma), false) {
+        if !self.fringes_exclude_alternatives(
+            self.fringe_signal(prep, theta, n_ok, sigma, scratch),
+            false,
+        ) {
             return None;
         }
         let (d, e, a) = table.fit_near(&scratch.spectrum, &scratch.weight, j0)?;
@@ -1390,7 +1478,7 @@ impl Solver {
             stalled: false,
             chi2: None,
         };
-        let dd = 0.5 / self.table.sigma_center / prep.model.q2_mid(theta);
+        let dd = 0.5 / self.table.sigma_center / scratch.q2_mid(prep, theta);
         let mut fits = [fit; 2];
         let key = theta.to_bits();
         // Where the previous pixel's neighbouring order fell far short of
@@ -1554,6 +1642,47 @@ mod tests {
             &[false; 31],
         )
         .unwrap()
+    }
+
+    /// The fused χ² on the interpolant gives, to the bit, what the
+    /// interpolant's values and the flat noise's χ² give one after the
+    /// other (the estimate's χ² test must not depend on which path asked),
+    /// with every band and with some bands left out.
+    #[test]
+    fn fused_chi2_matches_values_then_flat_chi2() {
+        use crate::estimate::noise::{NoiseModel, NoiseSource};
+        let m = model();
+        let t = ThicknessTable::new(&m, 0.4, 0.0, 2000.0);
+        let sigma: Vec<f64> = (0..31).map(|k| 0.001 + 1e-4 * k as f64).collect();
+        let flat = NoiseModel::per_band(&sigma, NoiseSource::Given)
+            .flat()
+            .expect("per-band noise is flat");
+        let mut out = ModelOut::new(31);
+        let mut r = vec![0.0; 31];
+        for i in 0..500 {
+            let d = 3.1 + i as f64 * 3.97;
+            m.eval(d + 0.3, 0.4, &mut out, false);
+            let y: Vec<f64> = out
+                .r
+                .iter()
+                .enumerate()
+                .map(|(k, v)| v + 1e-3 * ((k * 7 + i) % 5) as f64)
+                .collect();
+            let mut w = vec![1.0; 31];
+            if i % 3 == 0 {
+                w[i % 31] = 0.0;
+                w[(i + 11) % 31] = 0.0;
+            }
+            t.values(d, &mut r);
+            let (c1, v1) = flat.chi2_and_mean_var(&y, &w, &r);
+            let (c2, v2) = t.chi2_flat(d, &y, &w, &flat);
+            assert!(c1 > 0.0 && v1 > 0.0);
+            assert_eq!(
+                (c1.to_bits(), v1.to_bits()),
+                (c2.to_bits(), v2.to_bits()),
+                "d = {d}"
+            );
+        }
     }
 
     /// The interpolant against the exact model between grid points: its
