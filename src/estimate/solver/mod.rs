@@ -176,6 +176,8 @@ pub struct Scratch {
     /// The last angle's per-angle quantities (a row's pixels mostly share
     /// one known angle): see [`AngleMemo`].
     angle_memo: Cell<Option<AngleMemo>>,
+    /// Where the last table lookup found its angle (`Tables::get_hinted`).
+    table_hint: Cell<usize>,
 }
 
 impl Scratch {

@@ -92,7 +92,7 @@ impl Solver {
         }
         let lam_min = self.band_span().0;
         if let Some(t) = theta_known.filter(|_| effort.table && job_start.is_none()) {
-            let found = match prep.tables.get(t) {
+            let found = match prep.tables.get_hinted(t, &scratch.table_hint) {
                 Some(table) => Some((table, t)),
                 None => prep.tables.nearest(t),
             };
@@ -566,7 +566,7 @@ impl Solver {
         // interpolant χ² would evaluate again; with one variance for every
         // band, χ² is that residual over it.
         let tabled = if best.tabled {
-            prep.tables.get(best.theta)
+            prep.tables.get_hinted(best.theta, &scratch.table_hint)
         } else {
             None
         };

@@ -14,17 +14,24 @@
 //! The fit is then judged with the exact model (stage 4, unchanged), so an
 //! interpolation error could cost a pixel its validity but never make a
 //! wrong one valid.
+//!
+//! [`kernels`] holds the vector loops, [`poly`] one interval's residual
+//! polynomial and its minimum, [`solve`] a pixel's solve against a table.
 
-use super::alternatives::{OrderMargin, WEAK_FRINGES};
-use super::refine::sse;
-use super::{Effort, Fit, Prepared, Scratch, Solver};
 use crate::estimate::model::{FilmModel, ModelOut};
 use crate::estimate::noise::FlatNoise;
-use crate::estimate::{PixelEstimate, Reason};
-use multiversion::multiversion;
+use std::cell::Cell;
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::Arc;
-use wide::f64x4;
+
+mod kernels;
+mod poly;
+mod solve;
+
+use kernels::{
+    interp_chi2, interp_values, interval_dots, minimum_keys, scan_blocked, scan_weighted,
+};
+use poly::{poly_min, residual_poly};
 
 /// Largest phase change of any band between adjacent grid points, rad.
 pub const PHASE_STEP: f64 = 0.3;
@@ -127,273 +134,6 @@ impl IntervalCubic {
     fn coefficients(a: f64, b: f64, p: f64, q: f64, h: f64) -> (f64, f64, f64) {
         let (p, q) = (p * h, q * h);
         (p, 3.0 * (b - a) - 2.0 * p - q, 2.0 * (a - b) + p + q)
-    }
-}
-
-/// `[Σe², Σe·c1, Σe·c2, Σe·c3]` over the bands of one grid interval,
-/// `e = y − centre − A` (see [`IntervalCubic`]): values `r` and slopes
-/// `dr` at the interval's two ends. The `c`'s are linear in `B − A`, `P`
-/// and `Q`, so so are their sums: per band only `e` and `B − A` are
-/// formed and four products summed (`Σe²`, `Σe(B − A)`, `ΣeP`, `ΣeQ`),
-/// the `c`'s sums follow once. Four independent lanes per sum (a single
-/// f64 chain would not vectorise), the tail band by band.
-#[allow(clippy::needless_range_loop)] // four lanes, indexed alike
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
-fn interval_dots(r: [&[f32]; 2], dr: [&[f32]; 2], y: &[f64], centre: &[f64], h: f64) -> [f64; 4] {
-    let nb = y.len();
-    let (ra, rb, da, db, centre) = (
-        &r[0][..nb],
-        &r[1][..nb],
-        &dr[0][..nb],
-        &dr[1][..nb],
-        &centre[..nb],
-    );
-    // Written out, not as a closure: a closure is not compiled with the
-    // enclosing function's target features, and here it was called (not
-    // inlined) once per band from the AVX2 version. Chunks of four zipped
-    // (not indexed: the bounds checks of `k0 + l` kept the loop scalar).
-    let (mut s0, mut s1, mut s2, mut s3) = (f64x4::ZERO, f64x4::ZERO, f64x4::ZERO, f64x4::ZERO);
-    let quads = ra
-        .chunks_exact(4)
-        .zip(rb.chunks_exact(4))
-        .zip(da.chunks_exact(4).zip(db.chunks_exact(4)))
-        .zip(y.chunks_exact(4).zip(centre.chunks_exact(4)));
-    let widen = |v: &[f32]| f64x4::new([v[0], v[1], v[2], v[3]].map(f64::from));
-    let load = |v: &[f64]| f64x4::new([v[0], v[1], v[2], v[3]]);
-    for (((ra, rb), (da, db)), (y, centre)) in quads {
-        let a = widen(ra);
-        let e = load(y) - load(centre) - a;
-        s0 += e * e;
-        s1 += e * (widen(rb) - a);
-        s2 += e * widen(da);
-        s3 += e * widen(db);
-    }
-    let mut acc = [s0, s1, s2, s3].map(f64x4::to_array);
-    for k in nb - nb % 4..nb {
-        let a = f64::from(ra[k]);
-        let e = y[k] - centre[k] - a;
-        acc[0][0] += e * e;
-        acc[1][0] += e * (f64::from(rb[k]) - a);
-        acc[2][0] += e * f64::from(da[k]);
-        acc[3][0] += e * f64::from(db[k]);
-    }
-    let [ee, ed, ep, eq] = acc.map(|s| (s[0] + s[1]) + (s[2] + s[3]));
-    let (ep, eq) = (ep * h, eq * h);
-    // IntervalCubic::coefficients, summed: c1 = P·h,
-    // c2 = 3(B − A) − (2P + Q)·h, c3 = 2(A − B) + (P + Q)·h.
-    [ee, ep, 3.0 * ed - 2.0 * ep - eq, -2.0 * ed + ep + eq]
-}
-
-/// [`ThicknessTable::values`]: `centre + h00·A + h10·P + h01·B + h11·Q`
-/// per band, four bands at a time in `f64x4` lanes (the arithmetic of
-/// [`interp_chi2`]).
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
-fn interp_values(
-    r: [&[f32]; 2],
-    dr: [&[f32]; 2],
-    centre: &[f64],
-    [h00, h10, h01, h11]: [f64; 4],
-    out: &mut [f64],
-) {
-    let n = centre.len().min(out.len());
-    let (ra, rb, da, db) = (&r[0][..n], &r[1][..n], &dr[0][..n], &dr[1][..n]);
-    let (centre, out) = (&centre[..n], &mut out[..n]);
-    let [g00, g10, g01, g11] = [h00, h10, h01, h11].map(f64x4::splat);
-    let widen = |v: &[f32]| f64x4::new([v[0], v[1], v[2], v[3]].map(f64::from));
-    let load = |v: &[f64]| f64x4::new([v[0], v[1], v[2], v[3]]);
-    let quads = ra
-        .chunks_exact(4)
-        .zip(rb.chunks_exact(4))
-        .zip(da.chunks_exact(4).zip(db.chunks_exact(4)))
-        .zip(centre.chunks_exact(4).zip(out.chunks_exact_mut(4)));
-    for (((ra, rb), (da, db)), (centre, out)) in quads {
-        let v =
-            load(centre) + g00 * widen(ra) + g10 * widen(da) + g01 * widen(rb) + g11 * widen(db);
-        out.copy_from_slice(&v.to_array());
-    }
-    for k in n - n % 4..n {
-        let (a, b, p, q) = (
-            f64::from(ra[k]),
-            f64::from(rb[k]),
-            f64::from(da[k]),
-            f64::from(db[k]),
-        );
-        out[k] = centre[k] + h00 * a + h10 * p + h01 * b + h11 * q;
-    }
-}
-
-/// [`ThicknessTable::chi2_flat`]: per band the interpolant's value
-/// `centre + h00·A + h10·P + h01·B + h11·Q` and `flat_chi2`'s sums over
-/// it, in the same four lanes.
-#[allow(clippy::needless_range_loop, clippy::too_many_arguments)] // four lanes, indexed alike
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
-fn interp_chi2(
-    r: [&[f32]; 2],
-    dr: [&[f32]; 2],
-    centre: &[f64],
-    [h00, h10, h01, h11]: [f64; 4],
-    y: &[f64],
-    w: &[f64],
-    var: &[f64],
-    inv: &[f64],
-) -> (f64, f64) {
-    let n = centre
-        .len()
-        .min(y.len())
-        .min(w.len())
-        .min(var.len())
-        .min(inv.len());
-    let (ra, rb, da, db) = (&r[0][..n], &r[1][..n], &dr[0][..n], &dr[1][..n]);
-    let (centre, y, w, var, inv) = (&centre[..n], &y[..n], &w[..n], &var[..n], &inv[..n]);
-    // Four bands at a time in `f64x4` lanes (see `interval_dots`), the
-    // tail band by band, with the same arithmetic.
-    let (mut c4, mut v4, mut u4) = (f64x4::ZERO, f64x4::ZERO, f64x4::ZERO);
-    let [g00, g10, g01, g11] = [h00, h10, h01, h11].map(f64x4::splat);
-    let widen = |v: &[f32]| f64x4::new([v[0], v[1], v[2], v[3]].map(f64::from));
-    let load = |v: &[f64]| f64x4::new([v[0], v[1], v[2], v[3]]);
-    let quads = ra
-        .chunks_exact(4)
-        .zip(rb.chunks_exact(4))
-        .zip(da.chunks_exact(4).zip(db.chunks_exact(4)))
-        .zip(centre.chunks_exact(4).zip(y.chunks_exact(4)))
-        .zip(
-            w.chunks_exact(4)
-                .zip(var.chunks_exact(4).zip(inv.chunks_exact(4))),
-        );
-    for ((((ra, rb), (da, db)), (centre, y)), (w, (var, inv))) in quads {
-        let rk =
-            load(centre) + g00 * widen(ra) + g10 * widen(da) + g01 * widen(rb) + g11 * widen(db);
-        let e = load(y) - rk;
-        let w = load(w);
-        // 1 where the band is used (the mask's bits select 1.0), 0 elsewhere.
-        let on = w.simd_ne(f64x4::ZERO) & f64x4::ONE;
-        c4 += on * w * e * e * load(inv);
-        v4 += on * load(var);
-        u4 += on;
-    }
-    let (mut chi2, mut sum_var, mut used) = (c4.to_array(), v4.to_array(), u4.to_array());
-    for k in n - n % 4..n {
-        let (a, b, p, q) = (
-            f64::from(ra[k]),
-            f64::from(rb[k]),
-            f64::from(da[k]),
-            f64::from(db[k]),
-        );
-        let rk = centre[k] + h00 * a + h10 * p + h01 * b + h11 * q;
-        let e = y[k] - rk;
-        let on = if w[k] != 0.0 { 1.0 } else { 0.0 };
-        chi2[0] += on * w[k] * e * e * inv[k];
-        sum_var[0] += on * var[k];
-        used[0] += on;
-    }
-    let sum = |a: [f64; 4]| (a[0] + a[1]) + (a[2] + a[3]);
-    let used = sum(used);
-    let mean = if used > 0.0 { sum(sum_var) / used } else { 0.0 };
-    (sum(chi2), mean)
-}
-
-/// `Σ (e − c1 t − c2 t² − c3 t³)²` as a polynomial in `t`, lowest power
-/// first, from `Σe²`, `Σe·c1`, `Σe·c2`, `Σe·c3` and the interval's cross
-/// sums `[Σc1², Σc1c2, Σc1c3, Σc2², Σc2c3, Σc3²]`.
-fn residual_poly(ee: f64, e1: f64, e2: f64, e3: f64, g: &[f64; 6]) -> [f64; 7] {
-    let [s11, s12, s13, s22, s23, s33] = *g;
-    [
-        ee,
-        -2.0 * e1,
-        s11 - 2.0 * e2,
-        2.0 * s12 - 2.0 * e3,
-        s22 + 2.0 * s13,
-        2.0 * s23,
-        s33,
-    ]
-}
-
-/// Value, first and second derivative of a polynomial (lowest power first).
-fn poly_eval(p: &[f64; 7], t: f64) -> (f64, f64, f64) {
-    let (mut v, mut d1, mut d2) = (0.0, 0.0, 0.0);
-    for &c in p.iter().rev() {
-        d2 = d2 * t + 2.0 * d1;
-        d1 = d1 * t + v;
-        v = v * t + c;
-    }
-    (v, d1, d2)
-}
-
-/// The lowest point of polynomial `p` on `[0, 1]`. On one grid interval
-/// the residual is close to a parabola: Newton from the vertex of the
-/// parabola through `t = 0, ½, 1` converges in a few steps; where it does
-/// not (no upward curvature, or it leaves the interval), safeguarded
-/// Newton inside the bracket around the best of five samples. The ends
-/// are candidates too.
-fn poly_min(p: &[f64; 7]) -> (f64, f64) {
-    let (v0, v1) = (p[0], p.iter().sum::<f64>());
-    let vh = poly_eval(p, 0.5).0;
-    let ends = if v1 < v0 { (1.0, v1) } else { (0.0, v0) };
-    let curv = v0 + v1 - 2.0 * vh;
-    if curv > 0.0 {
-        let mut t = (0.5 + 0.25 * (v0 - v1) / curv).clamp(0.0, 1.0);
-        for _ in 0..10 {
-            let (_, d1, d2) = poly_eval(p, t);
-            // No upward curvature (or NaN): leave it to the fallback.
-            if d2.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
-                break;
-            }
-            let nt = t - d1 / d2;
-            if !(0.0..=1.0).contains(&nt) {
-                break;
-            }
-            // Newton converges quadratically: after a step under 1e-6
-            // the new point is within ~1e-12 of the minimum (a step of
-            // 1e-10 took one more evaluation for nothing).
-            if (nt - t).abs() < 1e-6 {
-                let v = poly_eval(p, nt).0;
-                return if v <= ends.1 { (nt, v) } else { ends };
-            }
-            t = nt;
-        }
-    }
-    poly_min_bracketed(p, ends)
-}
-
-/// [`poly_min`]'s fallback: the best of nine samples (or an end), then
-/// safeguarded Newton on `p′` between its neighbours (bisection where a
-/// Newton step would leave the bracket). A sample below both neighbours
-/// has a stationary point between them.
-fn poly_min_bracketed(p: &[f64; 7], ends: (f64, f64)) -> (f64, f64) {
-    let mut best = ends;
-    for i in 1..8 {
-        let t = i as f64 / 8.0;
-        let v = poly_eval(p, t).0;
-        if v < best.1 {
-            best = (t, v);
-        }
-    }
-    let (mut a, mut c) = ((best.0 - 0.125f64).max(0.0), (best.0 + 0.125f64).min(1.0));
-    let mut t = best.0;
-    for _ in 0..60 {
-        let (_, d1, d2) = poly_eval(p, t);
-        if d1 < 0.0 {
-            a = t;
-        } else {
-            c = t;
-        }
-        let newton = t - d1 / d2;
-        let nt = if d2 > 0.0 && newton > a && newton < c {
-            newton
-        } else {
-            0.5 * (a + c)
-        };
-        let done = (nt - t).abs() < 1e-10 || c - a < 1e-10;
-        t = nt;
-        if done {
-            break;
-        }
-    }
-    let v = poly_eval(p, t).0;
-    if v <= best.1 {
-        (t, v)
-    } else {
-        best
     }
 }
 
@@ -998,8 +738,19 @@ impl ThicknessTable {
     /// a stationary point (else the fringe order changed: scan instead).
     /// Returns `(d, Σ e², Σ (dR/dd)²)` as [`Self::fit`]; complete spectra
     /// only.
+    /// (The solver checks completeness once per pixel and walks with
+    /// [`Self::walk_near`].)
+    #[cfg(test)]
     pub fn fit_near(&self, y: &[f64], w: &[f64], j0: usize) -> Option<(f64, f64, f64)> {
-        if j0 >= self.m || !w[..self.nb].iter().all(|&v| v == 1.0) {
+        if !w[..self.nb].iter().all(|&v| v == 1.0) {
+            return None;
+        }
+        self.walk_near(y, j0)
+    }
+
+    /// [`Self::fit_near`] for a spectrum the caller knows is complete.
+    pub fn walk_near(&self, y: &[f64], j0: usize) -> Option<(f64, f64, f64)> {
+        if j0 >= self.m {
             return None;
         }
         let (fit, inside) = self.walk_complete(y, j0, HINT_WINDOW);
@@ -1070,98 +821,6 @@ fn order_gap_at(r: &[f32], nbp: usize, nb: usize, m: usize, fringe: f64, j: usiz
         g = g.min(side(j + near, (j + far).min(m - 1)));
     }
     g
-}
-
-/// The residual at every scanned grid point of a complete spectrum,
-/// `Σy² − 2 y·R + ΣR²`, eight grid points per vector: the table's scanned
-/// rows are transposed in blocks of eight ([`ThicknessTable::coarse`]),
-/// so each band is one broadcast multiply–add into eight sums and no sum
-/// is reduced across lanes; four partial sums per block keep the adds
-/// independent. f32 keeps 1e-7 of `Σy²`, far below a residual of `nb σ²`
-/// at any usable noise level.
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
-fn scan_blocked(coarse: &[f32], rr: &[f32], y: &[f32], yy: f32, sse: &mut [f32]) {
-    let nb = y.len();
-    let whole = nb - nb % 4;
-    for ((blk, rr), out) in coarse
-        .chunks_exact(nb * 8)
-        .zip(rr.chunks_exact(8))
-        .zip(sse.chunks_exact_mut(8))
-    {
-        let mut acc = [[0f32; 8]; 4];
-        for k0 in (0..whole).step_by(4) {
-            for (p, a) in acc.iter_mut().enumerate() {
-                let k = k0 + p;
-                let row = &blk[k * 8..k * 8 + 8];
-                for l in 0..8 {
-                    a[l] += y[k] * row[l];
-                }
-            }
-        }
-        for k in whole..nb {
-            let row = &blk[k * 8..k * 8 + 8];
-            for l in 0..8 {
-                acc[0][l] += y[k] * row[l];
-            }
-        }
-        for l in 0..8 {
-            let dot = (acc[0][l] + acc[1][l]) + (acc[2][l] + acc[3][l]);
-            out[l] = yy - 2.0 * dot + rr[l];
-        }
-    }
-}
-
-/// Each point's ranking key: the lowest value of the parabola through it
-/// and its neighbours where it is a local minimum (`≤` its left, `<` its
-/// right; the ends compare with +∞), +∞ elsewhere and at NaN.
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
-fn minimum_keys(sse: &[f32], keys: &mut [f32]) {
-    let n = sse.len();
-    // Branch-free (selects only), so the loop vectorises; the same
-    // arithmetic as `parabola_min`.
-    let key = |l: f32, c: f32, r: f32| {
-        let a = 0.5 * (l + r) - c;
-        let b = 0.5 * (r - l);
-        let v = (c - b * b / (4.0 * a)).max(0.0);
-        let pm = if a > 0.0 && a < f32::INFINITY { v } else { c };
-        if c <= l && c < r {
-            pm
-        } else {
-            f32::INFINITY
-        }
-    };
-    if n == 0 {
-        return;
-    }
-    if n == 1 {
-        keys[0] = key(f32::INFINITY, sse[0], f32::INFINITY);
-        return;
-    }
-    keys[0] = key(f32::INFINITY, sse[0], sse[1]);
-    for (k, w) in keys[1..n - 1].iter_mut().zip(sse.windows(3)) {
-        *k = key(w[0], w[1], w[2]);
-    }
-    keys[n - 1] = key(sse[n - 2], sse[n - 1], f32::INFINITY);
-}
-
-/// `Σ w (y − R)²` at every grid point (spectra with missing bands).
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
-fn scan_weighted(r: &[f32], y: &[f32], w: &[f32], sse: &mut [f32]) {
-    let nbp = y.len();
-    for (row, out) in r.chunks_exact(nbp).step_by(SCAN_STRIDE).zip(sse.iter_mut()) {
-        let mut acc = [0f32; 8];
-        for ((rv, yv), wv) in row
-            .chunks_exact(8)
-            .zip(y.chunks_exact(8))
-            .zip(w.chunks_exact(8))
-        {
-            for i in 0..8 {
-                let e = yv[i] - rv[i];
-                acc[i] += wv[i] * e * e;
-            }
-        }
-        *out = acc.iter().sum();
-    }
 }
 
 /// The tables of a solver: one per known angle (keyed by the angle's
@@ -1272,16 +931,20 @@ impl Tables {
         Some((&*b.tables[i], b.lo + i as f64 * b.step))
     }
 
-    /// The table at exactly this angle, if one was built.
-    pub fn get(&self, theta: f64) -> Option<&ThicknessTable> {
+    /// The table at exactly this angle, if one was built: the position
+    /// `hint` holds tried first (where the last lookup found its table: a
+    /// row's pixels mostly share an angle), the position found left there.
+    pub fn get_hinted(&self, theta: f64, hint: &Cell<usize>) -> Option<&ThicknessTable> {
         let key = theta.to_bits();
-        match self.by_angle.as_slice() {
-            [(k, t)] => (*k == key).then_some(&**t),
-            all => all
-                .binary_search_by_key(&key, |e| e.0)
-                .ok()
-                .map(|i| &*all[i].1),
+        let all = self.by_angle.as_slice();
+        if let Some((k, t)) = all.get(hint.get()) {
+            if *k == key {
+                return Some(t);
+            }
         }
+        let i = all.binary_search_by_key(&key, |e| e.0).ok()?;
+        hint.set(i);
+        Some(&*all[i].1)
     }
 
     /// Whether any table was built.
@@ -1299,378 +962,9 @@ impl Tables {
     }
 }
 
-impl Solver {
-    /// One pixel against a table: the best grid minima (two in `balanced`,
-    /// to judge the fringe order), each refined, then judged as every fit
-    /// is. At the table's own angle the refinement runs on the interpolant;
-    /// at a nearby one (a binned angle map) the minima are carried to the
-    /// pixel's angle at equal optical thickness and refined with the exact
-    /// model there.
-    #[allow(clippy::too_many_arguments)]
-    pub(super) fn solve_table(
-        &self,
-        prep: &Prepared,
-        table: &ThicknessTable,
-        table_theta: f64,
-        theta: f64,
-        n_ok: usize,
-        noise: Option<f64>,
-        effort: Effort,
-        lam_min: f64,
-        scratch: &mut Scratch,
-    ) -> (PixelEstimate, f64) {
-        let exact = table_theta.to_bits() == theta.to_bits();
-        if exact {
-            if let Some(out) = self.poor_as_before(prep, theta, n_ok, noise, scratch) {
-                return out;
-            }
-        }
-        let key = theta.to_bits();
-        // From the previous pixel's basin and its neighbouring orders, where
-        // that settles the pixel; the full scan otherwise. (`fast` once
-        // took the previous pixel's basin alone wherever it passed the χ²
-        // test: at σ = 0.01 on the thin coating 1.2 % of its valid pixels
-        // were a fringe order off.)
-        if exact && effort.warm {
-            if let Some((_, j0)) = scratch.hint.filter(|h| h.0 == key) {
-                let verify = effort.verify_order;
-                if let Some(out) = self.table_warm(
-                    prep, table, theta, j0, n_ok, noise, lam_min, verify, scratch,
-                ) {
-                    scratch.hint = Some((key, table.index_of(out.0.thickness_nm)));
-                    // A valid pixel ends the run of poor ones: the next
-                    // poor pixel scans and becomes the reference (the
-                    // distance to a stale one would be paid on every
-                    // pixel and seldom settle one).
-                    scratch.poor = None;
-                    return out;
-                }
-            }
-            scratch.order_margin = None;
-        }
-        // The best minima: two in `fast` and `balanced` (the second judges
-        // the fringe order), three in `accurate`.
-        let mut mins = [GridMin { j: 0, sse: 0.0 }; 3];
-        let keep = if effort.verify_order { 3 } else { 2 };
-        let n = table.minima(
-            &scratch.spectrum,
-            &scratch.weight,
-            &mut scratch.grid,
-            &mut mins[..keep],
-        );
-        // At the table's own angle every minimum is fitted on the
-        // interpolant (as good as exact here); `accurate` then refines with
-        // the exact model those close to the best ([`Solver::refine_close`]).
-        // Between a binned map's angles, every minimum is refined with the
-        // exact model from its grid point at equal optical thickness.
-        // Between a binned map's angles the runner-up is not refitted where
-        // it is the best's neighbouring order and the table's noise-free
-        // orders lie far apart there: every other basin scanned worse than
-        // it, so none can come within the ambiguity margin.
-        let n = if !exact && !effort.verify_order && n == 2 && self.order_settled(table, &mins) {
-            1
-        } else {
-            n
-        };
-        let mut fits = [Fit::default(); 3];
-        if exact {
-            for (f, g) in fits.iter_mut().zip(&mins[..n]) {
-                *f = self.table_fit(table, *g, theta, effort, scratch);
-            }
-            if effort.verify_order {
-                self.refine_close(prep, theta, n_ok, &mut fits[..n], scratch);
-            }
-        } else {
-            let scale = prep.model.q2_mid(table_theta) / prep.model.q2_mid(theta);
-            for (f, g) in fits.iter_mut().zip(&mins[..n]) {
-                let d0 = table.d_at(g.j) * scale;
-                *f = self.exact_refit(prep, d0, theta, effort.verify_order, scratch);
-            }
-        }
-        let out = self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch);
-        scratch.hint =
-            (exact && out.0.is_valid()).then(|| (key, table.index_of(out.0.thickness_nm)));
-        if out.0.is_valid() {
-            scratch.poor = None;
-        }
-        if exact && out.0.reason == Reason::PoorFit {
-            let min_sse = fits[..n]
-                .iter()
-                .map(|f| f.sse)
-                .fold(f64::INFINITY, f64::min);
-            self.note_poor(prep, theta, n_ok, noise, min_sse, scratch);
-        }
-        out
-    }
-
-    /// Whether the fringes at `theta` leave a pixel of `n_ok` bands no
-    /// competitor beyond the table (the alternative checks add no fit at a
-    /// known angle), the noise is one variance per band, and the spectrum
-    /// is complete: where a poor pixel's bound below applies.
-    fn poor_bound_applies(
-        &self,
-        prep: &Prepared,
-        theta: f64,
-        n_ok: usize,
-        noise: Option<f64>,
-        scratch: &Scratch,
-    ) -> Option<&FlatNoise> {
-        let sigma = noise.filter(|_| self.judging())?;
-        let flat = self.flat_noise.as_ref().filter(|_| self.noise.is_some())?;
-        // Weights are 1 on the bands used and 0 elsewhere.
-        let complete = n_ok == scratch.weight.len();
-        (complete && self.fringe_signal(prep, theta, n_ok, sigma, scratch) >= WEAK_FRINGES)
-            .then_some(flat)
-    }
-
-    /// After the scan found no thickness on the table that fits (flagged
-    /// "poor fit"): the spectrum, and a floor under its √χ² at every
-    /// thickness of the table, `√(SSE_min · min 1/σ²)` (χ² weighs each band
-    /// by at least the smallest inverse variance; the scan's best minimum
-    /// is its least SSE, as every flag the scan gives assumes).
-    fn note_poor(
-        &self,
-        prep: &Prepared,
-        theta: f64,
-        n_ok: usize,
-        noise: Option<f64>,
-        min_sse: f64,
-        scratch: &mut Scratch,
-    ) {
-        let Some(flat) = self.poor_bound_applies(prep, theta, n_ok, noise, scratch) else {
-            return;
-        };
-        let floor = (min_sse * flat.min_inv_var()).sqrt();
-        if floor.is_finite() {
-            scratch.poor_y.clear();
-            scratch.poor_y.extend_from_slice(&scratch.spectrum);
-            scratch.poor = Some((theta.to_bits(), floor));
-        }
-    }
-
-    /// A pixel close to an earlier poor one of the row, flagged "poor fit"
-    /// without a scan where no thickness can fit it either: by the
-    /// triangle inequality in the χ² norm, `√χ²(d)` of this spectrum is at
-    /// least the earlier floor less the distance `√χ²` between the two
-    /// spectra, at every `d`. It stands only where that exceeds twice the
-    /// χ² test's `√threshold` (four times the threshold in χ²); the
-    /// earlier pixel stays the reference until a scan runs again or a pixel
-    /// comes out valid. (A run
-    /// of pixels past the resolved range, a defect, a coating
-    /// the model does not describe: the scan was a fifth of a thick film's
-    /// solve.)
-    fn poor_as_before(
-        &self,
-        prep: &Prepared,
-        theta: f64,
-        n_ok: usize,
-        noise: Option<f64>,
-        scratch: &mut Scratch,
-    ) -> Option<(PixelEstimate, f64)> {
-        let (key, floor) = scratch.poor?;
-        if key != theta.to_bits() || scratch.poor_y.len() != scratch.spectrum.len() {
-            return None;
-        }
-        let flat = self.poor_bound_applies(prep, theta, n_ok, noise, scratch)?;
-        // Every weight is 1 here: the χ² between the two spectra.
-        let (between, _) =
-            flat.chi2_and_mean_var(&scratch.spectrum, &scratch.weight, &scratch.poor_y);
-        let dist = between.sqrt();
-        let threshold = self.chi2.threshold(n_ok.saturating_sub(1).max(1));
-        (floor - dist > 2.0 * threshold.sqrt()).then(|| {
-            scratch.last_fit_d = f64::NAN;
-            (PixelEstimate::invalid(Reason::PoorFit), f64::NAN)
-        })
-    }
-
-    /// `balanced` (and `accurate`) from the previous pixel's grid point
-    /// `j0` (a film changes little from one pixel to the next): the
-    /// residual's minimum walked to from there, and the better of its
-    /// neighbouring fringe
-    /// orders (one fringe more or fewer in optical thickness) walked to in
-    /// turn, judged together as the scan's two best minima are (an order
-    /// that fits as well flags the pixel ambiguous). `Some` only where that
-    /// settles the pixel: the fringes strong enough that no other basin
-    /// can pass the χ² test beside the fit (the gates of the alternative
-    /// checks, [`Solver::fringes_exclude_alternatives`]), both walks ending
-    /// at a minimum of the interpolant, and the estimate valid; anything
-    /// else (an order jump, an edge, a flag) takes the full scan.
-    /// `accurate` (`verify`) weighs the order on every pixel and refines
-    /// the fits close to the best with the exact model, as after its scan.
-    #[allow(clippy::too_many_arguments)]
-    fn table_warm(
-        &self,
-        prep: &Prepared,
-        table: &ThicknessTable,
-        theta: f64,
-        j0: usize,
-        n_ok: usize,
-        noise: Option<f64>,
-        lam_min: f64,
-        verify: bool,
-        scratch: &mut Scratch,
-    ) -> Option<(PixelEstimate, f64)> {
-        let sigma = noise.filter(|_| self.judging())?;
-        if !self.fringes_exclude_alternatives(
-            self.fringe_signal(prep, theta, n_ok, sigma, scratch),
-            false,
-        ) {
-            return None;
-        }
-        let (d, e, a) = table.fit_near(&scratch.spectrum, &scratch.weight, j0)?;
-        let fit = Fit {
-            d,
-            theta,
-            sse: e,
-            jtj: [a, 0.0, 0.0],
-            integrated: false,
-            tabled: true,
-            stalled: false,
-            chi2: None,
-        };
-        let dd = 0.5 / self.table.sigma_center / scratch.q2_mid(prep, theta);
-        let mut fits = [fit; 2];
-        let key = theta.to_bits();
-        // Where the previous pixel's neighbouring order fell far short of
-        // its fit and this fit moved little, it is not weighed again.
-        let carried = OrderMargin::carried(scratch.order_margin, key, d, dd).filter(|_| !verify);
-        // Nor where the noise-free orders lie far apart at this thickness.
-        let gap = self
-            .max_noise_var_on(table)
-            .map_or(0.0, |v| table.order_gap(d) / v);
-        let (n, margin) = if !verify && gap >= ORDER_GAP_SAFE {
-            (1, gap)
-        } else if let Some(m) = carried {
-            (1, m)
-        } else {
-            let (lo, hi) = table.d_range();
-            let mut trial = std::mem::take(&mut scratch.trial);
-            let mut alt: Option<(f64, f64)> = None;
-            for da in [d - dd, d + dd] {
-                if !(lo..=hi).contains(&da) {
-                    continue;
-                }
-                table.values(da, &mut trial.r);
-                let ea = sse(&scratch.spectrum, &scratch.weight, &trial.r);
-                if alt.is_none_or(|(_, b)| ea < b) {
-                    alt = Some((da, ea));
-                }
-            }
-            scratch.trial = trial;
-            match alt {
-                Some((da, _)) => {
-                    let j = table.index_of(da);
-                    let (d2, e2, a2) = table.fit_near(&scratch.spectrum, &scratch.weight, j)?;
-                    fits[1] = Fit {
-                        d: d2,
-                        sse: e2,
-                        jtj: [a2, 0.0, 0.0],
-                        ..fit
-                    };
-                    (2, (e2 - e) / (sigma * sigma))
-                }
-                None => (1, f64::INFINITY),
-            }
-        };
-        scratch.order_margin = Some(OrderMargin::new(key, d, margin));
-        if verify {
-            self.refine_close(prep, theta, n_ok, &mut fits[..n], scratch);
-        }
-        let out = self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch);
-        out.0.is_valid().then_some(out)
-    }
-
-    /// Whether the scan's runner-up `mins[1]` is the best's (`mins[0]`)
-    /// neighbouring fringe order (half to one and a half fringes away,
-    /// give or take a grid step; not a second dip of the same basin) and
-    /// the noise-free orders there lie ≥ [`ORDER_GAP_SAFE`] noise
-    /// variances apart ([`ThicknessTable::order_gap`]): then the runner-up
-    /// trails by about that gap, and every basin farther off trails it.
-    fn order_settled(&self, table: &ThicknessTable, mins: &[GridMin]) -> bool {
-        let [best, second, ..] = mins else {
-            return false;
-        };
-        let apart = best.j.abs_diff(second.j) as f64;
-        (0.5 * table.fringe - 1.0..=1.5 * table.fringe + 1.0).contains(&apart)
-            && self
-                .max_noise_var_on(table)
-                .is_some_and(|v| table.order_gap(table.d_at(best.j)) >= ORDER_GAP_SAFE * v)
-    }
-
-    /// The largest noise variance of any band at the reflectances `table`
-    /// spans (`None` without a noise model).
-    fn max_noise_var_on(&self, table: &ThicknessTable) -> Option<f64> {
-        if self.flat_noise.is_some() {
-            return Some(self.max_flat_var);
-        }
-        self.noise.as_ref().map(|n| n.max_var_below(table.r_max()))
-    }
-
-    /// `accurate`: the fits on the interpolant within 25 residual variances
-    /// of the best refined with the exact model (and the passband
-    /// integrated where the band criterion asks for it); a clearly worse
-    /// order cannot become the best or an ambiguity
-    /// ([`super::fringes::AMBIGUITY_CHI2`] variances).
-    fn refine_close(
-        &self,
-        prep: &Prepared,
-        theta: f64,
-        n_ok: usize,
-        fits: &mut [Fit],
-        scratch: &mut Scratch,
-    ) {
-        let best = fits.iter().map(|f| f.sse).fold(f64::INFINITY, f64::min);
-        let var = best / n_ok.saturating_sub(1).max(1) as f64;
-        for f in fits.iter_mut().filter(|f| f.sse <= best + 25.0 * var) {
-            *f = self.exact_refit(prep, f.d, theta, true, scratch);
-        }
-    }
-
-    /// The exact model's fit at the known `theta` from `d0`, refitted with
-    /// the passband integrated where `integrate` and the band criterion
-    /// ask for it.
-    fn exact_refit(
-        &self,
-        prep: &Prepared,
-        d0: f64,
-        theta: f64,
-        integrate: bool,
-        scratch: &mut Scratch,
-    ) -> Fit {
-        let iters = Effort::of(self.mode).iters;
-        let fit = self.refine(&prep.model, d0, theta, false, iters, scratch);
-        if !integrate {
-            return fit;
-        }
-        self.integrated_refit(prep, fit, false, iters, scratch).0
-    }
-
-    /// Refine grid minimum `g` on the interpolant.
-    fn table_fit(
-        &self,
-        table: &ThicknessTable,
-        g: GridMin,
-        theta: f64,
-        effort: Effort,
-        scratch: &mut Scratch,
-    ) -> Fit {
-        let (y, w) = (&scratch.spectrum, &scratch.weight);
-        let (d, sse, a) = table.fit(y, w, g.j, effort.iters, &mut scratch.grid);
-        Fit {
-            d,
-            theta,
-            sse,
-            jtj: [a, 0.0, 0.0],
-            integrated: false,
-            tabled: true,
-            stalled: false,
-            chi2: None,
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
+    use super::poly::poly_eval;
     use super::*;
     use crate::optics::band::Band;
     use crate::optics::dispersion::Dispersion;

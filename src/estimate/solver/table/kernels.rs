@@ -1,0 +1,269 @@
+//! The tables' vector kernels: a fit's interval sums, the interpolant's
+//! values and χ² (four f64 lanes, `wide::f64x4`: indexed lanes compiled to
+//! scalar code), and the scan of every grid point (eight f32 lanes), each
+//! compiled per vector unit (`multiversion`). The arithmetic is written so
+//! that each lane repeats the scalar tail's, to the bit.
+
+use super::SCAN_STRIDE;
+use multiversion::multiversion;
+use wide::f64x4;
+
+/// `[Σe², Σe·c1, Σe·c2, Σe·c3]` over the bands of one grid interval,
+/// `e = y − centre − A` (see [`IntervalCubic`]): values `r` and slopes
+/// `dr` at the interval's two ends. The `c`'s are linear in `B − A`, `P`
+/// and `Q`, so so are their sums: per band only `e` and `B − A` are
+/// formed and four products summed (`Σe²`, `Σe(B − A)`, `ΣeP`, `ΣeQ`),
+/// the `c`'s sums follow once. Four independent lanes per sum (a single
+/// f64 chain would not vectorise), the tail band by band.
+#[allow(clippy::needless_range_loop)] // four lanes, indexed alike
+#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+pub(super) fn interval_dots(
+    r: [&[f32]; 2],
+    dr: [&[f32]; 2],
+    y: &[f64],
+    centre: &[f64],
+    h: f64,
+) -> [f64; 4] {
+    let nb = y.len();
+    let (ra, rb, da, db, centre) = (
+        &r[0][..nb],
+        &r[1][..nb],
+        &dr[0][..nb],
+        &dr[1][..nb],
+        &centre[..nb],
+    );
+    // Written out, not as a closure: a closure is not compiled with the
+    // enclosing function's target features, and here it was called (not
+    // inlined) once per band from the AVX2 version. Chunks of four zipped
+    // (not indexed: the bounds checks of `k0 + l` kept the loop scalar).
+    let (mut s0, mut s1, mut s2, mut s3) = (f64x4::ZERO, f64x4::ZERO, f64x4::ZERO, f64x4::ZERO);
+    let quads = ra
+        .chunks_exact(4)
+        .zip(rb.chunks_exact(4))
+        .zip(da.chunks_exact(4).zip(db.chunks_exact(4)))
+        .zip(y.chunks_exact(4).zip(centre.chunks_exact(4)));
+    let widen = |v: &[f32]| f64x4::new([v[0], v[1], v[2], v[3]].map(f64::from));
+    let load = |v: &[f64]| f64x4::new([v[0], v[1], v[2], v[3]]);
+    for (((ra, rb), (da, db)), (y, centre)) in quads {
+        let a = widen(ra);
+        let e = load(y) - load(centre) - a;
+        s0 += e * e;
+        s1 += e * (widen(rb) - a);
+        s2 += e * widen(da);
+        s3 += e * widen(db);
+    }
+    let mut acc = [s0, s1, s2, s3].map(f64x4::to_array);
+    for k in nb - nb % 4..nb {
+        let a = f64::from(ra[k]);
+        let e = y[k] - centre[k] - a;
+        acc[0][0] += e * e;
+        acc[1][0] += e * (f64::from(rb[k]) - a);
+        acc[2][0] += e * f64::from(da[k]);
+        acc[3][0] += e * f64::from(db[k]);
+    }
+    let [ee, ed, ep, eq] = acc.map(|s| (s[0] + s[1]) + (s[2] + s[3]));
+    let (ep, eq) = (ep * h, eq * h);
+    // IntervalCubic::coefficients, summed: c1 = P·h,
+    // c2 = 3(B − A) − (2P + Q)·h, c3 = 2(A − B) + (P + Q)·h.
+    [ee, ep, 3.0 * ed - 2.0 * ep - eq, -2.0 * ed + ep + eq]
+}
+
+/// [`ThicknessTable::values`]: `centre + h00·A + h10·P + h01·B + h11·Q`
+/// per band, four bands at a time in `f64x4` lanes (the arithmetic of
+/// [`interp_chi2`]).
+#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+pub(super) fn interp_values(
+    r: [&[f32]; 2],
+    dr: [&[f32]; 2],
+    centre: &[f64],
+    [h00, h10, h01, h11]: [f64; 4],
+    out: &mut [f64],
+) {
+    let n = centre.len().min(out.len());
+    let (ra, rb, da, db) = (&r[0][..n], &r[1][..n], &dr[0][..n], &dr[1][..n]);
+    let (centre, out) = (&centre[..n], &mut out[..n]);
+    let [g00, g10, g01, g11] = [h00, h10, h01, h11].map(f64x4::splat);
+    let widen = |v: &[f32]| f64x4::new([v[0], v[1], v[2], v[3]].map(f64::from));
+    let load = |v: &[f64]| f64x4::new([v[0], v[1], v[2], v[3]]);
+    let quads = ra
+        .chunks_exact(4)
+        .zip(rb.chunks_exact(4))
+        .zip(da.chunks_exact(4).zip(db.chunks_exact(4)))
+        .zip(centre.chunks_exact(4).zip(out.chunks_exact_mut(4)));
+    for (((ra, rb), (da, db)), (centre, out)) in quads {
+        let v =
+            load(centre) + g00 * widen(ra) + g10 * widen(da) + g01 * widen(rb) + g11 * widen(db);
+        out.copy_from_slice(&v.to_array());
+    }
+    for k in n - n % 4..n {
+        let (a, b, p, q) = (
+            f64::from(ra[k]),
+            f64::from(rb[k]),
+            f64::from(da[k]),
+            f64::from(db[k]),
+        );
+        out[k] = centre[k] + h00 * a + h10 * p + h01 * b + h11 * q;
+    }
+}
+
+/// [`ThicknessTable::chi2_flat`]: per band the interpolant's value
+/// `centre + h00·A + h10·P + h01·B + h11·Q` and `flat_chi2`'s sums over
+/// it, in the same four lanes.
+#[allow(clippy::needless_range_loop, clippy::too_many_arguments)] // four lanes, indexed alike
+#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+pub(super) fn interp_chi2(
+    r: [&[f32]; 2],
+    dr: [&[f32]; 2],
+    centre: &[f64],
+    [h00, h10, h01, h11]: [f64; 4],
+    y: &[f64],
+    w: &[f64],
+    var: &[f64],
+    inv: &[f64],
+) -> (f64, f64) {
+    let n = centre
+        .len()
+        .min(y.len())
+        .min(w.len())
+        .min(var.len())
+        .min(inv.len());
+    let (ra, rb, da, db) = (&r[0][..n], &r[1][..n], &dr[0][..n], &dr[1][..n]);
+    let (centre, y, w, var, inv) = (&centre[..n], &y[..n], &w[..n], &var[..n], &inv[..n]);
+    // Four bands at a time in `f64x4` lanes (see `interval_dots`), the
+    // tail band by band, with the same arithmetic.
+    let (mut c4, mut v4, mut u4) = (f64x4::ZERO, f64x4::ZERO, f64x4::ZERO);
+    let [g00, g10, g01, g11] = [h00, h10, h01, h11].map(f64x4::splat);
+    let widen = |v: &[f32]| f64x4::new([v[0], v[1], v[2], v[3]].map(f64::from));
+    let load = |v: &[f64]| f64x4::new([v[0], v[1], v[2], v[3]]);
+    let quads = ra
+        .chunks_exact(4)
+        .zip(rb.chunks_exact(4))
+        .zip(da.chunks_exact(4).zip(db.chunks_exact(4)))
+        .zip(centre.chunks_exact(4).zip(y.chunks_exact(4)))
+        .zip(
+            w.chunks_exact(4)
+                .zip(var.chunks_exact(4).zip(inv.chunks_exact(4))),
+        );
+    for ((((ra, rb), (da, db)), (centre, y)), (w, (var, inv))) in quads {
+        let rk =
+            load(centre) + g00 * widen(ra) + g10 * widen(da) + g01 * widen(rb) + g11 * widen(db);
+        let e = load(y) - rk;
+        let w = load(w);
+        // 1 where the band is used (the mask's bits select 1.0), 0 elsewhere.
+        let on = w.simd_ne(f64x4::ZERO) & f64x4::ONE;
+        c4 += on * w * e * e * load(inv);
+        v4 += on * load(var);
+        u4 += on;
+    }
+    let (mut chi2, mut sum_var, mut used) = (c4.to_array(), v4.to_array(), u4.to_array());
+    for k in n - n % 4..n {
+        let (a, b, p, q) = (
+            f64::from(ra[k]),
+            f64::from(rb[k]),
+            f64::from(da[k]),
+            f64::from(db[k]),
+        );
+        let rk = centre[k] + h00 * a + h10 * p + h01 * b + h11 * q;
+        let e = y[k] - rk;
+        let on = if w[k] != 0.0 { 1.0 } else { 0.0 };
+        chi2[0] += on * w[k] * e * e * inv[k];
+        sum_var[0] += on * var[k];
+        used[0] += on;
+    }
+    let sum = |a: [f64; 4]| (a[0] + a[1]) + (a[2] + a[3]);
+    let used = sum(used);
+    let mean = if used > 0.0 { sum(sum_var) / used } else { 0.0 };
+    (sum(chi2), mean)
+}
+
+/// The residual at every scanned grid point of a complete spectrum,
+/// `Σy² − 2 y·R + ΣR²`, eight grid points per vector: the table's scanned
+/// rows are transposed in blocks of eight ([`ThicknessTable::coarse`]),
+/// so each band is one broadcast multiply–add into eight sums and no sum
+/// is reduced across lanes; four partial sums per block keep the adds
+/// independent. f32 keeps 1e-7 of `Σy²`, far below a residual of `nb σ²`
+/// at any usable noise level.
+#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+pub(super) fn scan_blocked(coarse: &[f32], rr: &[f32], y: &[f32], yy: f32, sse: &mut [f32]) {
+    let nb = y.len();
+    let whole = nb - nb % 4;
+    for ((blk, rr), out) in coarse
+        .chunks_exact(nb * 8)
+        .zip(rr.chunks_exact(8))
+        .zip(sse.chunks_exact_mut(8))
+    {
+        let mut acc = [[0f32; 8]; 4];
+        for k0 in (0..whole).step_by(4) {
+            for (p, a) in acc.iter_mut().enumerate() {
+                let k = k0 + p;
+                let row = &blk[k * 8..k * 8 + 8];
+                for l in 0..8 {
+                    a[l] += y[k] * row[l];
+                }
+            }
+        }
+        for k in whole..nb {
+            let row = &blk[k * 8..k * 8 + 8];
+            for l in 0..8 {
+                acc[0][l] += y[k] * row[l];
+            }
+        }
+        for l in 0..8 {
+            let dot = (acc[0][l] + acc[1][l]) + (acc[2][l] + acc[3][l]);
+            out[l] = yy - 2.0 * dot + rr[l];
+        }
+    }
+}
+
+/// Each point's ranking key: the lowest value of the parabola through it
+/// and its neighbours where it is a local minimum (`≤` its left, `<` its
+/// right; the ends compare with +∞), +∞ elsewhere and at NaN.
+#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+pub(super) fn minimum_keys(sse: &[f32], keys: &mut [f32]) {
+    let n = sse.len();
+    // Branch-free (selects only), so the loop vectorises; the same
+    // arithmetic as `parabola_min`.
+    let key = |l: f32, c: f32, r: f32| {
+        let a = 0.5 * (l + r) - c;
+        let b = 0.5 * (r - l);
+        let v = (c - b * b / (4.0 * a)).max(0.0);
+        let pm = if a > 0.0 && a < f32::INFINITY { v } else { c };
+        if c <= l && c < r {
+            pm
+        } else {
+            f32::INFINITY
+        }
+    };
+    if n == 0 {
+        return;
+    }
+    if n == 1 {
+        keys[0] = key(f32::INFINITY, sse[0], f32::INFINITY);
+        return;
+    }
+    keys[0] = key(f32::INFINITY, sse[0], sse[1]);
+    for (k, w) in keys[1..n - 1].iter_mut().zip(sse.windows(3)) {
+        *k = key(w[0], w[1], w[2]);
+    }
+    keys[n - 1] = key(sse[n - 2], sse[n - 1], f32::INFINITY);
+}
+
+/// `Σ w (y − R)²` at every grid point (spectra with missing bands).
+#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+pub(super) fn scan_weighted(r: &[f32], y: &[f32], w: &[f32], sse: &mut [f32]) {
+    let nbp = y.len();
+    for (row, out) in r.chunks_exact(nbp).step_by(SCAN_STRIDE).zip(sse.iter_mut()) {
+        let mut acc = [0f32; 8];
+        for ((rv, yv), wv) in row
+            .chunks_exact(8)
+            .zip(y.chunks_exact(8))
+            .zip(w.chunks_exact(8))
+        {
+            for i in 0..8 {
+                let e = yv[i] - rv[i];
+                acc[i] += wv[i] * e * e;
+            }
+        }
+        *out = acc.iter().sum();
+    }
+}

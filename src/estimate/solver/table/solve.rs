@@ -1,0 +1,386 @@
+//! A pixel against a thickness table: from the previous pixel's basin
+//! where that settles it, the scan's best minima otherwise, each refined
+//! on the interpolant (or with the exact model between a binned map's
+//! angles), judged as every fit is; runs of poor fits settled without a
+//! scan.
+
+use super::{GridMin, ThicknessTable, ORDER_GAP_SAFE};
+use crate::estimate::noise::FlatNoise;
+use crate::estimate::solver::alternatives::{OrderMargin, WEAK_FRINGES};
+use crate::estimate::solver::refine::sse;
+use crate::estimate::solver::{Effort, Fit, Prepared, Scratch, Solver};
+use crate::estimate::{PixelEstimate, Reason};
+
+impl Solver {
+    /// One pixel against a table: the best grid minima (two in `balanced`,
+    /// to judge the fringe order), each refined, then judged as every fit
+    /// is. At the table's own angle the refinement runs on the interpolant;
+    /// at a nearby one (a binned angle map) the minima are carried to the
+    /// pixel's angle at equal optical thickness and refined with the exact
+    /// model there.
+    #[allow(clippy::too_many_arguments)]
+    pub(in crate::estimate::solver) fn solve_table(
+        &self,
+        prep: &Prepared,
+        table: &ThicknessTable,
+        table_theta: f64,
+        theta: f64,
+        n_ok: usize,
+        noise: Option<f64>,
+        effort: Effort,
+        lam_min: f64,
+        scratch: &mut Scratch,
+    ) -> (PixelEstimate, f64) {
+        let exact = table_theta.to_bits() == theta.to_bits();
+        if exact {
+            if let Some(out) = self.poor_as_before(prep, theta, n_ok, noise, scratch) {
+                return out;
+            }
+        }
+        let key = theta.to_bits();
+        // From the previous pixel's basin and its neighbouring orders, where
+        // that settles the pixel; the full scan otherwise. (`fast` once
+        // took the previous pixel's basin alone wherever it passed the χ²
+        // test: at σ = 0.01 on the thin coating 1.2 % of its valid pixels
+        // were a fringe order off.)
+        if exact && effort.warm {
+            if let Some((_, j0)) = scratch.hint.filter(|h| h.0 == key) {
+                let verify = effort.verify_order;
+                if let Some(out) = self.table_warm(
+                    prep, table, theta, j0, n_ok, noise, lam_min, verify, scratch,
+                ) {
+                    scratch.hint = Some((key, table.index_of(out.0.thickness_nm)));
+                    // A valid pixel ends the run of poor ones: the next
+                    // poor pixel scans and becomes the reference (the
+                    // distance to a stale one would be paid on every
+                    // pixel and seldom settle one).
+                    scratch.poor = None;
+                    return out;
+                }
+            }
+            scratch.order_margin = None;
+        }
+        // The best minima: two in `fast` and `balanced` (the second judges
+        // the fringe order), three in `accurate`.
+        let mut mins = [GridMin { j: 0, sse: 0.0 }; 3];
+        let keep = if effort.verify_order { 3 } else { 2 };
+        let n = table.minima(
+            &scratch.spectrum,
+            &scratch.weight,
+            &mut scratch.grid,
+            &mut mins[..keep],
+        );
+        // At the table's own angle every minimum is fitted on the
+        // interpolant (as good as exact here); `accurate` then refines with
+        // the exact model those close to the best ([`Solver::refine_close`]).
+        // Between a binned map's angles, every minimum is refined with the
+        // exact model from its grid point at equal optical thickness.
+        // Between a binned map's angles the runner-up is not refitted where
+        // it is the best's neighbouring order and the table's noise-free
+        // orders lie far apart there: every other basin scanned worse than
+        // it, so none can come within the ambiguity margin.
+        let n = if !exact && !effort.verify_order && n == 2 && self.order_settled(table, &mins) {
+            1
+        } else {
+            n
+        };
+        let mut fits = [Fit::default(); 3];
+        if exact {
+            for (f, g) in fits.iter_mut().zip(&mins[..n]) {
+                *f = self.table_fit(table, *g, theta, effort, scratch);
+            }
+            if effort.verify_order {
+                self.refine_close(prep, theta, n_ok, &mut fits[..n], scratch);
+            }
+        } else {
+            let scale = prep.model.q2_mid(table_theta) / prep.model.q2_mid(theta);
+            for (f, g) in fits.iter_mut().zip(&mins[..n]) {
+                let d0 = table.d_at(g.j) * scale;
+                *f = self.exact_refit(prep, d0, theta, effort.verify_order, scratch);
+            }
+        }
+        let out = self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch);
+        scratch.hint =
+            (exact && out.0.is_valid()).then(|| (key, table.index_of(out.0.thickness_nm)));
+        if out.0.is_valid() {
+            scratch.poor = None;
+        }
+        if exact && out.0.reason == Reason::PoorFit {
+            let min_sse = fits[..n]
+                .iter()
+                .map(|f| f.sse)
+                .fold(f64::INFINITY, f64::min);
+            self.note_poor(prep, theta, n_ok, noise, min_sse, scratch);
+        }
+        out
+    }
+
+    /// Whether the fringes at `theta` leave a pixel of `n_ok` bands no
+    /// competitor beyond the table (the alternative checks add no fit at a
+    /// known angle), the noise is one variance per band, and the spectrum
+    /// is complete: where a poor pixel's bound below applies.
+    fn poor_bound_applies(
+        &self,
+        prep: &Prepared,
+        theta: f64,
+        n_ok: usize,
+        noise: Option<f64>,
+        scratch: &Scratch,
+    ) -> Option<&FlatNoise> {
+        let sigma = noise.filter(|_| self.judging())?;
+        let flat = self.flat_noise.as_ref().filter(|_| self.noise.is_some())?;
+        // Weights are 1 on the bands used and 0 elsewhere.
+        let complete = n_ok == scratch.weight.len();
+        (complete && self.fringe_signal(prep, theta, n_ok, sigma, scratch) >= WEAK_FRINGES)
+            .then_some(flat)
+    }
+
+    /// After the scan found no thickness on the table that fits (flagged
+    /// "poor fit"): the spectrum, and a floor under its √χ² at every
+    /// thickness of the table, `√(SSE_min · min 1/σ²)` (χ² weighs each band
+    /// by at least the smallest inverse variance; the scan's best minimum
+    /// is its least SSE, as every flag the scan gives assumes).
+    fn note_poor(
+        &self,
+        prep: &Prepared,
+        theta: f64,
+        n_ok: usize,
+        noise: Option<f64>,
+        min_sse: f64,
+        scratch: &mut Scratch,
+    ) {
+        let Some(flat) = self.poor_bound_applies(prep, theta, n_ok, noise, scratch) else {
+            return;
+        };
+        let floor = (min_sse * flat.min_inv_var()).sqrt();
+        if floor.is_finite() {
+            scratch.poor_y.clear();
+            scratch.poor_y.extend_from_slice(&scratch.spectrum);
+            scratch.poor = Some((theta.to_bits(), floor));
+        }
+    }
+
+    /// A pixel close to an earlier poor one of the row, flagged "poor fit"
+    /// without a scan where no thickness can fit it either: by the
+    /// triangle inequality in the χ² norm, `√χ²(d)` of this spectrum is at
+    /// least the earlier floor less the distance `√χ²` between the two
+    /// spectra, at every `d`. It stands only where that exceeds twice the
+    /// χ² test's `√threshold` (four times the threshold in χ²); the
+    /// earlier pixel stays the reference until a scan runs again or a pixel
+    /// comes out valid. (A run
+    /// of pixels past the resolved range, a defect, a coating
+    /// the model does not describe: the scan was a fifth of a thick film's
+    /// solve.)
+    fn poor_as_before(
+        &self,
+        prep: &Prepared,
+        theta: f64,
+        n_ok: usize,
+        noise: Option<f64>,
+        scratch: &mut Scratch,
+    ) -> Option<(PixelEstimate, f64)> {
+        let (key, floor) = scratch.poor?;
+        if key != theta.to_bits() || scratch.poor_y.len() != scratch.spectrum.len() {
+            return None;
+        }
+        let flat = self.poor_bound_applies(prep, theta, n_ok, noise, scratch)?;
+        // Every weight is 1 here: the χ² between the two spectra.
+        let (between, _) =
+            flat.chi2_and_mean_var(&scratch.spectrum, &scratch.weight, &scratch.poor_y);
+        let dist = between.sqrt();
+        let threshold = self.chi2.threshold(n_ok.saturating_sub(1).max(1));
+        (floor - dist > 2.0 * threshold.sqrt()).then(|| {
+            scratch.last_fit_d = f64::NAN;
+            (PixelEstimate::invalid(Reason::PoorFit), f64::NAN)
+        })
+    }
+
+    /// `balanced` (and `accurate`) from the previous pixel's grid point
+    /// `j0` (a film changes little from one pixel to the next): the
+    /// residual's minimum walked to from there, and the better of its
+    /// neighbouring fringe
+    /// orders (one fringe more or fewer in optical thickness) walked to in
+    /// turn, judged together as the scan's two best minima are (an order
+    /// that fits as well flags the pixel ambiguous). `Some` only where that
+    /// settles the pixel: the fringes strong enough that no other basin
+    /// can pass the χ² test beside the fit (the gates of the alternative
+    /// checks, [`Solver::fringes_exclude_alternatives`]), both walks ending
+    /// at a minimum of the interpolant, and the estimate valid; anything
+    /// else (an order jump, an edge, a flag) takes the full scan.
+    /// `accurate` (`verify`) weighs the order on every pixel and refines
+    /// the fits close to the best with the exact model, as after its scan.
+    #[allow(clippy::too_many_arguments)]
+    fn table_warm(
+        &self,
+        prep: &Prepared,
+        table: &ThicknessTable,
+        theta: f64,
+        j0: usize,
+        n_ok: usize,
+        noise: Option<f64>,
+        lam_min: f64,
+        verify: bool,
+        scratch: &mut Scratch,
+    ) -> Option<(PixelEstimate, f64)> {
+        let sigma = noise.filter(|_| self.judging())?;
+        if !self.fringes_exclude_alternatives(
+            self.fringe_signal(prep, theta, n_ok, sigma, scratch),
+            false,
+        ) {
+            return None;
+        }
+        // Weights are 1 on the bands used: the walk takes complete spectra.
+        if n_ok != scratch.weight.len() {
+            return None;
+        }
+        let (d, e, a) = table.walk_near(&scratch.spectrum, j0)?;
+        let fit = Fit {
+            d,
+            theta,
+            sse: e,
+            jtj: [a, 0.0, 0.0],
+            integrated: false,
+            tabled: true,
+            stalled: false,
+            chi2: None,
+        };
+        let dd = 0.5 / self.table.sigma_center / scratch.q2_mid(prep, theta);
+        let mut fits = [fit; 2];
+        let key = theta.to_bits();
+        // Where the previous pixel's neighbouring order fell far short of
+        // its fit and this fit moved little, it is not weighed again.
+        let carried = OrderMargin::carried(scratch.order_margin, key, d, dd).filter(|_| !verify);
+        // Nor where the noise-free orders lie far apart at this thickness.
+        let gap = self
+            .max_noise_var_on(table)
+            .map_or(0.0, |v| table.order_gap(d) / v);
+        let (n, margin) = if !verify && gap >= ORDER_GAP_SAFE {
+            (1, gap)
+        } else if let Some(m) = carried {
+            (1, m)
+        } else {
+            let (lo, hi) = table.d_range();
+            let mut trial = std::mem::take(&mut scratch.trial);
+            let mut alt: Option<(f64, f64)> = None;
+            for da in [d - dd, d + dd] {
+                if !(lo..=hi).contains(&da) {
+                    continue;
+                }
+                table.values(da, &mut trial.r);
+                let ea = sse(&scratch.spectrum, &scratch.weight, &trial.r);
+                if alt.is_none_or(|(_, b)| ea < b) {
+                    alt = Some((da, ea));
+                }
+            }
+            scratch.trial = trial;
+            match alt {
+                Some((da, _)) => {
+                    let j = table.index_of(da);
+                    let (d2, e2, a2) = table.walk_near(&scratch.spectrum, j)?;
+                    fits[1] = Fit {
+                        d: d2,
+                        sse: e2,
+                        jtj: [a2, 0.0, 0.0],
+                        ..fit
+                    };
+                    (2, (e2 - e) / (sigma * sigma))
+                }
+                None => (1, f64::INFINITY),
+            }
+        };
+        scratch.order_margin = Some(OrderMargin::new(key, d, margin));
+        if verify {
+            self.refine_close(prep, theta, n_ok, &mut fits[..n], scratch);
+        }
+        let out = self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch);
+        out.0.is_valid().then_some(out)
+    }
+
+    /// Whether the scan's runner-up `mins[1]` is the best's (`mins[0]`)
+    /// neighbouring fringe order (half to one and a half fringes away,
+    /// give or take a grid step; not a second dip of the same basin) and
+    /// the noise-free orders there lie ≥ [`ORDER_GAP_SAFE`] noise
+    /// variances apart ([`ThicknessTable::order_gap`]): then the runner-up
+    /// trails by about that gap, and every basin farther off trails it.
+    fn order_settled(&self, table: &ThicknessTable, mins: &[GridMin]) -> bool {
+        let [best, second, ..] = mins else {
+            return false;
+        };
+        let apart = best.j.abs_diff(second.j) as f64;
+        (0.5 * table.fringe - 1.0..=1.5 * table.fringe + 1.0).contains(&apart)
+            && self
+                .max_noise_var_on(table)
+                .is_some_and(|v| table.order_gap(table.d_at(best.j)) >= ORDER_GAP_SAFE * v)
+    }
+
+    /// The largest noise variance of any band at the reflectances `table`
+    /// spans (`None` without a noise model).
+    fn max_noise_var_on(&self, table: &ThicknessTable) -> Option<f64> {
+        if self.flat_noise.is_some() {
+            return Some(self.max_flat_var);
+        }
+        self.noise.as_ref().map(|n| n.max_var_below(table.r_max()))
+    }
+
+    /// `accurate`: the fits on the interpolant within 25 residual variances
+    /// of the best refined with the exact model (and the passband
+    /// integrated where the band criterion asks for it); a clearly worse
+    /// order cannot become the best or an ambiguity
+    /// ([`super::fringes::AMBIGUITY_CHI2`] variances).
+    fn refine_close(
+        &self,
+        prep: &Prepared,
+        theta: f64,
+        n_ok: usize,
+        fits: &mut [Fit],
+        scratch: &mut Scratch,
+    ) {
+        let best = fits.iter().map(|f| f.sse).fold(f64::INFINITY, f64::min);
+        let var = best / n_ok.saturating_sub(1).max(1) as f64;
+        for f in fits.iter_mut().filter(|f| f.sse <= best + 25.0 * var) {
+            *f = self.exact_refit(prep, f.d, theta, true, scratch);
+        }
+    }
+
+    /// The exact model's fit at the known `theta` from `d0`, refitted with
+    /// the passband integrated where `integrate` and the band criterion
+    /// ask for it.
+    fn exact_refit(
+        &self,
+        prep: &Prepared,
+        d0: f64,
+        theta: f64,
+        integrate: bool,
+        scratch: &mut Scratch,
+    ) -> Fit {
+        let iters = Effort::of(self.mode).iters;
+        let fit = self.refine(&prep.model, d0, theta, false, iters, scratch);
+        if !integrate {
+            return fit;
+        }
+        self.integrated_refit(prep, fit, false, iters, scratch).0
+    }
+
+    /// Refine grid minimum `g` on the interpolant.
+    fn table_fit(
+        &self,
+        table: &ThicknessTable,
+        g: GridMin,
+        theta: f64,
+        effort: Effort,
+        scratch: &mut Scratch,
+    ) -> Fit {
+        let (y, w) = (&scratch.spectrum, &scratch.weight);
+        let (d, sse, a) = table.fit(y, w, g.j, effort.iters, &mut scratch.grid);
+        Fit {
+            d,
+            theta,
+            sse,
+            jtj: [a, 0.0, 0.0],
+            integrated: false,
+            tabled: true,
+            stalled: false,
+            chi2: None,
+        }
+    }
+}
