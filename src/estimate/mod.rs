@@ -21,6 +21,7 @@ pub mod angle;
 pub mod cube;
 pub mod detect;
 pub mod fastmath;
+mod lanes;
 pub mod level;
 pub mod maps;
 pub mod model;

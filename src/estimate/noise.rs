@@ -27,6 +27,7 @@
 
 #![allow(clippy::needless_range_loop)] // band-indexed numeric loops read clearer with indices
 
+use super::lanes::{load, used, Chi2Sums};
 use super::Cube;
 use multiversion::multiversion;
 use wide::f64x4;
@@ -154,7 +155,6 @@ fn model_chi2(
         .min(shot.len());
     let (y, w, r, var0, shot) = (&y[..n], &w[..n], &r[..n], &var0[..n], &shot[..n]);
     let floor = SIGMA_FLOOR * SIGMA_FLOOR;
-    let load = |v: &[f64]| f64x4::new([v[0], v[1], v[2], v[3]]);
     let (floor4, rel4) = (f64x4::splat(floor), f64x4::splat(rel2));
     let (mut c4, mut v4, mut u4) = (f64x4::ZERO, f64x4::ZERO, f64x4::ZERO);
     let quads = y.chunks_exact(4).zip(r.chunks_exact(4)).zip(
@@ -167,26 +167,18 @@ fn model_chi2(
         let var = (load(var0) + load(shot) * rk + rel4 * rk * rk).max(floor4);
         let e = load(y) - r;
         let w = load(w);
-        // 1 where the band is used (the mask's bits select 1.0), 0 elsewhere.
-        let on = w.simd_ne(f64x4::ZERO) & f64x4::ONE;
+        let on = used(w);
         c4 += on * w * e * e / var;
         v4 += on * var;
         u4 += on;
     }
-    let (mut chi2, mut sum_var, mut used) = (c4.to_array(), v4.to_array(), u4.to_array());
+    let mut sums = Chi2Sums::from_lanes(c4, v4, u4);
     for k in n - n % 4..n {
         let rk = r[k].max(0.0);
         let var = (var0[k] + shot[k] * rk + rel2 * rk * rk).max(floor);
-        let e = y[k] - r[k];
-        let on = if w[k] != 0.0 { 1.0 } else { 0.0 };
-        chi2[0] += on * w[k] * e * e / var;
-        sum_var[0] += on * var;
-        used[0] += on;
+        sums.add_div(w[k], y[k] - r[k], var);
     }
-    let sum = |a: [f64; 4]| (a[0] + a[1]) + (a[2] + a[3]);
-    let used = sum(used);
-    let mean = if used > 0.0 { sum(sum_var) / used } else { 0.0 };
-    (sum(chi2), mean)
+    sums.totals()
 }
 
 /// [`FlatNoise::chi2_and_mean_var`]: four independent lanes, no branch and
@@ -204,8 +196,7 @@ fn flat_chi2(var: &[f64], inv: &[f64], y: &[f64], w: &[f64], r: &[f64]) -> (f64,
     let (var, inv) = (&var[..n], &inv[..n]);
     // Four bands at a time in `f64x4` lanes (indexed lanes kept the loop
     // scalar: the bounds checks), the tail band by band, with the same
-    // arithmetic.
-    let load = |v: &[f64]| f64x4::new([v[0], v[1], v[2], v[3]]);
+    // arithmetic (`lanes`).
     let (mut c4, mut v4, mut u4) = (f64x4::ZERO, f64x4::ZERO, f64x4::ZERO);
     let quads = y.chunks_exact(4).zip(r.chunks_exact(4)).zip(
         w.chunks_exact(4)
@@ -214,25 +205,16 @@ fn flat_chi2(var: &[f64], inv: &[f64], y: &[f64], w: &[f64], r: &[f64]) -> (f64,
     for ((y, r), (w, (var, inv))) in quads {
         let e = load(y) - load(r);
         let w = load(w);
-        // 1 where the band is used (the mask's bits select 1.0), 0 elsewhere.
-        let on = w.simd_ne(f64x4::ZERO) & f64x4::ONE;
+        let on = used(w);
         c4 += on * w * e * e * load(inv);
         v4 += on * load(var);
         u4 += on;
     }
-    let (mut chi2, mut sum_var, mut used) = (c4.to_array(), v4.to_array(), u4.to_array());
-    let whole = n - n % 4;
-    for k in whole..n {
-        let e = y[k] - r[k];
-        let on = if w[k] != 0.0 { 1.0 } else { 0.0 };
-        chi2[0] += on * w[k] * e * e * inv[k];
-        sum_var[0] += on * var[k];
-        used[0] += on;
+    let mut sums = Chi2Sums::from_lanes(c4, v4, u4);
+    for k in n - n % 4..n {
+        sums.add(w[k], y[k] - r[k], var[k], inv[k]);
     }
-    let sum = |a: [f64; 4]| (a[0] + a[1]) + (a[2] + a[3]);
-    let used = sum(used);
-    let mean = if used > 0.0 { sum(sum_var) / used } else { 0.0 };
-    (sum(chi2), mean)
+    sums.totals()
 }
 
 impl NoiseModel {

@@ -5,6 +5,7 @@
 //! that each lane repeats the scalar tail's, to the bit.
 
 use super::SCAN_STRIDE;
+use crate::estimate::lanes::{load, used, widen, Chi2Sums};
 use multiversion::multiversion;
 use wide::f64x4;
 
@@ -42,8 +43,6 @@ pub(super) fn interval_dots(
         .zip(rb.chunks_exact(4))
         .zip(da.chunks_exact(4).zip(db.chunks_exact(4)))
         .zip(y.chunks_exact(4).zip(centre.chunks_exact(4)));
-    let widen = |v: &[f32]| f64x4::new([v[0], v[1], v[2], v[3]].map(f64::from));
-    let load = |v: &[f64]| f64x4::new([v[0], v[1], v[2], v[3]]);
     for (((ra, rb), (da, db)), (y, centre)) in quads {
         let a = widen(ra);
         let e = load(y) - load(centre) - a;
@@ -83,8 +82,6 @@ pub(super) fn interp_values(
     let (ra, rb, da, db) = (&r[0][..n], &r[1][..n], &dr[0][..n], &dr[1][..n]);
     let (centre, out) = (&centre[..n], &mut out[..n]);
     let [g00, g10, g01, g11] = [h00, h10, h01, h11].map(f64x4::splat);
-    let widen = |v: &[f32]| f64x4::new([v[0], v[1], v[2], v[3]].map(f64::from));
-    let load = |v: &[f64]| f64x4::new([v[0], v[1], v[2], v[3]]);
     let quads = ra
         .chunks_exact(4)
         .zip(rb.chunks_exact(4))
@@ -96,13 +93,7 @@ pub(super) fn interp_values(
         out.copy_from_slice(&v.to_array());
     }
     for k in n - n % 4..n {
-        let (a, b, p, q) = (
-            f64::from(ra[k]),
-            f64::from(rb[k]),
-            f64::from(da[k]),
-            f64::from(db[k]),
-        );
-        out[k] = centre[k] + h00 * a + h10 * p + h01 * b + h11 * q;
+        out[k] = hermite_at([ra, rb, da, db], centre, [h00, h10, h01, h11], k);
     }
 }
 
@@ -133,8 +124,6 @@ pub(super) fn interp_chi2(
     // tail band by band, with the same arithmetic.
     let (mut c4, mut v4, mut u4) = (f64x4::ZERO, f64x4::ZERO, f64x4::ZERO);
     let [g00, g10, g01, g11] = [h00, h10, h01, h11].map(f64x4::splat);
-    let widen = |v: &[f32]| f64x4::new([v[0], v[1], v[2], v[3]].map(f64::from));
-    let load = |v: &[f64]| f64x4::new([v[0], v[1], v[2], v[3]]);
     let quads = ra
         .chunks_exact(4)
         .zip(rb.chunks_exact(4))
@@ -149,31 +138,36 @@ pub(super) fn interp_chi2(
             load(centre) + g00 * widen(ra) + g10 * widen(da) + g01 * widen(rb) + g11 * widen(db);
         let e = load(y) - rk;
         let w = load(w);
-        // 1 where the band is used (the mask's bits select 1.0), 0 elsewhere.
-        let on = w.simd_ne(f64x4::ZERO) & f64x4::ONE;
+        let on = used(w);
         c4 += on * w * e * e * load(inv);
         v4 += on * load(var);
         u4 += on;
     }
-    let (mut chi2, mut sum_var, mut used) = (c4.to_array(), v4.to_array(), u4.to_array());
+    let mut sums = Chi2Sums::from_lanes(c4, v4, u4);
     for k in n - n % 4..n {
-        let (a, b, p, q) = (
-            f64::from(ra[k]),
-            f64::from(rb[k]),
-            f64::from(da[k]),
-            f64::from(db[k]),
-        );
-        let rk = centre[k] + h00 * a + h10 * p + h01 * b + h11 * q;
-        let e = y[k] - rk;
-        let on = if w[k] != 0.0 { 1.0 } else { 0.0 };
-        chi2[0] += on * w[k] * e * e * inv[k];
-        sum_var[0] += on * var[k];
-        used[0] += on;
+        let rk = hermite_at([ra, rb, da, db], centre, [h00, h10, h01, h11], k);
+        sums.add(w[k], y[k] - rk, var[k], inv[k]);
     }
-    let sum = |a: [f64; 4]| (a[0] + a[1]) + (a[2] + a[3]);
-    let used = sum(used);
-    let mean = if used > 0.0 { sum(sum_var) / used } else { 0.0 };
-    (sum(chi2), mean)
+    sums.totals()
+}
+
+/// One band's value of the interpolant, `centre + h00·A + h10·P + h01·B +
+/// h11·Q` (the lanes' arithmetic), from the ends' values `A`, `B` and
+/// slopes `P`, `Q`.
+#[inline(always)]
+fn hermite_at(
+    [ra, rb, da, db]: [&[f32]; 4],
+    centre: &[f64],
+    [h00, h10, h01, h11]: [f64; 4],
+    k: usize,
+) -> f64 {
+    let (a, b, p, q) = (
+        f64::from(ra[k]),
+        f64::from(rb[k]),
+        f64::from(da[k]),
+        f64::from(db[k]),
+    );
+    centre[k] + h00 * a + h10 * p + h01 * b + h11 * q
 }
 
 /// The residual at every scanned grid point of a complete spectrum,
