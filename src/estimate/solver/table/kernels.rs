@@ -92,8 +92,9 @@ pub(super) fn interp_values(
             load(centre) + g00 * widen(ra) + g10 * widen(da) + g01 * widen(rb) + g11 * widen(db);
         out.copy_from_slice(&v.to_array());
     }
-    for k in n - n % 4..n {
-        out[k] = hermite_at([ra, rb, da, db], centre, [h00, h10, h01, h11], k);
+    let tail = n - n % 4;
+    for (k, o) in out.iter_mut().enumerate().skip(tail) {
+        *o = hermite_at([ra, rb, da, db], centre, [h00, h10, h01, h11], k);
     }
 }
 
