@@ -1162,6 +1162,43 @@ mod tests {
         }
     }
 
+    /// The residual a walk returns is the residual of the interpolant's
+    /// values at the thickness it returns, band by band, within 1e-9 of it
+    /// (the χ² test settles from it where the bands' spread of variance
+    /// allows, sparing 1e-6 for this rounding), at noise from 1e-5 to
+    /// 1e-2 and from starts up to a few grid steps off.
+    #[test]
+    fn a_walks_residual_is_the_interpolants_residual_at_its_thickness() {
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, Normal};
+        let m = model();
+        let th = 0.4;
+        let t = ThicknessTable::new(&m, th, 0.0, 2500.0);
+        let mut out = ModelOut::new(31);
+        let mut r = vec![0.0; 31];
+        let mut rng = rand::rngs::StdRng::seed_from_u64(17);
+        let mut walked = 0;
+        for i in 0..600 {
+            let sigma = [1e-5, 1e-4, 1e-3, 1e-2][i % 4];
+            let noise = Normal::new(0.0, sigma).unwrap();
+            let d_true = 15.0 + 4.07 * i as f64;
+            m.eval(d_true, th, &mut out, false);
+            let y: Vec<f64> = out.r.iter().map(|v| v + noise.sample(&mut rng)).collect();
+            let j = (t.index_of(d_true) + i % 4).min(t.m - 1);
+            let Some((d, sse, _)) = t.walk_near(&y, j) else {
+                continue;
+            };
+            walked += 1;
+            t.values(d, &mut r);
+            let direct: f64 = y.iter().zip(&r).map(|(a, b)| (a - b) * (a - b)).sum();
+            assert!(
+                (sse - direct).abs() <= 1e-9 * direct + 1e-18,
+                "{d_true} nm, σ {sigma}: walk {sse}, direct {direct}"
+            );
+        }
+        assert!(walked >= 500, "{walked} of 600 walks ended at a minimum");
+    }
+
     /// `poly_min` against a dense scan of random sextics shaped like a
     /// residual on one interval (a parabola plus smaller higher powers, the
     /// vertex anywhere near or beyond the interval): never above the scan's
