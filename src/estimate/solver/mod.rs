@@ -220,24 +220,7 @@ impl Scratch {
         }
         n_ok
     }
-}
 
-/// What depends on the angle alone (and on the bands used and the noise),
-/// kept for the next pixel at the same angle (a row's pixels mostly share
-/// one known angle): the film's normal wave-vector component at the band
-/// range's centre (`FilmModel::q2_mid`) and the fringe signal
-/// (`Solver::fringe_signal`). Keyed by the [`Prepared`] it was computed
-/// from (the index search solves with many models) and the angle's bits.
-#[derive(Clone, Copy, Debug)]
-struct AngleMemo {
-    prep: u64,
-    theta: u64,
-    q2: f64,
-    /// `(n_ok, σ bits, signal)` once asked for.
-    signal: Option<(usize, u64, f64)>,
-}
-
-impl Scratch {
     /// The memo of `theta` under `prep`, begun afresh where the last one
     /// was another angle's or another model's.
     fn angle_memo(&self, prep: &Prepared, theta: f64) -> AngleMemo {
@@ -265,6 +248,21 @@ impl Scratch {
     fn q2_mid(&self, prep: &Prepared, theta: f64) -> f64 {
         self.angle_memo(prep, theta).q2
     }
+}
+
+/// What depends on the angle alone (and on the bands used and the noise),
+/// kept for the next pixel at the same angle (a row's pixels mostly share
+/// one known angle): the film's normal wave-vector component at the band
+/// range's centre (`FilmModel::q2_mid`) and the fringe signal
+/// (`Solver::fringe_signal`). Keyed by the [`Prepared`] it was computed
+/// from (the index search solves with many models) and the angle's bits.
+#[derive(Clone, Copy, Debug)]
+struct AngleMemo {
+    prep: u64,
+    theta: u64,
+    q2: f64,
+    /// `(n_ok, σ bits, signal)` once asked for.
+    signal: Option<(usize, u64, f64)>,
 }
 
 /// How hard the per-pixel solve works: what a [`Mode`] means in practice.

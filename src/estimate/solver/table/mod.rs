@@ -737,20 +737,10 @@ impl ThicknessTable {
     /// from there (at most [`HINT_WINDOW`] intervals), if the walk ends at
     /// a stationary point (else the fringe order changed: scan instead).
     /// Returns `(d, Σ e², Σ (dR/dd)²)` as [`Self::fit`]; complete spectra
-    /// only.
-    /// (The solver checks completeness once per pixel and walks with
-    /// [`Self::walk_near`].)
-    #[cfg(test)]
-    pub fn fit_near(&self, y: &[f64], w: &[f64], j0: usize) -> Option<(f64, f64, f64)> {
-        if !w[..self.nb].iter().all(|&v| v == 1.0) {
-            return None;
-        }
-        self.walk_near(y, j0)
-    }
-
-    /// [`Self::fit_near`] for a spectrum the caller knows is complete.
-    pub fn walk_near(&self, y: &[f64], j0: usize) -> Option<(f64, f64, f64)> {
-        if j0 >= self.m {
+    /// only (`n_ok`, the bands used, is every band: weights are 1 on the
+    /// bands used), `None` otherwise.
+    pub fn fit_near(&self, y: &[f64], n_ok: usize, j0: usize) -> Option<(f64, f64, f64)> {
+        if n_ok != self.nb || j0 >= self.m {
             return None;
         }
         let (fit, inside) = self.walk_complete(y, j0, HINT_WINDOW);
@@ -1185,7 +1175,7 @@ mod tests {
             m.eval(d_true, th, &mut out, false);
             let y: Vec<f64> = out.r.iter().map(|v| v + noise.sample(&mut rng)).collect();
             let j = (t.index_of(d_true) + i % 4).min(t.m - 1);
-            let Some((d, sse, _)) = t.walk_near(&y, j) else {
+            let Some((d, sse, _)) = t.fit_near(&y, 31, j) else {
                 continue;
             };
             walked += 1;
@@ -1314,7 +1304,7 @@ mod tests {
             let (d_scan, e_scan, a_scan) = t.fit(&out.r, &[1.0; 31], j, 10, &mut buf);
             for off in [-4i64, -1, 0, 1, 4] {
                 let j0 = (j as i64 + off) as usize;
-                let (d, e2, a) = t.fit_near(&out.r, &[1.0; 31], j0).expect("walks");
+                let (d, e2, a) = t.fit_near(&out.r, 31, j0).expect("walks");
                 assert!(
                     (d - d_scan).abs() < 1e-9,
                     "{d_true} from {off}: {d} vs {d_scan}"
@@ -1325,16 +1315,15 @@ mod tests {
             // A fringe (2π of the fastest band's phase) is ≥ 20 grid points.
             let fringe = (2.0 * std::f64::consts::PI / PHASE_STEP) as usize;
             if let Some(j0) = j.checked_sub(fringe) {
-                if let Some((d, _, _)) = t.fit_near(&out.r, &[1.0; 31], j0) {
+                if let Some((d, _, _)) = t.fit_near(&out.r, 31, j0) {
                     assert!(
                         (d - d_true).abs() > 10.0,
                         "{d_true}: reached {d} from a fringe away"
                     );
                 }
             }
-            let mut w = [1.0; 31];
-            w[7] = 0.0;
-            assert!(t.fit_near(&out.r, &w, j).is_none());
+            // A spectrum missing a band (30 of 31 used) is not walked.
+            assert!(t.fit_near(&out.r, 30, j).is_none());
         }
     }
 }

@@ -229,11 +229,7 @@ impl Solver {
         ) {
             return None;
         }
-        // Weights are 1 on the bands used: the walk takes complete spectra.
-        if n_ok != scratch.weight.len() {
-            return None;
-        }
-        let (d, e, a) = table.walk_near(&scratch.spectrum, j0)?;
+        let (d, e, a) = table.fit_near(&scratch.spectrum, n_ok, j0)?;
         let fit = Fit {
             d,
             theta,
@@ -276,7 +272,7 @@ impl Solver {
             match alt {
                 Some((da, _)) => {
                     let j = table.index_of(da);
-                    let (d2, e2, a2) = table.walk_near(&scratch.spectrum, j)?;
+                    let (d2, e2, a2) = table.fit_near(&scratch.spectrum, n_ok, j)?;
                     fits[1] = Fit {
                         d: d2,
                         sse: e2,
