@@ -452,11 +452,12 @@ fn a_scale_accuracy_widens_sigma_on_every_path() {
 /// angle free, at σ_R = 0.03: `fast`'s closed form once noted a weak
 /// angle ("angle not identifiable", valid) before testing visibility,
 /// and so passed pixels whose fringes the noise buries.
-/// The paper's cylinder with the film index known (1.37) and the angle
-/// free, at reflectance noise `sigma` (given to the estimator too),
-/// `width` × `height` pixels: 420 → 560 nm across, the angle from 10° down
-/// the rows in steps that reach 42.5° at the last.
-fn noisy_cylinder(sigma: f64, width: usize, height: usize) -> Scene {
+/// The paper's cylinder (a film of index 1.37, `film` the estimator's
+/// knowledge of it) with the angle free, at reflectance noise `sigma`
+/// (given to the estimator too) from `seed`, `width` × `height` pixels: 420
+/// → 560 nm across, the angle from 10° down the rows in steps that reach
+/// 42.5° at the last.
+fn noisy_cylinder(sigma: f64, width: usize, height: usize, film: &str, seed: u64) -> Scene {
     let step = 32.5 / (height - 1) as f64;
     let text = format!(
         r#"
@@ -465,7 +466,7 @@ n = 1.0
 [substrate]
 n = 1.60
 [film]
-n = 1.37
+{film}
 [angle]
 search_deg = [0.0, 80.0]
 [light]
@@ -478,12 +479,13 @@ fwhm_nm = 0
 [measurement]
 noise_sigma = {sigma}
 [truth]
+film_n = 1.37
 width = {width}
 height = {height}
 thickness_nm = {{ linear_x = [420.0, 560.0] }}
 angle_deg = {{ rows = [10.0, {step}] }}
 noise_sigma = {sigma}
-seed = 1
+seed = {seed}
 "#
     );
     Scene::from_toml(&text, "<test>", std::path::Path::new(".")).unwrap()
@@ -503,7 +505,7 @@ seed = 1
 /// fringes without weighing the other basins.
 #[test]
 fn a_valid_pixel_is_in_the_right_basin_where_noise_rivals_the_fringes() {
-    let s = noisy_cylinder(0.03, 280, 56);
+    let s = noisy_cylinder(0.03, 280, 56, "n = 1.37", 1);
     let (cube, truth) = render(&s);
     let mut results = Vec::new();
     for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
@@ -530,12 +532,52 @@ fn a_valid_pixel_is_in_the_right_basin_where_noise_rivals_the_fringes() {
     }
 }
 
+/// The film index shared by every pixel, each with its own thickness and
+/// angle: where the noise rivals the fringes (σ_R = 0.03), the profile
+/// over the index is biased (−0.010 for the paper's cylinder, 3.5 of its
+/// σ), and every thickness follows. Rendered samples measure the bias and
+/// it is removed: on four noise seeds each estimate lies within 3σ of the
+/// truth (−0.0025…+0.0041 with σ 0.0033–0.0038; without the correction
+/// the first seed read 1.3590 ± 0.0030, 3.7σ off), σ is not widened to
+/// get there (at most 0.006), and the note says so. A clean image's index
+/// is left as the profile gives it. The level is held absolute: its own
+/// test is not what is judged.
+#[test]
+fn the_film_index_is_not_biased_where_noise_rivals_the_fringes() {
+    let unknown = "search = [1.0, 1.6]";
+    for seed in 1..=4 {
+        let mut s = noisy_cylinder(0.03, 140, 28, unknown, seed);
+        s.level = LevelMode::Absolute;
+        let (cube, _) = render(&s);
+        let mut solver = Solver::new(&s, &cube.bands, Mode::Balanced).unwrap();
+        let est = solver.estimate_film_index(&cube).unwrap();
+        eprintln!(
+            "seed {seed}: n = {:.4} ± {:.4} ({})",
+            est.n, est.sigma, est.note
+        );
+        assert!(
+            (est.n - 1.37).abs() <= 3.0 * est.sigma && est.sigma <= 0.006,
+            "seed {seed}: n = {:.4} ± {:.4} for 1.37",
+            est.n,
+            est.sigma
+        );
+        assert!(est.note.contains("bias"), "{}", est.note);
+    }
+    let mut s = noisy_cylinder(0.001, 140, 28, unknown, 1);
+    s.level = LevelMode::Absolute;
+    let (cube, _) = render(&s);
+    let mut solver = Solver::new(&s, &cube.bands, Mode::Balanced).unwrap();
+    let est = solver.estimate_film_index(&cube).unwrap();
+    assert!(!est.note.contains("bias"), "{}", est.note);
+    assert!((est.n - 1.37).abs() <= 3.0 * est.sigma, "{est:?}");
+}
+
 #[test]
 fn no_valid_pixel_has_fringes_the_noise_buries() {
     use irid::estimate::model::{FilmModel, ModelOut};
     use irid::scene::FilmKnowledge;
     let sigma = 0.03;
-    let s = noisy_cylinder(sigma, 140, 14);
+    let s = noisy_cylinder(sigma, 140, 14, "n = 1.37", 1);
     let bands = scene_bands(&s).unwrap();
     let (cube, _) = render(&s);
     let FilmKnowledge::Known(film) = &s.film else {

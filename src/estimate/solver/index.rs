@@ -109,6 +109,12 @@ impl Solver {
                 }
             }
         }
+        // Where the fringes are weak the profile is biased; measured and
+        // removed once the level is settled (a level test at the corrected
+        // index would read the profile's own minimum as a misfit to fix).
+        if let FilmKnowledge::Unknown { search, prior } = self.scene.film.clone() {
+            est = self.with_profile_bias(&sample, search, prior, est);
+        }
         if self.noise.is_none() {
             // No independent noise level (a tiny cube): the pooled residual
             // stands in, and the summary says that fits were not tested.
@@ -225,7 +231,6 @@ impl Solver {
         let nb = cube.bands.len();
         let mut spec = vec![0.0; nb];
         let mut scratch = Scratch::default();
-        scratch.ensure(nb);
         for k in 0..nx * ny {
             let (i, j) = (k % nx, k / nx);
             let fx = (i as f64 + (j as f64 * PHI).fract()) / nx as f64;
@@ -240,26 +245,39 @@ impl Solver {
                 .iter()
                 .all(|v| !v.is_finite() || (-0.2..=1.2).contains(v));
             if in_range && 4 * n_ok >= 3 * nb && !spec.iter().any(|v| v.is_infinite()) {
-                for (k, &v) in spec.iter().enumerate() {
-                    let ok = v.is_finite();
-                    scratch.spectrum[k] = if ok { v } else { 0.0 };
-                    scratch.weight[k] = if ok { 1.0 } else { 0.0 };
-                }
-                let complete = n_ok == nb;
-                let mut cands = [[Candidate::default(); MAX_CANDIDATES]; 2];
-                let mut n_cands = [0; 2];
-                for (k, sign) in [1.0, -1.0].into_iter().enumerate() {
-                    n_cands[k] = self.fringe_search(&scratch, sign, complete, &mut cands[k]);
-                }
-                out.push(SamplePixel {
-                    spectrum: spec.clone(),
-                    theta: self.scene.angle.known_at(x, y),
-                    cands,
-                    n_cands,
-                });
+                let theta = self.scene.angle.known_at(x, y);
+                out.push(self.sample_pixel(spec.clone(), theta, &mut scratch));
             }
         }
         out
+    }
+
+    /// A sample pixel of spectrum `spec` (missing bands NaN) at the known
+    /// angle `theta`, with its fringe candidates for both signs.
+    pub(super) fn sample_pixel(
+        &self,
+        spectrum: Vec<f64>,
+        theta: Option<f64>,
+        scratch: &mut Scratch,
+    ) -> SamplePixel {
+        scratch.ensure(spectrum.len());
+        for (k, &v) in spectrum.iter().enumerate() {
+            let ok = v.is_finite();
+            scratch.spectrum[k] = if ok { v } else { 0.0 };
+            scratch.weight[k] = if ok { 1.0 } else { 0.0 };
+        }
+        let complete = spectrum.iter().all(|v| v.is_finite());
+        let mut cands = [[Candidate::default(); MAX_CANDIDATES]; 2];
+        let mut n_cands = [0; 2];
+        for (k, sign) in [1.0, -1.0].into_iter().enumerate() {
+            n_cands[k] = self.fringe_search(scratch, sign, complete, &mut cands[k]);
+        }
+        SamplePixel {
+            spectrum,
+            theta,
+            cands,
+            n_cands,
+        }
     }
 
     /// Summed residual of the sample under a prepared index: `(sse,
@@ -308,7 +326,7 @@ impl Solver {
         Ok(self.sample_sse(&prep, sample))
     }
 
-    fn search_index(
+    pub(super) fn search_index(
         &self,
         sample: &[SamplePixel],
         search: (f64, f64),

@@ -55,6 +55,7 @@ mod judge;
 mod level_fit;
 mod linalg;
 mod pixel;
+mod profile_bias;
 mod refine;
 mod row;
 mod search;
@@ -171,6 +172,9 @@ pub struct Scratch {
     /// The thickness of the last pixel's best fit, judged or not (NaN: no
     /// fit was made).
     last_fit_d: f64,
+    /// Its angle, where the fit went through [`Solver::finish`] (the only
+    /// reader, the index's profile bias, solves there).
+    last_fit_theta: f64,
     /// Per pixel of the last row solved: that thickness.
     fits: Vec<f64>,
     /// The last angle's per-angle quantities (a row's pixels mostly share

@@ -45,6 +45,7 @@ impl Solver {
             start: job_start,
         } = job;
         scratch.last_fit_d = f64::NAN;
+        scratch.last_fit_theta = f64::NAN;
         let nb = self.bands.len();
         if spectrum.len() != nb {
             return (PixelEstimate::invalid(Reason::MissingBands), f64::NAN);
@@ -551,6 +552,7 @@ impl Solver {
             return (PixelEstimate::invalid(Reason::PoorFit), f64::NAN);
         };
         scratch.last_fit_d = best.d;
+        scratch.last_fit_theta = best.theta;
         if !(best.sse.is_finite() && best.d.is_finite() && best.theta.is_finite()) {
             return (PixelEstimate::invalid(Reason::PoorFit), f64::NAN);
         }
