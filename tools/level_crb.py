@@ -108,6 +108,7 @@ def main():
         ("clean", np.ones(NB), ["none", "gain"]),
         ("white reference 5 % high", np.full(NB, 1 / 1.05), ["gain", "gain+offset", "smooth (quadratic gain, offset)"]),
         ("white reference 8 % low", np.full(NB, 1 / 0.92), ["gain", "gain+offset"]),
+        ("white reference 5 % low", np.full(NB, 1 / 0.95), ["gain", "gain+offset", "smooth (quadratic gain, offset)"]),
         ("stray light +0.004", np.ones(NB), ["offset", "gain+offset", "smooth (quadratic gain, offset)"]),
         ("per-band gain ±6 %", per_band_gain(0.06), ["gain per band", "gain and offset per band"]),
     ]
