@@ -24,6 +24,56 @@ pub fn used(w: f64x4) -> f64x4 {
     w.simd_ne(f64x4::ZERO) & f64x4::ONE
 }
 
+/// The vector loop's running sums of a weighted χ², four bands a step:
+/// `Σ on·w·e²/σ²`, the variances of the bands used and how many.
+#[derive(Clone, Copy)]
+pub struct Chi2Lanes {
+    chi2: f64x4,
+    var: f64x4,
+    used: f64x4,
+}
+
+impl Chi2Lanes {
+    /// Nothing summed yet.
+    #[inline(always)]
+    pub fn new() -> Chi2Lanes {
+        Chi2Lanes {
+            chi2: f64x4::ZERO,
+            var: f64x4::ZERO,
+            used: f64x4::ZERO,
+        }
+    }
+
+    /// Four bands: weights `w`, residuals `e`, variances `var` and their
+    /// inverses `inv` (`on · w · e · e · inv`).
+    #[inline(always)]
+    pub fn add(&mut self, w: f64x4, e: f64x4, var: f64x4, inv: f64x4) {
+        let on = used(w);
+        self.chi2 += on * w * e * e * inv;
+        self.var += on * var;
+        self.used += on;
+    }
+
+    /// [`Self::add`] dividing by the variance (`on · w · e · e / var`).
+    #[inline(always)]
+    pub fn add_div(&mut self, w: f64x4, e: f64x4, var: f64x4) {
+        let on = used(w);
+        self.chi2 += on * w * e * e / var;
+        self.var += on * var;
+        self.used += on;
+    }
+
+    /// The lanes, for the tail's bands and the totals.
+    #[inline(always)]
+    pub fn sums(self) -> Chi2Sums {
+        Chi2Sums {
+            chi2: self.chi2.to_array(),
+            var: self.var.to_array(),
+            used: self.used.to_array(),
+        }
+    }
+}
+
 /// The running sums of a weighted χ²: `Σ w e²/σ²`, the variances of the
 /// bands used and how many were used, per lane.
 #[derive(Clone, Copy)]
@@ -34,16 +84,6 @@ pub struct Chi2Sums {
 }
 
 impl Chi2Sums {
-    /// The vector loop's lanes.
-    #[inline(always)]
-    pub fn from_lanes(chi2: f64x4, var: f64x4, used: f64x4) -> Chi2Sums {
-        Chi2Sums {
-            chi2: chi2.to_array(),
-            var: var.to_array(),
-            used: used.to_array(),
-        }
-    }
-
     /// One band of the tail (lane 0): weight `w`, residual `e`, variance
     /// `var` and its inverse `inv` (`on · w · e · e · inv`, as the lanes).
     #[inline(always)]

@@ -27,7 +27,7 @@
 
 #![allow(clippy::needless_range_loop)] // band-indexed numeric loops read clearer with indices
 
-use super::lanes::{load, used, Chi2Sums};
+use super::lanes::{load, Chi2Lanes};
 use super::Cube;
 use multiversion::multiversion;
 use wide::f64x4;
@@ -156,7 +156,7 @@ fn model_chi2(
     let (y, w, r, var0, shot) = (&y[..n], &w[..n], &r[..n], &var0[..n], &shot[..n]);
     let floor = SIGMA_FLOOR * SIGMA_FLOOR;
     let (floor4, rel4) = (f64x4::splat(floor), f64x4::splat(rel2));
-    let (mut c4, mut v4, mut u4) = (f64x4::ZERO, f64x4::ZERO, f64x4::ZERO);
+    let mut lanes = Chi2Lanes::new();
     let quads = y.chunks_exact(4).zip(r.chunks_exact(4)).zip(
         w.chunks_exact(4)
             .zip(var0.chunks_exact(4).zip(shot.chunks_exact(4))),
@@ -165,14 +165,9 @@ fn model_chi2(
         let r = load(r);
         let rk = r.max(f64x4::ZERO);
         let var = (load(var0) + load(shot) * rk + rel4 * rk * rk).max(floor4);
-        let e = load(y) - r;
-        let w = load(w);
-        let on = used(w);
-        c4 += on * w * e * e / var;
-        v4 += on * var;
-        u4 += on;
+        lanes.add_div(load(w), load(y) - r, var);
     }
-    let mut sums = Chi2Sums::from_lanes(c4, v4, u4);
+    let mut sums = lanes.sums();
     for k in n - n % 4..n {
         let rk = r[k].max(0.0);
         let var = (var0[k] + shot[k] * rk + rel2 * rk * rk).max(floor);
@@ -197,20 +192,15 @@ fn flat_chi2(var: &[f64], inv: &[f64], y: &[f64], w: &[f64], r: &[f64]) -> (f64,
     // Four bands at a time in `f64x4` lanes (indexed lanes kept the loop
     // scalar: the bounds checks), the tail band by band, with the same
     // arithmetic (`lanes`).
-    let (mut c4, mut v4, mut u4) = (f64x4::ZERO, f64x4::ZERO, f64x4::ZERO);
+    let mut lanes = Chi2Lanes::new();
     let quads = y.chunks_exact(4).zip(r.chunks_exact(4)).zip(
         w.chunks_exact(4)
             .zip(var.chunks_exact(4).zip(inv.chunks_exact(4))),
     );
     for ((y, r), (w, (var, inv))) in quads {
-        let e = load(y) - load(r);
-        let w = load(w);
-        let on = used(w);
-        c4 += on * w * e * e * load(inv);
-        v4 += on * load(var);
-        u4 += on;
+        lanes.add(load(w), load(y) - load(r), load(var), load(inv));
     }
-    let mut sums = Chi2Sums::from_lanes(c4, v4, u4);
+    let mut sums = lanes.sums();
     for k in n - n % 4..n {
         sums.add(w[k], y[k] - r[k], var[k], inv[k]);
     }

@@ -630,11 +630,13 @@ impl Solver {
         // paper's cylinder, angle free: a ~100 nm film at 45° standing for
         // a ~500 nm one at 15° passed valid while the 500 nm basin, third,
         // fitted within the margin).
-        let q2 = scratch.q2_mid(prep, best.theta);
-        let apart = |f: &Fit| (f.d - best.d).abs() > 0.25 * lam_min / (2.0 * q2);
-        if let Some(second) = order[1..].iter().map(|&i| fits[i]).find(apart) {
-            if second.sse - best.sse < AMBIGUITY_CHI2 * var {
-                reason = Reason::AmbiguousOrder;
+        if order.len() > 1 {
+            let q2 = scratch.q2_mid(prep, best.theta);
+            let apart = |f: &Fit| (f.d - best.d).abs() > 0.25 * lam_min / (2.0 * q2);
+            if let Some(second) = order[1..].iter().map(|&i| fits[i]).find(apart) {
+                if second.sse - best.sse < AMBIGUITY_CHI2 * var {
+                    reason = Reason::AmbiguousOrder;
+                }
             }
         }
         if judging && !self.fit_passes(chi2, n_ok, n_par) {

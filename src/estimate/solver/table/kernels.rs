@@ -5,7 +5,7 @@
 //! that each lane repeats the scalar tail's, to the bit.
 
 use super::SCAN_STRIDE;
-use crate::estimate::lanes::{load, used, widen, Chi2Sums};
+use crate::estimate::lanes::{load, widen, Chi2Lanes};
 use multiversion::multiversion;
 use wide::f64x4;
 
@@ -123,7 +123,7 @@ pub(super) fn interp_chi2(
     let (centre, y, w, var, inv) = (&centre[..n], &y[..n], &w[..n], &var[..n], &inv[..n]);
     // Four bands at a time in `f64x4` lanes (see `interval_dots`), the
     // tail band by band, with the same arithmetic.
-    let (mut c4, mut v4, mut u4) = (f64x4::ZERO, f64x4::ZERO, f64x4::ZERO);
+    let mut lanes = Chi2Lanes::new();
     let [g00, g10, g01, g11] = [h00, h10, h01, h11].map(f64x4::splat);
     let quads = ra
         .chunks_exact(4)
@@ -137,14 +137,9 @@ pub(super) fn interp_chi2(
     for ((((ra, rb), (da, db)), (centre, y)), (w, (var, inv))) in quads {
         let rk =
             load(centre) + g00 * widen(ra) + g10 * widen(da) + g01 * widen(rb) + g11 * widen(db);
-        let e = load(y) - rk;
-        let w = load(w);
-        let on = used(w);
-        c4 += on * w * e * e * load(inv);
-        v4 += on * load(var);
-        u4 += on;
+        lanes.add(load(w), load(y) - rk, load(var), load(inv));
     }
-    let mut sums = Chi2Sums::from_lanes(c4, v4, u4);
+    let mut sums = lanes.sums();
     for k in n - n % 4..n {
         let rk = hermite_at([ra, rb, da, db], centre, [h00, h10, h01, h11], k);
         sums.add(w[k], y[k] - rk, var[k], inv[k]);
