@@ -314,10 +314,19 @@ impl Capture<'_> {
             .unwrap_or_else(|| std::mem::replace(&mut self.spare, Frame::with_size(0, 0, format)));
         let _span = tracing::info_span!("capture.frame").entered();
         StageFault::check(self.fault, Stage::Capture, &mut self.handled);
-        let got = self.source.next_frame(&mut frame, self.timeout);
+        // A frame the sequencer will discard as exposed while the filter
+        // settled is never read (copied out of the driver, or rendered),
+        // unless a tap (a recording) keeps every frame.
+        let seq = &self.seq;
+        let skip_settling = self.tap.is_none();
+        let got = self
+            .source
+            .next_frame_if(&mut frame, self.timeout, &mut |m| {
+                !(skip_settling && seq.discards_as_settling(m))
+            });
         self.counters.frames_total.fetch_add(1, Ordering::Relaxed);
         let result = match got {
-            Ok(()) => {
+            Ok(filled) => {
                 let m = frame.meta;
                 // Gaps in the camera's counter are frames lost before us.
                 if let Some(last) = self.last_seq {
@@ -349,6 +358,7 @@ impl Capture<'_> {
                 });
                 self.after_tune = tuner.tuned;
                 let v = v?;
+                debug_assert!(filled || v == Verdict::Discard(Discard::Settling));
                 if let Some(t) = tap {
                     let paired = pooled || !matches!(v, Verdict::Accept { .. });
                     t.on_frame(&frame, paired.then_some(v));

@@ -422,6 +422,19 @@ impl Sequencer {
         }
     }
 
+    /// Whether [`Sequencer::on_frame`] would discard a frame with this
+    /// metadata as exposed while the filter settled, whatever its pixels: a
+    /// pure look ahead, so a source can skip reading (or rendering) pixels
+    /// no one will use. Only stepped mode discards for settling; the first
+    /// frame (which starts the sequence) and stale frames are not counted.
+    pub fn discards_as_settling(&self, meta: &FrameMeta) -> bool {
+        self.mode == SeqMode::Stepped
+            && self.started
+            && !self.finished()
+            && !self.last_seq.is_some_and(|l| meta.seq <= l)
+            && meta.timestamp_ns < self.settled_at
+    }
+
     fn stepped(
         &mut self,
         meta: &FrameMeta,
@@ -595,6 +608,55 @@ mod tests {
             Verdict::Accept { sweep: 0, band: 2 }
         );
         assert!(s.finished());
+    }
+
+    /// The look ahead that lets a source skip a frame's pixels agrees with
+    /// the verdict the frame then gets, frame by frame, through settling
+    /// with jitter, duplicates, late frames and sweep ends; and it never
+    /// names a frame that would be accepted (a skipped frame's stale
+    /// pixels would land on a band).
+    #[test]
+    fn the_settling_look_ahead_matches_the_verdict() {
+        let view = FilterView::new();
+        let mut t = EmulatedTuner::new(
+            view,
+            Duration::from_millis(40),
+            Duration::from_millis(15),
+            7,
+        );
+        let mut s = Sequencer::new(
+            SeqMode::Stepped,
+            vec![400.0, 450.0, 500.0, 550.0],
+            vec![0, 2, 1, 3],
+            Some(3),
+        )
+        .unwrap();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let (mut seq, mut settling, mut accepted) = (0u64, 0, 0);
+        while !s.finished() {
+            // Frames every 10 ms; now and then one repeated or one late.
+            let m = match rng.random_range(0..10) {
+                0 if seq > 1 => meta(seq - 1, (seq - 1) * 10),
+                1 if seq > 2 => meta(seq - 2, (seq - 2) * 10),
+                _ => {
+                    seq += 1;
+                    meta(seq, seq * 10)
+                }
+            };
+            let ahead = s.discards_as_settling(&m);
+            let v = s.on_frame(&m, true, &mut t, &mut |_| {}).unwrap();
+            let is_settling = v == Verdict::Discard(Discard::Settling);
+            // The first frame starts the sequence (settling, not foreseen).
+            assert!(
+                ahead == is_settling || (!ahead && seq == 1),
+                "frame {}: look ahead {ahead}, verdict {v:?}",
+                m.seq
+            );
+            settling += usize::from(ahead);
+            accepted += usize::from(matches!(v, Verdict::Accept { .. }));
+        }
+        assert_eq!(accepted, 12);
+        assert!(settling >= 12 * 3, "{settling} frames foreseen as settling");
     }
 
     #[test]

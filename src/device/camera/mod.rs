@@ -254,6 +254,22 @@ pub trait FrameSource: Send {
     /// unspecified but still a valid buffer to reuse.
     fn next_frame(&mut self, out: &mut Frame, timeout: Duration) -> Result<(), CameraError>;
 
+    /// As [`FrameSource::next_frame`], but asks `wanted` with the frame's
+    /// metadata first and fills the pixels only if it says so: frames the
+    /// caller will discard unseen (exposed while the filter settled) cost
+    /// no copy out of the driver, and no rendering. Returns whether the
+    /// pixels were filled; when not, `out.meta` is the frame's and
+    /// `out.data` holds stale samples. By default every frame is filled.
+    fn next_frame_if(
+        &mut self,
+        out: &mut Frame,
+        timeout: Duration,
+        wanted: &mut dyn FnMut(&FrameMeta) -> bool,
+    ) -> Result<bool, CameraError> {
+        let _ = wanted;
+        self.next_frame(out, timeout).map(|()| true)
+    }
+
     /// Set the exposure; returns what the camera accepted.
     fn set_exposure(&mut self, exposure_us: u32) -> Result<u32, CameraError>;
 
@@ -280,6 +296,14 @@ impl<S: FrameSource + ?Sized> FrameSource for Box<S> {
     }
     fn next_frame(&mut self, out: &mut Frame, timeout: Duration) -> Result<(), CameraError> {
         (**self).next_frame(out, timeout)
+    }
+    fn next_frame_if(
+        &mut self,
+        out: &mut Frame,
+        timeout: Duration,
+        wanted: &mut dyn FnMut(&FrameMeta) -> bool,
+    ) -> Result<bool, CameraError> {
+        (**self).next_frame_if(out, timeout, wanted)
     }
     fn set_exposure(&mut self, exposure_us: u32) -> Result<u32, CameraError> {
         (**self).set_exposure(exposure_us)

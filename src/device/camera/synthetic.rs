@@ -173,8 +173,9 @@ pub struct SyntheticCamera {
     bands: Vec<Band>,
     /// Noise-free reflectance per band, row-major.
     planes: Vec<Vec<f32>>,
-    /// Standard normals for [`SyntheticConfig::noise_pool`] (empty: none).
-    pool: Vec<f32>,
+    /// Standard normals for [`SyntheticConfig::noise_pool`] (empty: none),
+    /// quantised ([`POOL_SCALE`]).
+    pool: Vec<i16>,
     /// One frame's fresh draws where there is no pool.
     draw: Vec<f32>,
     width: u32,
@@ -220,9 +221,7 @@ impl SyntheticCamera {
             started: None,
         };
         if cam.cfg.noise_pool {
-            cam.pool = (0..2 * n)
-                .map(|_| StandardNormal.sample(&mut cam.rng))
-                .collect();
+            cam.pool = normal_pool(&mut cam.rng, 2 * n);
         }
         Ok(cam)
     }
@@ -265,7 +264,14 @@ impl SyntheticCamera {
     }
 
     /// Counts for a blend of band `a` (weight 1 − α) and band `b` (α).
-    fn render_counts(&mut self, a: Option<usize>, b: Option<usize>, alpha: f64, out: &mut [u16]) {
+    fn render_counts(
+        &mut self,
+        a: Option<usize>,
+        b: Option<usize>,
+        alpha: f64,
+        out: &mut [u16],
+        render: bool,
+    ) {
         let s = &self.cfg.sensor;
         let k = s.counts_per_us * f64::from(s.exposure_us);
         let gain_of = |band: Option<usize>| {
@@ -302,7 +308,10 @@ impl SyntheticCamera {
         // branches and vectorises).
         if self.pool.len() >= 2 * n && n > 0 {
             let off = self.rng.random_range(0..=self.pool.len() - n);
-            p.frame(planes, (ga, gb), &self.pool[off..off + n], out);
+            if render {
+                let z = Draws::Pool(&self.pool[off..off + n]);
+                frame_counts(p, Signal::of(planes, (ga, gb)), z, out);
+            }
         } else {
             self.draw.clear();
             let rng = &mut self.rng;
@@ -310,9 +319,62 @@ impl SyntheticCamera {
                 let z: f64 = StandardNormal.sample(&mut *rng);
                 z as f32
             }));
-            p.frame(planes, (ga, gb), &self.draw, out);
+            if render {
+                let z = Draws::Fresh(&self.draw);
+                frame_counts(p, Signal::of(planes, (ga, gb)), z, out);
+            }
         }
     }
+}
+
+/// The pool's standard normals are stored as `i16` in units of
+/// `1 / POOL_SCALE` (±8 σ; a step of 2.4e-4 σ): half the bytes of `f32`
+/// to stream per frame, where a 1280 × 1024 frame is memory-bound.
+const POOL_SCALE: f32 = 4096.0;
+
+/// A pool of `len` standard normals, quantised as [`POOL_SCALE`] says.
+fn normal_pool(rng: &mut ChaCha8Rng, len: usize) -> Vec<i16> {
+    (0..len)
+        .map(|_| {
+            let z: f64 = StandardNormal.sample(&mut *rng);
+            (z * f64::from(POOL_SCALE)).round().clamp(-32767.0, 32767.0) as i16
+        })
+        .collect()
+}
+
+/// A frame's expected signal (counts above dark) per pixel.
+#[derive(Clone, Copy)]
+enum Signal<'a> {
+    /// Two bands' planes blended (the filter in transit).
+    Blend(&'a [f32], &'a [f32], f32, f32),
+    /// One band's plane (the filter settled: the other's weight is zero).
+    One(&'a [f32], f32),
+    /// The same signal everywhere (a calibration target).
+    Uniform(f32),
+}
+
+impl<'a> Signal<'a> {
+    /// The planes and gains of [`SyntheticCamera::render_counts`]: a
+    /// blend whose one weight is zero reads the other plane alone (the
+    /// same numbers: `0·a + g·b = g·b`).
+    fn of(planes: Result<(&'a [f32], &'a [f32]), f64>, (ga, gb): (f64, f64)) -> Signal<'a> {
+        let (ga, gb) = (ga as f32, gb as f32);
+        match planes {
+            Ok((_, pb)) if ga == 0.0 => Signal::One(pb, gb),
+            Ok((pa, _)) if gb == 0.0 => Signal::One(pa, ga),
+            Ok((pa, pb)) => Signal::Blend(pa, pb, ga, gb),
+            Err(signal) => Signal::Uniform(signal as f32),
+        }
+    }
+}
+
+/// A frame's standard normal draws, one per pixel.
+#[derive(Clone, Copy)]
+enum Draws<'a> {
+    /// Drawn for this frame.
+    Fresh(&'a [f32]),
+    /// A window of the quantised pool.
+    Pool(&'a [i16]),
 }
 
 /// The sensor's response: dark offset, read and shot noise, clipping.
@@ -327,51 +389,57 @@ struct Counts {
 }
 
 impl Counts {
-    /// One frame: the two bands' planes blended by `gains` (or a uniform
-    /// signal), the standard normal draws `z`, into `out`.
-    fn frame(
-        &self,
-        planes: Result<(&[f32], &[f32]), f64>,
-        (ga, gb): (f64, f64),
-        z: &[f32],
-        out: &mut [u16],
-    ) {
-        frame_counts(*self, planes, (ga as f32, gb as f32), z, out);
-    }
-
     /// The count for an expected `signal` (counts above dark) and a
     /// standard normal draw `z`.
     #[inline(always)]
     fn count(&self, signal: f32, z: f32) -> u16 {
         let signal = signal.max(0.0);
         let v = self.dark + signal + z * (self.read2 + signal * self.cpe).sqrt();
-        // Round half up by truncation after clamping (non-negative):
-        // `round` is a libm call in this per-pixel loop.
-        (v.clamp(0.0, self.max) + 0.5).min(self.max) as i32 as u16
+        // Rounded to the nearest count by adding 2²³, where an f32's unit
+        // in the last place is 1, and reading the low mantissa bits:
+        // branch-free and vectorised (`round` is a libm call here, and a
+        // saturating `as` cast compiled to lane-by-lane checks). `max`
+        // first maps a NaN to 0.
+        let v = v.max(0.0).min(self.max);
+        ((v + 8_388_608.0).to_bits() & 0xFFFF) as u16
+    }
+
+    /// Every pixel of `out` from its signal and draw (inlined into each
+    /// of [`frame_counts`]' loops, so each vectorises on its own).
+    #[inline(always)]
+    fn fill(
+        self,
+        out: &mut [u16],
+        signal: impl Iterator<Item = f32>,
+        z: impl Iterator<Item = f32>,
+    ) {
+        for ((o, s), z) in out.iter_mut().zip(signal).zip(z) {
+            *o = self.count(s, z);
+        }
     }
 }
 
-/// [`Counts::frame`]'s loops, compiled for the best vector unit.
+/// One frame into `out`, compiled for the best vector unit: one loop per
+/// kind of signal and of draws.
 #[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
-fn frame_counts(
-    p: Counts,
-    planes: Result<(&[f32], &[f32]), f64>,
-    (ga, gb): (f32, f32),
-    z: &[f32],
-    out: &mut [u16],
-) {
-    match planes {
-        Ok((pa, pb)) => {
-            for (((o, &z), &ra), &rb) in out.iter_mut().zip(z).zip(pa).zip(pb) {
-                *o = p.count(ga * ra + gb * rb, z);
+fn frame_counts(p: Counts, signal: Signal, z: Draws, out: &mut [u16]) {
+    macro_rules! with_draws {
+        ($signal:expr) => {
+            match z {
+                Draws::Fresh(z) => p.fill(out, $signal, z.iter().copied()),
+                Draws::Pool(z) => {
+                    let scale = 1.0 / POOL_SCALE;
+                    p.fill(out, $signal, z.iter().map(|&q| f32::from(q) * scale))
+                }
             }
+        };
+    }
+    match signal {
+        Signal::Blend(pa, pb, ga, gb) => {
+            with_draws!(pa.iter().zip(pb).map(|(&ra, &rb)| ga * ra + gb * rb))
         }
-        Err(signal) => {
-            let signal = signal as f32;
-            for (o, &z) in out.iter_mut().zip(z) {
-                *o = p.count(signal, z);
-            }
-        }
+        Signal::One(pa, ga) => with_draws!(pa.iter().map(|&r| ga * r)),
+        Signal::Uniform(s) => with_draws!(std::iter::repeat(s)),
     }
 }
 
@@ -387,7 +455,16 @@ impl FrameSource for SyntheticCamera {
         }
     }
 
-    fn next_frame(&mut self, out: &mut Frame, _timeout: Duration) -> Result<(), CameraError> {
+    fn next_frame(&mut self, out: &mut Frame, timeout: Duration) -> Result<(), CameraError> {
+        self.next_frame_if(out, timeout, &mut |_| true).map(|_| ())
+    }
+
+    fn next_frame_if(
+        &mut self,
+        out: &mut Frame,
+        _timeout: Duration,
+        wanted: &mut dyn FnMut(&super::FrameMeta) -> bool,
+    ) -> Result<bool, CameraError> {
         let n = self.width as usize * self.height as usize;
         if out.data.len() < n {
             return Err(CameraError::BufferTooSmall {
@@ -429,8 +506,6 @@ impl FrameSource for SyntheticCamera {
         // is a fair stand-in for the integral of a smooth transition.
         let alpha = tr.progress(t0 + exposure_ns / 2);
         let (a, b) = (self.band_of(tr.from_nm), self.band_of(tr.to_nm));
-        let dst = &mut out.data[..n];
-        self.render_counts(a, b, alpha, dst);
         let s = &self.cfg.sensor;
         out.meta = super::FrameMeta {
             seq,
@@ -443,7 +518,11 @@ impl FrameSource for SyntheticCamera {
             trigger,
             encoder: None,
         };
-        Ok(())
+        let want = wanted(&out.meta);
+        // The noise stream advances as if the frame were rendered, so
+        // skipping one changes no other frame.
+        self.render_counts(a, b, alpha, &mut out.data[..n], want);
+        Ok(want)
     }
 
     fn set_exposure(&mut self, exposure_us: u32) -> Result<u32, CameraError> {
@@ -536,5 +615,70 @@ mod tests {
                 "pool {pool}: variance ratio {ratio} (±{tol})"
             );
         }
+    }
+
+    /// A frame skipped (its pixels not wanted) changes no other frame: the
+    /// noise stream advances as if it had been rendered, pooled or not.
+    /// Its metadata is still the frame's.
+    #[test]
+    fn skipping_a_frame_changes_no_other_frame() {
+        for pool in [false, true] {
+            let cfg = SyntheticConfig {
+                noise_pool: pool,
+                ..Default::default()
+            };
+            let (mut all, mut some) = (cam(cfg.clone()), cam(cfg));
+            let nm = all.bands()[7].center_nm;
+            all.filter_view().tune(nm, 0, 0);
+            some.filter_view().tune(nm, 0, 0);
+            let info = all.info();
+            let mut fa = Frame::with_size(info.width, info.height, info.format);
+            let mut fs = fa.clone();
+            for k in 0..5u64 {
+                all.next_frame(&mut fa, Duration::ZERO).unwrap();
+                let skip = k == 1 || k == 2;
+                let filled = some
+                    .next_frame_if(&mut fs, Duration::ZERO, &mut |m| {
+                        assert_eq!(m.seq, k);
+                        !skip
+                    })
+                    .unwrap();
+                assert_eq!(filled, !skip);
+                assert_eq!(fs.meta, fa.meta);
+                if !skip {
+                    assert_eq!(fs.data, fa.data, "pool {pool}, frame {k}");
+                }
+            }
+        }
+    }
+
+    /// The branch-free rounding gives the nearest count, as `f64::round`
+    /// does (away from exact halves, which noise never hits), clipped to
+    /// the ADC's range, and a NaN maps to 0.
+    #[test]
+    fn counts_round_to_the_nearest_and_clip() {
+        let p = Counts {
+            dark: 800.0,
+            read2: 36.0,
+            cpe: 0.25,
+            max: 65535.0,
+        };
+        let mut checked = 0;
+        for i in 0..20_000 {
+            let signal = i as f32 * 3.3137;
+            for z in [-9.0f32, -2.71, -0.013, 0.0, 0.37, 1.5, 6.2] {
+                let v = f64::from(p.dark + signal + z * (p.read2 + signal * p.cpe).sqrt());
+                if (v.fract().abs() - 0.5).abs() < 1e-3 {
+                    continue;
+                }
+                let want = v.round().clamp(0.0, 65535.0) as u16;
+                assert_eq!(p.count(signal, z), want, "signal {signal}, z {z}");
+                checked += 1;
+            }
+        }
+        assert!(checked > 130_000);
+        assert_eq!(p.count(1e9, 0.0), 65535);
+        assert_eq!(p.count(0.0, -1e6), 0);
+        assert_eq!(p.count(f32::NAN, 0.0), 800);
     }
 }

@@ -175,6 +175,15 @@ impl FrameSource for V4l2Camera {
     }
 
     fn next_frame(&mut self, out: &mut Frame, timeout: Duration) -> Result<(), CameraError> {
+        self.next_frame_if(out, timeout, &mut |_| true).map(|_| ())
+    }
+
+    fn next_frame_if(
+        &mut self,
+        out: &mut Frame,
+        timeout: Duration,
+        wanted: &mut dyn FnMut(&FrameMeta) -> bool,
+    ) -> Result<bool, CameraError> {
         let (w, h) = (self.info.width as usize, self.info.height as usize);
         if out.data.len() < w * h {
             return Err(CameraError::BufferTooSmall {
@@ -207,6 +216,23 @@ impl FrameSource for V4l2Camera {
                 message: format!("{used} bytes, a {w}×{h} frame needs {}", self.stride * h),
             });
         }
+        let ts = meta.timestamp;
+        out.meta = FrameMeta {
+            seq,
+            timestamp_ns: (ts.sec as u64).saturating_mul(1_000_000_000) + (ts.usec as u64) * 1000,
+            exposure_us: self.info.exposure_us,
+            gain: self.info.gain,
+            format: self.info.format,
+            width: self.info.width,
+            height: self.info.height,
+            trigger: None,
+            encoder: None,
+        };
+        // A frame no one will look at (exposed while the filter settled)
+        // is not copied out of the driver's buffer.
+        if !wanted(&out.meta) {
+            return Ok(false);
+        }
         // Copy out of the driver's buffer now: it is re-queued on the next dequeue.
         for y in 0..h {
             let row = &data[y * self.stride..];
@@ -221,19 +247,7 @@ impl FrameSource for V4l2Camera {
                 }
             }
         }
-        let ts = meta.timestamp;
-        out.meta = FrameMeta {
-            seq,
-            timestamp_ns: (ts.sec as u64).saturating_mul(1_000_000_000) + (ts.usec as u64) * 1000,
-            exposure_us: self.info.exposure_us,
-            gain: self.info.gain,
-            format: self.info.format,
-            width: self.info.width,
-            height: self.info.height,
-            trigger: None,
-            encoder: None,
-        };
-        Ok(())
+        Ok(true)
     }
 
     fn set_exposure(&mut self, exposure_us: u32) -> Result<u32, CameraError> {
