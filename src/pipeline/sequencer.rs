@@ -431,7 +431,7 @@ impl Sequencer {
         self.mode == SeqMode::Stepped
             && self.started
             && !self.finished()
-            && !self.last_seq.is_some_and(|l| meta.seq <= l)
+            && self.last_seq.is_none_or(|l| meta.seq > l)
             && meta.timestamp_ns < self.settled_at
     }
 
