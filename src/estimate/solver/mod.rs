@@ -241,6 +241,7 @@ impl Scratch {
                     theta: key,
                     q2: prep.model.q2_mid(theta),
                     signal: None,
+                    max_var: None,
                 };
                 self.angle_memo.set(Some(m));
                 m
@@ -267,6 +268,9 @@ struct AngleMemo {
     q2: f64,
     /// `(n_ok, σ bits, signal)` once asked for.
     signal: Option<(usize, u64, f64)>,
+    /// `(noise generation, variance)`: the largest noise variance on the
+    /// table at this angle, once asked for.
+    max_var: Option<(u64, f64)>,
 }
 
 /// How hard the per-pixel solve works: what a [`Mode`] means in practice.
@@ -443,6 +447,9 @@ pub struct Solver {
     min_noise_var: f64,
     /// With [`Solver::flat_noise`], its largest variance of any band.
     max_flat_var: f64,
+    /// A number no other noise model of any solver has had (memos of what
+    /// depends on the noise are keyed by it).
+    noise_gen: u64,
     /// The χ² test.
     chi2: Chi2Test,
     /// The image-wide level in force (identity unless `scaled`).
@@ -574,6 +581,7 @@ impl Solver {
             flat_noise: None,
             min_noise_var: 0.0,
             max_flat_var: f64::INFINITY,
+            noise_gen: 0,
             chi2: Chi2Test::flagging(MAX_BANDS),
             level: Level::identity(bands.len()),
             level_mode: match scene.level {
@@ -963,6 +971,8 @@ impl Solver {
             .as_ref()
             .map_or(f64::INFINITY, |f| 1.0 / f.min_inv_var());
         self.noise = Some(noise);
+        static NOISE_GEN: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
+        self.noise_gen = NOISE_GEN.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         if let Some(i) = &mut self.index {
             i.noise_sigma = typical;
         }

@@ -51,19 +51,20 @@ impl Solver {
             return (PixelEstimate::invalid(Reason::MissingBands), f64::NAN);
         }
         scratch.ensure(nb);
-        let mut n_ok = 0usize;
-        for (k, &v) in spectrum.iter().enumerate() {
-            if v.is_finite() {
-                if !(-0.2..=1.2).contains(&v) {
-                    return (PixelEstimate::invalid(Reason::OutOfModel), f64::NAN);
-                }
-                scratch.spectrum[k] = v;
-                scratch.weight[k] = 1.0;
-                n_ok += 1;
-            } else {
-                scratch.spectrum[k] = 0.0;
-                scratch.weight[k] = 0.0;
-            }
+        // One branch-free pass (it vectorises): the bands used, their
+        // weights, their sum, and whether any lies beyond a reflectance.
+        let (mut n_ok, mut beyond, mut sum) = (0usize, false, 0.0);
+        let dst = scratch.spectrum.iter_mut().zip(scratch.weight.iter_mut());
+        for (&v, (y, w)) in spectrum.iter().zip(dst) {
+            let ok = v.is_finite();
+            beyond |= ok & !(-0.2..=1.2).contains(&v);
+            *y = if ok { v } else { 0.0 };
+            *w = if ok { 1.0 } else { 0.0 };
+            n_ok += usize::from(ok);
+            sum += *y;
+        }
+        if beyond {
+            return (PixelEstimate::invalid(Reason::OutOfModel), f64::NAN);
         }
         if n_ok == 0 {
             return (PixelEstimate::invalid(Reason::NonFinite), f64::NAN);
@@ -72,7 +73,7 @@ impl Solver {
         // global index is searched: the caller passes no noise then).
         let judging = noise.is_some() && self.judging();
         if judging {
-            let mean = scratch.spectrum.iter().sum::<f64>() / n_ok as f64;
+            let mean = sum / n_ok as f64;
             if self.out_of_model(prep, mean, theta_known) {
                 return (PixelEstimate::invalid(Reason::OutOfModel), f64::NAN);
             }
@@ -596,6 +597,12 @@ impl Solver {
                 Some(out) => out,
                 None => t.chi2_flat(best.d, &scratch.spectrum, &scratch.weight, flat),
             }
+        } else if let (true, Some(t), None, Some(noise)) =
+            (judging, tabled, &self.flat_noise, &self.noise)
+        {
+            // The interpolant's values and χ² under the reflectance-
+            // dependent noise in one pass.
+            t.chi2_model(best.d, &scratch.spectrum, &scratch.weight, noise)
         } else if judging {
             let mut trial = std::mem::take(&mut scratch.trial);
             match tabled {

@@ -6,6 +6,7 @@
 
 use super::SCAN_STRIDE;
 use crate::estimate::lanes::{load, widen, Chi2Lanes};
+use crate::estimate::noise::{NoiseModel, SIGMA_FLOOR};
 use multiversion::multiversion;
 use wide::f64x4;
 
@@ -143,6 +144,60 @@ pub(super) fn interp_chi2(
     for k in n - n % 4..n {
         let rk = hermite_at([ra, rb, da, db], centre, [h00, h10, h01, h11], k);
         sums.add(w[k], y[k] - rk, var[k], inv[k]);
+    }
+    sums.totals()
+}
+
+/// [`ThicknessTable::chi2_model`]: per band the interpolant's value (the
+/// arithmetic of [`interp_values`]) and `NoiseModel::chi2_and_mean_var`'s
+/// sums over it (the variance at that value, `model_chi2`'s arithmetic),
+/// in the same four lanes: the values never leave the registers.
+#[allow(clippy::too_many_arguments)]
+#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+pub(super) fn interp_model_chi2(
+    r: [&[f32]; 2],
+    dr: [&[f32]; 2],
+    centre: &[f64],
+    [h00, h10, h01, h11]: [f64; 4],
+    y: &[f64],
+    w: &[f64],
+    noise: &NoiseModel,
+) -> (f64, f64) {
+    let (var0, shot, rel2) = (&noise.var0[..], &noise.shot[..], noise.rel2);
+    let n = centre
+        .len()
+        .min(y.len())
+        .min(w.len())
+        .min(var0.len())
+        .min(shot.len());
+    let (ra, rb, da, db) = (&r[0][..n], &r[1][..n], &dr[0][..n], &dr[1][..n]);
+    let (centre, y, w, var0, shot) = (&centre[..n], &y[..n], &w[..n], &var0[..n], &shot[..n]);
+    let floor = SIGMA_FLOOR * SIGMA_FLOOR;
+    let (floor4, rel4) = (f64x4::splat(floor), f64x4::splat(rel2));
+    let mut lanes = Chi2Lanes::new();
+    let [g00, g10, g01, g11] = [h00, h10, h01, h11].map(f64x4::splat);
+    let quads = ra
+        .chunks_exact(4)
+        .zip(rb.chunks_exact(4))
+        .zip(da.chunks_exact(4).zip(db.chunks_exact(4)))
+        .zip(centre.chunks_exact(4).zip(y.chunks_exact(4)))
+        .zip(
+            w.chunks_exact(4)
+                .zip(var0.chunks_exact(4).zip(shot.chunks_exact(4))),
+        );
+    for ((((ra, rb), (da, db)), (centre, y)), (w, (var0, shot))) in quads {
+        let r =
+            load(centre) + g00 * widen(ra) + g10 * widen(da) + g01 * widen(rb) + g11 * widen(db);
+        let rk = r.max(f64x4::ZERO);
+        let var = (load(var0) + load(shot) * rk + rel4 * rk * rk).max(floor4);
+        lanes.add_div(load(w), load(y) - r, var);
+    }
+    let mut sums = lanes.sums();
+    for k in n - n % 4..n {
+        let r = hermite_at([ra, rb, da, db], centre, [h00, h10, h01, h11], k);
+        let rk = r.max(0.0);
+        let var = (var0[k] + shot[k] * rk + rel2 * rk * rk).max(floor);
+        sums.add_div(w[k], y[k] - r, var);
     }
     sums.totals()
 }

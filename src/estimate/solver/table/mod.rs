@@ -19,7 +19,7 @@
 //! polynomial and its minimum, [`solve`] a pixel's solve against a table.
 
 use crate::estimate::model::{FilmModel, ModelOut};
-use crate::estimate::noise::FlatNoise;
+use crate::estimate::noise::{FlatNoise, NoiseModel};
 use std::cell::Cell;
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::Arc;
@@ -29,7 +29,8 @@ mod poly;
 mod solve;
 
 use kernels::{
-    interp_chi2, interp_values, interval_dots, minimum_keys, scan_blocked, scan_weighted,
+    interp_chi2, interp_model_chi2, interp_values, interval_dots, minimum_keys, scan_blocked,
+    scan_weighted,
 };
 use poly::{poly_min, residual_poly};
 
@@ -313,11 +314,11 @@ impl ThicknessTable {
     /// points either side of it (the gap swings by up to a third from one
     /// point to the next).
     pub fn order_gap(&self, d: f64) -> f64 {
-        let x = ((d - self.d0) / self.h).floor();
-        let j = if x.is_nan() || x < 0.0 {
-            0
-        } else {
+        let x = (d - self.d0) / self.h;
+        let j = if x >= 0.0 {
             (x as usize).min(self.m - 1)
+        } else {
+            0
         };
         let b = (j + 1).min(self.m - 1);
         f64::from(self.gap_at(j).min(self.gap_at(b)))
@@ -350,11 +351,13 @@ impl ThicknessTable {
 
     /// The grid point nearest to thickness `d`.
     pub fn index_of(&self, d: f64) -> usize {
-        let x = ((d - self.d0) / self.h).round();
-        if x.is_nan() || x < 0.0 {
-            0
+        // Rounded by truncation of x + ½ (x ≥ 0): `round` and `floor` are
+        // libm calls on baseline x86-64, and these run on every pixel.
+        let x = (d - self.d0) / self.h;
+        if x >= 0.0 {
+            ((x + 0.5) as usize).min(self.m - 1)
         } else {
-            (x as usize).min(self.m - 1)
+            0
         }
     }
 
@@ -528,7 +531,8 @@ impl ThicknessTable {
     /// grid, and `d`'s position `t ∈ [0, 1]` in it.
     fn interval_of(&self, d: f64) -> (usize, f64) {
         let x = ((d - self.d0) / self.h).clamp(0.0, (self.m - 1) as f64);
-        let j = (x.floor() as usize).min(self.m - 2);
+        // Truncation is `floor` here (x ≥ 0; NaN gives 0).
+        let j = (x as usize).min(self.m - 2);
         (j, x - j as f64)
     }
 
@@ -609,6 +613,17 @@ impl ThicknessTable {
         let (r, dr) = self.ends(j);
         let (var, inv) = flat.parts();
         interp_chi2(r, dr, &self.centre[..self.nb], hm, y, w, var, inv)
+    }
+
+    /// χ² of `y` (weights `w`) against the interpolant at `d` under the
+    /// reflectance-dependent `noise`, and the bands' mean variance:
+    /// [`Self::values`] and [`NoiseModel::chi2_and_mean_var`] in one pass,
+    /// with their arithmetic (the same numbers to the bit).
+    pub fn chi2_model(&self, d: f64, y: &[f64], w: &[f64], noise: &NoiseModel) -> (f64, f64) {
+        let (j, t) = self.interval_of(d);
+        let hm = self.hermite(t);
+        let (r, dr) = self.ends(j);
+        interp_model_chi2(r, dr, &self.centre[..self.nb], hm, y, w, noise)
     }
 
     /// The least-squares thickness near grid point `j` on the interpolant:
@@ -1021,6 +1036,63 @@ mod tests {
                 .sum::<f64>()
                 / used;
             assert!((c1 - plain).abs() <= 1e-12 * plain, "{c1} vs {plain}");
+            assert!((v1 - mean).abs() <= 1e-12 * mean, "{v1} vs {mean}");
+            assert_eq!(
+                (c1.to_bits(), v1.to_bits()),
+                (c2.to_bits(), v2.to_bits()),
+                "d = {d}"
+            );
+        }
+    }
+
+    /// The fused χ² under a reflectance-dependent noise model (read, shot
+    /// and scale terms, as a camera's calibration gives) is the values
+    /// then [`NoiseModel::chi2_and_mean_var`], to the bit, and both are
+    /// the definition summed plainly (to rounding), with bands dropped
+    /// and spectra lying off the model by up to 0.02.
+    #[test]
+    fn fused_chi2_matches_values_then_model_chi2() {
+        use crate::estimate::noise::{NoiseModel, NoiseSource};
+        let m = model();
+        let t = ThicknessTable::new(&m, 0.4, 0.0, 2000.0);
+        let noise = NoiseModel {
+            var0: (0..31).map(|k| 1e-6 * (1.0 + 0.2 * k as f64)).collect(),
+            shot: (0..31).map(|k| 4e-5 / (1.0 + 0.1 * k as f64)).collect(),
+            rel2: 1e-4,
+            source: NoiseSource::Camera,
+        };
+        let mut out = ModelOut::new(31);
+        let mut r = vec![0.0; 31];
+        for i in 0..500 {
+            let d = 3.1 + i as f64 * 3.97;
+            m.eval(d + 0.3, 0.4, &mut out, false);
+            let y: Vec<f64> = out
+                .r
+                .iter()
+                .enumerate()
+                .map(|(k, v)| v + 1e-3 * ((k * 7 + i) % 5) as f64 - 0.02 * f64::from(i % 7 == 0))
+                .collect();
+            let mut w = vec![1.0; 31];
+            if i % 3 == 0 {
+                w[i % 31] = 0.0;
+                w[(i + 11) % 31] = 0.0;
+            }
+            t.values(d, &mut r);
+            let (c1, v1) = noise.chi2_and_mean_var(&y, &w, &r);
+            let (c2, v2) = t.chi2_model(d, &y, &w, &noise);
+            let plain: f64 = (0..31)
+                .map(|k| w[k] * (y[k] - r[k]).powi(2) / noise.var(k, r[k]))
+                .sum();
+            let used = w.iter().filter(|&&x| x != 0.0).count() as f64;
+            let mean: f64 = (0..31)
+                .filter(|&k| w[k] != 0.0)
+                .map(|k| noise.var(k, r[k]))
+                .sum::<f64>()
+                / used;
+            assert!(
+                c1 > 0.0 && (c1 - plain).abs() <= 1e-12 * plain,
+                "{c1} vs {plain}"
+            );
             assert!((v1 - mean).abs() <= 1e-12 * mean, "{v1} vs {mean}");
             assert_eq!(
                 (c1.to_bits(), v1.to_bits()),

@@ -248,7 +248,7 @@ impl Solver {
         let carried = OrderMargin::carried(scratch.order_margin, key, d, dd).filter(|_| !verify);
         // Nor where the noise-free orders lie far apart at this thickness.
         let gap = self
-            .max_noise_var_on(table)
+            .max_noise_var_at(prep, table, theta, scratch)
             .map_or(0.0, |v| table.order_gap(d) / v);
         let (n, margin) = if !verify && gap >= ORDER_GAP_SAFE {
             (1, gap)
@@ -307,6 +307,25 @@ impl Solver {
             && self
                 .max_noise_var_on(table)
                 .is_some_and(|v| table.order_gap(table.d_at(best.j)) >= ORDER_GAP_SAFE * v)
+    }
+
+    /// [`Self::max_noise_var_on`] for the table at `theta`, its own
+    /// angle, kept for the next pixel at that angle.
+    fn max_noise_var_at(
+        &self,
+        prep: &Prepared,
+        table: &ThicknessTable,
+        theta: f64,
+        scratch: &Scratch,
+    ) -> Option<f64> {
+        let mut memo = scratch.angle_memo(prep, theta);
+        if let Some((_, v)) = memo.max_var.filter(|m| m.0 == self.noise_gen) {
+            return Some(v);
+        }
+        let v = self.max_noise_var_on(table)?;
+        memo.max_var = Some((self.noise_gen, v));
+        scratch.angle_memo.set(Some(memo));
+        Some(v)
     }
 
     /// The largest noise variance of any band at the reflectances `table`
