@@ -193,10 +193,27 @@ pub(crate) struct CliSink {
     pub png: bool,
     /// The live page, fed the latest finished map.
     pub live: Option<super::serve::LiveView>,
+    /// When the first and the last sweep arrived, and how many did.
+    pub pace: Option<(std::time::Instant, std::time::Instant, u64)>,
+}
+
+impl CliSink {
+    /// The mean wall time between finished sweeps (after the first), if
+    /// two or more finished: the pace the whole pipeline kept, which a
+    /// saturated machine stretches beyond the filter's own.
+    pub fn sweep_period(&self) -> Option<std::time::Duration> {
+        let (first, last, n) = self.pace?;
+        (n >= 2).then(|| (last - first) / (n - 1) as u32)
+    }
 }
 
 impl SweepSink for CliSink {
     fn on_sweep(&mut self, s: &SweepSummary, maps: &ParamMaps) -> Result<(), String> {
+        let now = std::time::Instant::now();
+        self.pace = Some(match self.pace {
+            Some((first, _, n)) => (first, now, n + 1),
+            None => (now, now, 1),
+        });
         let mut s = s.clone();
         if let Some(dir) = &self.out {
             let p = sweep_path(dir, s.sweep);
@@ -357,6 +374,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             .as_deref()
             .map(super::serve::LiveView::start)
             .transpose()?,
+        pace: None,
     };
     if let Some(l) = &sink.live {
         eprintln!("irid: live view at http://{}/", l.addr);
@@ -393,8 +411,16 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         super::record::finish(r, args.record.as_deref(), args.json)?;
     }
     if !args.json {
+        // The pace kept, in sweeps and bands per second of wall time.
+        let pace = sink.sweep_period().map_or(String::new(), |p| {
+            let bands = rig.order.len() as f64 / p.as_secs_f64();
+            format!(
+                "; a sweep every {:.0} ms ({bands:.1} bands/s)",
+                p.as_secs_f64() * 1e3
+            )
+        });
         eprintln!(
-            "irid: {} sweeps mapped, {} dropped; {} frames read, {} discarded while settling, {} lost or refused{}",
+            "irid: {} sweeps mapped, {} dropped; {} frames read, {} discarded while settling, {} lost or refused{pace}{}",
             report.sweeps_completed,
             report.sweeps_dropped,
             report.frames_total,
