@@ -361,6 +361,14 @@ impl ThicknessTable {
         }
     }
 
+    /// The grid interval holding thickness `d` (clamped to the grid): a
+    /// walk from it toward the residual's minimum near `d` starts in the
+    /// right interval, where a walk from the nearest grid point first
+    /// tries the interval on its right and, half the time, steps back.
+    pub fn interval_index(&self, d: f64) -> usize {
+        self.interval_of(d).0
+    }
+
     /// Thickness of grid point `j`.
     pub fn d_at(&self, j: usize) -> f64 {
         self.d0 + j as f64 * self.h
@@ -747,9 +755,9 @@ impl ThicknessTable {
         ((self.d_at(best_i) + t * self.h, best_v.max(0.0), a), inside)
     }
 
-    /// `fast`'s fit from the previous pixel's grid point `j0`: the
-    /// residual's minimum reached by walking downhill on the interpolant
-    /// from there (at most [`HINT_WINDOW`] intervals), if the walk ends at
+    /// The fit from grid point `j0` (the interval holding the previous
+    /// pixel's fit, [`Self::interval_index`]): the residual's minimum
+    /// reached by walking downhill on the interpolant from there (at most [`HINT_WINDOW`] intervals), if the walk ends at
     /// a stationary point (else the fringe order changed: scan instead).
     /// Returns `(d, Σ e², Σ (dR/dd)²)` as [`Self::fit`]; complete spectra
     /// only (`n_ok`, the bands used, is every band: weights are 1 on the

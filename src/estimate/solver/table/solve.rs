@@ -49,7 +49,7 @@ impl Solver {
                 if let Some(out) = self.table_warm(
                     prep, table, theta, j0, n_ok, noise, lam_min, verify, scratch,
                 ) {
-                    scratch.hint = Some((key, table.index_of(out.0.thickness_nm)));
+                    scratch.hint = Some((key, table.interval_index(out.0.thickness_nm)));
                     // A valid pixel ends the run of poor ones: the next
                     // poor pixel scans and becomes the reference (the
                     // distance to a stale one would be paid on every
@@ -101,7 +101,7 @@ impl Solver {
         }
         let out = self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch);
         scratch.hint =
-            (exact && out.0.is_valid()).then(|| (key, table.index_of(out.0.thickness_nm)));
+            (exact && out.0.is_valid()).then(|| (key, table.interval_index(out.0.thickness_nm)));
         if out.0.is_valid() {
             scratch.poor = None;
         }
@@ -195,8 +195,8 @@ impl Solver {
         })
     }
 
-    /// `balanced` (and `accurate`) from the previous pixel's grid point
-    /// `j0` (a film changes little from one pixel to the next): the
+    /// `balanced` (and `accurate`) from grid interval `j0`, the one
+    /// holding the previous pixel's fit (a film changes little from one pixel to the next): the
     /// residual's minimum walked to from there, and the better of its
     /// neighbouring fringe
     /// orders (one fringe more or fewer in optical thickness) walked to in
@@ -271,7 +271,7 @@ impl Solver {
             scratch.trial = trial;
             match alt {
                 Some((da, _)) => {
-                    let j = table.index_of(da);
+                    let j = table.interval_index(da);
                     let (d2, e2, a2) = table.fit_near(&scratch.spectrum, n_ok, j)?;
                     fits[1] = Fit {
                         d: d2,
