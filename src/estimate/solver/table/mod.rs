@@ -349,7 +349,8 @@ impl ThicknessTable {
             + self.gram.len() * 48
     }
 
-    /// The grid point nearest to thickness `d`.
+    /// The grid point nearest to thickness `d` (the tests' starts).
+    #[cfg(test)]
     pub fn index_of(&self, d: f64) -> usize {
         // Rounded by truncation of x + ½ (x ≥ 0): `round` and `floor` are
         // libm calls on baseline x86-64, and these run on every pixel.
