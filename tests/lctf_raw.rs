@@ -73,12 +73,23 @@ fn a_flood_without_line_ends_is_a_short_error() {
     let stop = Arc::new(AtomicBool::new(false));
     let flood = {
         let stop = stop.clone();
+        // Non-blocking: once the driver has given up nobody reads, the
+        // pty's buffer fills, and a blocking write would never return to
+        // see `stop` (closing the slave does not wake it on every kernel:
+        // this test once hung CI).
+        let flags = nix::fcntl::fcntl(pty.master.as_fd(), nix::fcntl::FcntlArg::F_GETFL).unwrap();
+        let flags = nix::fcntl::OFlag::from_bits_truncate(flags) | nix::fcntl::OFlag::O_NONBLOCK;
+        nix::fcntl::fcntl(pty.master.as_fd(), nix::fcntl::FcntlArg::F_SETFL(flags)).unwrap();
         let mut master = std::fs::File::from(pty.master);
         std::thread::spawn(move || {
             let junk = [b'A'; 4096];
             while !stop.load(Ordering::Relaxed) {
-                if master.write_all(&junk).is_err() {
-                    break;
+                match master.write(&junk) {
+                    Ok(_) => {}
+                    Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                        std::thread::sleep(Duration::from_millis(1));
+                    }
+                    Err(_) => break,
                 }
             }
         })
