@@ -18,11 +18,9 @@
 mod common;
 
 use irid::device::camera::synthetic::{lctf_transmission, SensorModel};
-use irid::estimate::model::{FilmModel, ModelOut};
+use irid::estimate::model::ModelOut;
 use irid::estimate::noise::{NoiseModel, NoiseSource};
 use irid::estimate::{Mode, Solver};
-use irid::optics::dispersion::Dispersion;
-use irid::scene::FilmKnowledge;
 use irid::scene::Scene;
 use irid::synth::{compare, scene_bands};
 use rand::SeedableRng;
@@ -132,19 +130,7 @@ fn efficient_mae(
     var0: &[f64],
     shot: &[f64],
 ) -> (f64, f64) {
-    let film = match &scene.film {
-        FilmKnowledge::Known(d) => d.clone(),
-        FilmKnowledge::Unknown { .. } => Dispersion::constant(truth.n_film),
-    };
-    let model = FilmModel::new(
-        bands,
-        &scene.ambient,
-        &film,
-        &scene.substrate,
-        scene.polarization,
-        &vec![false; bands.len()],
-    )
-    .expect("the scene's model");
+    let model = common::truth_model(scene, bands, truth);
     let mut out = ModelOut::new(bands.len());
     let (mut sum, mut sum_ls, mut n) = (0.0, 0.0, 0.0);
     for i in (0..truth.thickness_nm.len()).step_by(16) {

@@ -129,17 +129,14 @@ fn tile(cube: &Cube, truth: &TruthMaps, repeat: usize) -> (Cube, TruthMaps) {
     (big, t)
 }
 
-/// The Cramér–Rao bound on σ_d per pixel at the truth, `σ_R² (JᵀJ)⁻¹` with
-/// the exact model's Jacobian, averaged over the scene: `(angle unknown,
-/// angle known)`. The film is the scene's known material, or the truth's
-/// index where the scene leaves it unknown (its own uncertainty, shared by
-/// every pixel, is left out).
-pub fn crb(scene: &Scene, bands: &[Band], truth: &TruthMaps, sigma_r: f64) -> (f64, f64) {
+/// The scene's model with the film the truth was rendered with (its
+/// index where the scene leaves it unknown), point-sampled bands.
+pub fn truth_model(scene: &Scene, bands: &[Band], truth: &TruthMaps) -> FilmModel {
     let film = match &scene.film {
         FilmKnowledge::Known(d) => d.clone(),
         FilmKnowledge::Unknown { .. } => Dispersion::constant(truth.n_film),
     };
-    let model = FilmModel::new(
+    FilmModel::new(
         bands,
         &scene.ambient,
         &film,
@@ -147,7 +144,16 @@ pub fn crb(scene: &Scene, bands: &[Band], truth: &TruthMaps, sigma_r: f64) -> (f
         scene.polarization,
         &vec![false; bands.len()],
     )
-    .expect("the scene's model");
+    .expect("the scene's model")
+}
+
+/// The Cramér–Rao bound on σ_d per pixel at the truth, `σ_R² (JᵀJ)⁻¹` with
+/// the exact model's Jacobian, averaged over the scene: `(angle unknown,
+/// angle known)`. The film is the scene's known material, or the truth's
+/// index where the scene leaves it unknown (its own uncertainty, shared by
+/// every pixel, is left out).
+pub fn crb(scene: &Scene, bands: &[Band], truth: &TruthMaps, sigma_r: f64) -> (f64, f64) {
+    let model = truth_model(scene, bands, truth);
     let mut out = ModelOut::new(bands.len());
     let (mut s2, mut s1, mut n) = (0.0, 0.0, 0.0);
     for i in 0..truth.thickness_nm.len() {

@@ -1002,6 +1002,28 @@ mod tests {
         .unwrap()
     }
 
+    /// Case `i` of the fused χ² tests: the model's spectrum 0.3 nm off
+    /// `d`, with a small pattern and `offset` added, and weights dropping
+    /// two bands on every third case.
+    fn spectrum_off_the_table(
+        m: &FilmModel,
+        d: f64,
+        i: usize,
+        offset: f64,
+        out: &mut ModelOut,
+    ) -> (Vec<f64>, Vec<f64>) {
+        m.eval(d + 0.3, 0.4, out, false);
+        let y = (out.r.iter().enumerate())
+            .map(|(k, v)| v + 1e-3 * ((k * 7 + i) % 5) as f64 + offset)
+            .collect();
+        let mut w = vec![1.0; 31];
+        if i % 3 == 0 {
+            w[i % 31] = 0.0;
+            w[(i + 11) % 31] = 0.0;
+        }
+        (y, w)
+    }
+
     /// The fused χ² on the interpolant gives, to the bit, what the
     /// interpolant's values and the flat noise's χ² give one after the
     /// other (the estimate's χ² test must not depend on which path asked),
@@ -1019,18 +1041,7 @@ mod tests {
         let mut r = vec![0.0; 31];
         for i in 0..500 {
             let d = 3.1 + i as f64 * 3.97;
-            m.eval(d + 0.3, 0.4, &mut out, false);
-            let y: Vec<f64> = out
-                .r
-                .iter()
-                .enumerate()
-                .map(|(k, v)| v + 1e-3 * ((k * 7 + i) % 5) as f64)
-                .collect();
-            let mut w = vec![1.0; 31];
-            if i % 3 == 0 {
-                w[i % 31] = 0.0;
-                w[(i + 11) % 31] = 0.0;
-            }
+            let (y, w) = spectrum_off_the_table(&m, d, i, 0.0, &mut out);
             t.values(d, &mut r);
             let (c1, v1) = flat.chi2_and_mean_var(&y, &w, &r);
             let (c2, v2) = t.chi2_flat(d, &y, &w, &flat);
@@ -1074,18 +1085,8 @@ mod tests {
         let mut r = vec![0.0; 31];
         for i in 0..500 {
             let d = 3.1 + i as f64 * 3.97;
-            m.eval(d + 0.3, 0.4, &mut out, false);
-            let y: Vec<f64> = out
-                .r
-                .iter()
-                .enumerate()
-                .map(|(k, v)| v + 1e-3 * ((k * 7 + i) % 5) as f64 - 0.02 * f64::from(i % 7 == 0))
-                .collect();
-            let mut w = vec![1.0; 31];
-            if i % 3 == 0 {
-                w[i % 31] = 0.0;
-                w[(i + 11) % 31] = 0.0;
-            }
+            let offset = if i % 7 == 0 { -0.02 } else { 0.0 };
+            let (y, w) = spectrum_off_the_table(&m, d, i, offset, &mut out);
             t.values(d, &mut r);
             let (c1, v1) = noise.chi2_and_mean_var(&y, &w, &r);
             let (c2, v2) = t.chi2_model(d, &y, &w, &noise);
