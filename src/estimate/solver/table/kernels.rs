@@ -82,16 +82,9 @@ pub(super) fn interp_values(
     let n = centre.len().min(out.len());
     let (ra, rb, da, db) = (&r[0][..n], &r[1][..n], &dr[0][..n], &dr[1][..n]);
     let (centre, out) = (&centre[..n], &mut out[..n]);
-    let [g00, g10, g01, g11] = [h00, h10, h01, h11].map(f64x4::splat);
-    let quads = ra
-        .chunks_exact(4)
-        .zip(rb.chunks_exact(4))
-        .zip(da.chunks_exact(4).zip(db.chunks_exact(4)))
-        .zip(centre.chunks_exact(4).zip(out.chunks_exact_mut(4)));
-    for (((ra, rb), (da, db)), (centre, out)) in quads {
-        let v =
-            load(centre) + g00 * widen(ra) + g10 * widen(da) + g01 * widen(rb) + g11 * widen(db);
-        out.copy_from_slice(&v.to_array());
+    let g = [h00, h10, h01, h11].map(f64x4::splat);
+    for (q, out) in end_quads([ra, rb, da, db], centre).zip(out.chunks_exact_mut(4)) {
+        out.copy_from_slice(&hermite_quad(q, g).to_array());
     }
     let tail = n - n % 4;
     for (k, o) in out.iter_mut().enumerate().skip(tail) {
@@ -125,19 +118,16 @@ pub(super) fn interp_chi2(
     // Four bands at a time in `f64x4` lanes (see `interval_dots`), the
     // tail band by band, with the same arithmetic.
     let mut lanes = Chi2Lanes::new();
-    let [g00, g10, g01, g11] = [h00, h10, h01, h11].map(f64x4::splat);
-    let quads = ra
-        .chunks_exact(4)
-        .zip(rb.chunks_exact(4))
-        .zip(da.chunks_exact(4).zip(db.chunks_exact(4)))
-        .zip(centre.chunks_exact(4).zip(y.chunks_exact(4)))
+    let g = [h00, h10, h01, h11].map(f64x4::splat);
+    let quads = end_quads([ra, rb, da, db], centre)
+        .zip(y.chunks_exact(4))
         .zip(
             w.chunks_exact(4)
-                .zip(var.chunks_exact(4).zip(inv.chunks_exact(4))),
+                .zip(var.chunks_exact(4))
+                .zip(inv.chunks_exact(4)),
         );
-    for ((((ra, rb), (da, db)), (centre, y)), (w, (var, inv))) in quads {
-        let rk =
-            load(centre) + g00 * widen(ra) + g10 * widen(da) + g01 * widen(rb) + g11 * widen(db);
+    for ((q, y), ((w, var), inv)) in quads {
+        let rk = hermite_quad(q, g);
         lanes.add(load(w), load(y) - rk, load(var), load(inv));
     }
     let mut sums = lanes.sums();
@@ -175,19 +165,16 @@ pub(super) fn interp_model_chi2(
     let floor = SIGMA_FLOOR * SIGMA_FLOOR;
     let (floor4, rel4) = (f64x4::splat(floor), f64x4::splat(rel2));
     let mut lanes = Chi2Lanes::new();
-    let [g00, g10, g01, g11] = [h00, h10, h01, h11].map(f64x4::splat);
-    let quads = ra
-        .chunks_exact(4)
-        .zip(rb.chunks_exact(4))
-        .zip(da.chunks_exact(4).zip(db.chunks_exact(4)))
-        .zip(centre.chunks_exact(4).zip(y.chunks_exact(4)))
+    let g = [h00, h10, h01, h11].map(f64x4::splat);
+    let quads = end_quads([ra, rb, da, db], centre)
+        .zip(y.chunks_exact(4))
         .zip(
             w.chunks_exact(4)
-                .zip(var0.chunks_exact(4).zip(shot.chunks_exact(4))),
+                .zip(var0.chunks_exact(4))
+                .zip(shot.chunks_exact(4)),
         );
-    for ((((ra, rb), (da, db)), (centre, y)), (w, (var0, shot))) in quads {
-        let r =
-            load(centre) + g00 * widen(ra) + g10 * widen(da) + g01 * widen(rb) + g11 * widen(db);
+    for ((q, y), ((w, var0), shot)) in quads {
+        let r = hermite_quad(q, g);
         let rk = r.max(f64x4::ZERO);
         let var = (load(var0) + load(shot) * rk + rel4 * rk * rk).max(floor4);
         lanes.add_div(load(w), load(y) - r, var);
@@ -200,6 +187,45 @@ pub(super) fn interp_model_chi2(
         sums.add_div(w[k], y[k] - r, var);
     }
     sums.totals()
+}
+
+/// Four bands of a grid interval's ends and the bands' centres: `A`,
+/// `B` (values), `P`, `Q` (slopes) and `centre`, a chunk each.
+type EndQuad<'a> = ([&'a [f32]; 4], &'a [f64]);
+
+/// The interval's ends ([`EndQuad`]) four bands a step (no closure: a
+/// closure is not compiled with the calling kernel's target features).
+#[inline(always)]
+fn end_quads<'a>(
+    [ra, rb, da, db]: [&'a [f32]; 4],
+    centre: &'a [f64],
+) -> impl Iterator<Item = EndQuad<'a>> {
+    ra.chunks_exact(4)
+        .zip(rb.chunks_exact(4))
+        .zip(da.chunks_exact(4).zip(db.chunks_exact(4)))
+        .zip(centre.chunks_exact(4))
+        .map(quad)
+}
+
+/// [`end_quads`]' item from the zipped chunks (a plain function, so it is
+/// inlined into the kernel's target features like the rest).
+#[inline(always)]
+#[allow(clippy::type_complexity)]
+fn quad<'a>(
+    (((ra, rb), (da, db)), centre): (((&'a [f32], &'a [f32]), (&'a [f32], &'a [f32])), &'a [f64]),
+) -> EndQuad<'a> {
+    ([ra, rb, da, db], centre)
+}
+
+/// Four bands' values of the interpolant, `centre + h00·A + h10·P +
+/// h01·B + h11·Q` (the tail's arithmetic, [`hermite_at`]), with the
+/// Hermite weights `g = [h00, h10, h01, h11]` in every lane.
+#[inline(always)]
+fn hermite_quad(
+    ([ra, rb, da, db], centre): EndQuad<'_>,
+    [g00, g10, g01, g11]: [f64x4; 4],
+) -> f64x4 {
+    load(centre) + g00 * widen(ra) + g10 * widen(da) + g01 * widen(rb) + g11 * widen(db)
 }
 
 /// One band's value of the interpolant, `centre + h00·A + h10·P + h01·B +
