@@ -266,7 +266,7 @@ fn replay_sink(args: &ReplayArgs) -> anyhow::Result<CliSink> {
         json: args.json,
         png: args.png,
         live: None,
-        pace: None,
+        pace: (0, None),
     })
 }
 

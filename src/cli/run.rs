@@ -193,27 +193,33 @@ pub(crate) struct CliSink {
     pub png: bool,
     /// The live page, fed the latest finished map.
     pub live: Option<super::serve::LiveView>,
-    /// When the first and the last sweep arrived, and how many did.
-    pub pace: Option<(std::time::Instant, std::time::Instant, u64)>,
+    /// Sweeps finished, and when the second and the last of them did.
+    pub pace: (u64, Option<(std::time::Instant, std::time::Instant)>),
 }
 
 impl CliSink {
-    /// The mean wall time between finished sweeps (after the first), if
-    /// two or more finished: the pace the whole pipeline kept, which a
-    /// saturated machine stretches beyond the filter's own.
+    /// The mean wall time between finished sweeps from the second on (the
+    /// first also estimates the film index, the noise and the level, and
+    /// finishes late), if three or more finished: the pace the whole
+    /// pipeline kept, which a saturated machine stretches beyond the
+    /// filter's own.
     pub fn sweep_period(&self) -> Option<std::time::Duration> {
-        let (first, last, n) = self.pace?;
-        (n >= 2).then(|| (last - first) / (n - 1) as u32)
+        let (n, Some((second, last))) = self.pace else {
+            return None;
+        };
+        (n >= 3).then(|| (last - second) / (n - 2) as u32)
     }
 }
 
 impl SweepSink for CliSink {
     fn on_sweep(&mut self, s: &SweepSummary, maps: &ParamMaps) -> Result<(), String> {
         let now = std::time::Instant::now();
-        self.pace = Some(match self.pace {
-            Some((first, _, n)) => (first, now, n + 1),
-            None => (now, now, 1),
-        });
+        let (n, times) = self.pace;
+        self.pace = match (n, times) {
+            (0, _) => (1, None),
+            (_, None) => (n + 1, Some((now, now))),
+            (_, Some((second, _))) => (n + 1, Some((second, now))),
+        };
         let mut s = s.clone();
         if let Some(dir) = &self.out {
             let p = sweep_path(dir, s.sweep);
@@ -374,7 +380,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             .as_deref()
             .map(super::serve::LiveView::start)
             .transpose()?,
-        pace: None,
+        pace: (0, None),
     };
     if let Some(l) = &sink.live {
         eprintln!("irid: live view at http://{}/", l.addr);
