@@ -135,6 +135,22 @@ impl FlatNoise {
     }
 }
 
+/// One band's variance at reflectance `r`, `var0 + shot·R + rel2·R²` with
+/// `R = max(r, 0)`, floored at [`SIGMA_FLOOR`]²: [`NoiseModel::var`], and
+/// the tail of every χ² kernel that weighs bands by it.
+#[inline(always)]
+pub(crate) fn band_var(var0: f64, shot: f64, rel2: f64, r: f64) -> f64 {
+    let r = r.max(0.0);
+    (var0 + shot * r + rel2 * r * r).max(SIGMA_FLOOR * SIGMA_FLOOR)
+}
+
+/// [`band_var`] for four bands, lane for lane the same arithmetic.
+#[inline(always)]
+pub(crate) fn band_var4(var0: f64x4, shot: f64x4, rel2: f64x4, r: f64x4) -> f64x4 {
+    let r = r.max(f64x4::ZERO);
+    (var0 + shot * r + rel2 * r * r).max(f64x4::splat(SIGMA_FLOOR * SIGMA_FLOOR))
+}
+
 /// [`NoiseModel::chi2_and_mean_var`]: four bands at a time in `f64x4`
 /// lanes (the divisions overlap), the tail band by band, with the same
 /// arithmetic as [`NoiseModel::var`].
@@ -154,8 +170,7 @@ fn model_chi2(
         .min(var0.len())
         .min(shot.len());
     let (y, w, r, var0, shot) = (&y[..n], &w[..n], &r[..n], &var0[..n], &shot[..n]);
-    let floor = SIGMA_FLOOR * SIGMA_FLOOR;
-    let (floor4, rel4) = (f64x4::splat(floor), f64x4::splat(rel2));
+    let rel4 = f64x4::splat(rel2);
     let mut lanes = Chi2Lanes::new();
     let quads = y.chunks_exact(4).zip(r.chunks_exact(4)).zip(
         w.chunks_exact(4)
@@ -163,14 +178,12 @@ fn model_chi2(
     );
     for ((y, r), (w, (var0, shot))) in quads {
         let r = load(r);
-        let rk = r.max(f64x4::ZERO);
-        let var = (load(var0) + load(shot) * rk + rel4 * rk * rk).max(floor4);
+        let var = band_var4(load(var0), load(shot), rel4, r);
         lanes.add_div(load(w), load(y) - r, var);
     }
     let mut sums = lanes.sums();
     for k in n - n % 4..n {
-        let rk = r[k].max(0.0);
-        let var = (var0[k] + shot[k] * rk + rel2 * rk * rk).max(floor);
+        let var = band_var(var0[k], shot[k], rel2, r[k]);
         sums.add_div(w[k], y[k] - r[k], var);
     }
     sums.totals()
@@ -282,8 +295,7 @@ impl NoiseModel {
     /// Variance of band `k` at reflectance `r`.
     #[inline]
     pub fn var(&self, k: usize, r: f64) -> f64 {
-        let r = r.max(0.0);
-        (self.var0[k] + self.shot[k] * r + self.rel2 * r * r).max(SIGMA_FLOOR * SIGMA_FLOOR)
+        band_var(self.var0[k], self.shot[k], self.rel2, r)
     }
 
     /// χ² of `y` (weights `w`: 0 drops a band) against the model values

@@ -6,7 +6,7 @@
 
 use super::SCAN_STRIDE;
 use crate::estimate::lanes::{load, widen, Chi2Lanes};
-use crate::estimate::noise::{NoiseModel, SIGMA_FLOOR};
+use crate::estimate::noise::{band_var, band_var4, NoiseModel};
 use multiversion::multiversion;
 use wide::f64x4;
 
@@ -140,7 +140,7 @@ pub(super) fn interp_chi2(
 
 /// [`ThicknessTable::chi2_model`]: per band the interpolant's value (the
 /// arithmetic of [`interp_values`]) and `NoiseModel::chi2_and_mean_var`'s
-/// sums over it (the variance at that value, `model_chi2`'s arithmetic),
+/// sums over it (the variance at that value, [`band_var`]),
 /// in the same four lanes: the values never leave the registers.
 #[allow(clippy::too_many_arguments)]
 #[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
@@ -162,8 +162,7 @@ pub(super) fn interp_model_chi2(
         .min(shot.len());
     let (ra, rb, da, db) = (&r[0][..n], &r[1][..n], &dr[0][..n], &dr[1][..n]);
     let (centre, y, w, var0, shot) = (&centre[..n], &y[..n], &w[..n], &var0[..n], &shot[..n]);
-    let floor = SIGMA_FLOOR * SIGMA_FLOOR;
-    let (floor4, rel4) = (f64x4::splat(floor), f64x4::splat(rel2));
+    let rel4 = f64x4::splat(rel2);
     let mut lanes = Chi2Lanes::new();
     let g = [h00, h10, h01, h11].map(f64x4::splat);
     let quads = end_quads([ra, rb, da, db], centre)
@@ -175,16 +174,13 @@ pub(super) fn interp_model_chi2(
         );
     for ((q, y), ((w, var0), shot)) in quads {
         let r = hermite_quad(q, g);
-        let rk = r.max(f64x4::ZERO);
-        let var = (load(var0) + load(shot) * rk + rel4 * rk * rk).max(floor4);
+        let var = band_var4(load(var0), load(shot), rel4, r);
         lanes.add_div(load(w), load(y) - r, var);
     }
     let mut sums = lanes.sums();
     for k in n - n % 4..n {
         let r = hermite_at([ra, rb, da, db], centre, [h00, h10, h01, h11], k);
-        let rk = r.max(0.0);
-        let var = (var0[k] + shot[k] * rk + rel2 * rk * rk).max(floor);
-        sums.add_div(w[k], y[k] - r, var);
+        sums.add_div(w[k], y[k] - r, band_var(var0[k], shot[k], rel2, r));
     }
     sums.totals()
 }
