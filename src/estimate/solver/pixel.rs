@@ -8,7 +8,7 @@ use super::closed_form::angle_start;
 use super::fringes::AMBIGUITY_CHI2;
 use super::refine::{free_angle_sigma, sse};
 use super::search::{Candidate, MAX_CANDIDATES};
-use super::{Fit, Job, Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
+use super::{Effort, Fit, Job, Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
 use crate::estimate::model::FilmModel;
 use crate::estimate::noise::FlatNoise;
 use crate::estimate::{PixelEstimate, Reason};
@@ -565,14 +565,25 @@ impl Solver {
         // The fit is judged against the noise model, and its σ never claims
         // more precision than the instrument's noise allows.
         let judging = noise.is_some() && self.judging();
-        // A fit on a table at its own angle left its residual on the very
-        // interpolant χ² would evaluate again; with one variance for every
-        // band, χ² is that residual over it.
+        // Where the bands' noise differs, the best fit weighed by it
+        // (`balanced` and `accurate`): its thickness, angle, χ² and σ are
+        // reported; the order checks below keep the fits as weighed alike.
         let tabled = if best.tabled {
             prep.tables.get_hinted(best.theta, &scratch.table_hint)
         } else {
             None
         };
+        let q2 = scratch.q2_mid(prep, best.theta);
+        let basin = 0.25 * lam_min / (2.0 * q2);
+        let weighed = if judging && Effort::of(self.mode).weigh {
+            let free = theta_known.is_none();
+            self.weighed_fit(model, tabled, &best, free, basin, scratch)
+        } else {
+            None
+        };
+        // A fit on a table at its own angle left its residual on the very
+        // interpolant χ² would evaluate again; with one variance for every
+        // band, χ² is that residual over it.
         let uniform = self
             .flat_noise
             .as_ref()
@@ -580,7 +591,9 @@ impl Solver {
             .filter(|_| tabled.is_some());
         // `chi2_and_noise_var`'s flat branch.
         let flat = self.flat_noise.as_ref().filter(|_| self.noise.is_some());
-        let (chi2, noise_var) = if let (true, Some((v, inv))) = (judging, uniform) {
+        let (chi2, noise_var) = if let Some(c) = weighed.and_then(|w| w.0.chi2) {
+            c
+        } else if let (true, Some((v, inv))) = (judging, uniform) {
             (best.sse * inv, v)
         } else if let (true, Some(c)) = (judging, best.chi2) {
             // Left by the refinement at this very fit.
@@ -616,10 +629,15 @@ impl Solver {
             (f64::NAN, 0.0)
         };
         let var = (best.sse / dof).max(noise_var).max(1e-14);
+        // σ of the fit reported: the weighed one's in its own units.
+        let (at, at_var) = match weighed {
+            Some((w, mean_var)) => (w, (w.sse / dof).max(mean_var).max(1e-14)),
+            None => (best, var),
+        };
         let (sig_d, sig_th) = if theta_known.is_some() {
-            ((var / best.jtj[0].max(1e-300)).sqrt(), 0.0)
+            ((at_var / at.jtj[0].max(1e-300)).sqrt(), 0.0)
         } else {
-            free_angle_sigma(model, &best, var, self.theta_range)
+            free_angle_sigma(model, &at, at_var, self.theta_range)
         };
         // Near d = 0 the reflectance is even in d (dR/dd = 0 at d = 0), so
         // the linearised σ is meaningless: take the one-sided profile bound
@@ -638,8 +656,7 @@ impl Solver {
         // a ~500 nm one at 15° passed valid while the 500 nm basin, third,
         // fitted within the margin).
         if order.len() > 1 {
-            let q2 = scratch.q2_mid(prep, best.theta);
-            let apart = |f: &Fit| (f.d - best.d).abs() > 0.25 * lam_min / (2.0 * q2);
+            let apart = |f: &Fit| (f.d - best.d).abs() > basin;
             if let Some(second) = order[1..].iter().map(|&i| fits[i]).find(apart) {
                 if second.sse - best.sse < AMBIGUITY_CHI2 * var {
                     reason = Reason::AmbiguousOrder;
@@ -650,7 +667,7 @@ impl Solver {
             reason = Reason::PoorFit;
         }
         if judging && reason == Reason::Ok {
-            if let Some(r) = self.bound_reason(prep, best.d, best.theta, theta_known) {
+            if let Some(r) = self.bound_reason(prep, at.d, at.theta, theta_known) {
                 reason = r;
             }
         }
@@ -671,10 +688,12 @@ impl Solver {
         {
             reason = Reason::AngleNotIdentifiable;
         }
+        scratch.last_fit_d = at.d;
+        scratch.last_fit_theta = at.theta;
         let est = PixelEstimate {
-            thickness_nm: best.d,
+            thickness_nm: at.d,
             n_film: prep.model.n2_mid(),
-            theta_deg: best.theta.to_degrees(),
+            theta_deg: at.theta.to_degrees(),
             sigma_thickness_nm: sig_d,
             sigma_theta_deg: sig_th.to_degrees(),
             residual_rms: rms,

@@ -575,7 +575,7 @@ impl ThicknessTable {
 
     /// R and dR/dd of every band at `d` (inside the grid) by cubic Hermite
     /// interpolation.
-    fn interp(&self, d: f64, r: &mut [f64], dr: &mut [f64]) {
+    pub(in crate::estimate::solver) fn interp(&self, d: f64, r: &mut [f64], dr: &mut [f64]) {
         let (j, t) = self.interval_of(d);
         let [h00, h10, h01, h11] = self.hermite(t);
         let (t2, h) = (t * t, self.h);
