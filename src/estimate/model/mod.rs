@@ -609,6 +609,12 @@ impl FilmModel {
         self.real && sin_cos(theta).0 < self.sin_critical
     }
 
+    /// A number no other model has: what [`FilmModel::eval`] gives
+    /// depends on the model, the thickness and the angle alone.
+    pub fn id(&self) -> u64 {
+        self.id
+    }
+
     /// Model reflectance per band at thickness `d` (nm) and angle `theta`
     /// (rad); with `with_derivative`, also dR/dd and dR/dθ.
     pub fn eval(&self, d: f64, theta: f64, out: &mut ModelOut, with_derivative: bool) {

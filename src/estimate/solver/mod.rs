@@ -155,6 +155,10 @@ pub struct Scratch {
     /// noise's weights (`Solver::weighed_fit`).
     band_mask: Vec<f64>,
     cur: ModelOut,
+    /// What `cur` holds, where a refinement left it: a refinement
+    /// starting there (the next pixel's warm start from this fit) need
+    /// not evaluate it again. Whatever else writes `cur` clears it.
+    cur_at: Option<refine::CurAt>,
     trial: ModelOut,
     /// The thickness table's working memory.
     grid: table::GridScratch,
@@ -213,6 +217,7 @@ impl Scratch {
             self.spectrum = vec![0.0; n];
             self.weight = vec![0.0; n];
             self.cur = ModelOut::new(n);
+            self.cur_at = None;
             self.trial = ModelOut::new(n);
         }
     }

@@ -261,6 +261,7 @@ impl Solver {
         starts[n_starts] = (0.0, 0.0);
         starts[n_starts + 1] = (lam_min / (8.0 * q2), 0.0);
         n_starts += 2;
+        scratch.cur_at = None;
         for s in &mut starts[..n_starts] {
             prep.model.eval(s.0, theta0, &mut scratch.cur, false);
             s.1 = sse(&scratch.spectrum, &scratch.weight, &scratch.cur.r);

@@ -53,7 +53,15 @@ impl Solver {
             theta0
         };
         let (mut d, mut th) = (d0.clamp(d_lo, d_hi), theta0);
-        eval(d, th, &mut s.cur);
+        // From where an earlier refinement left `cur` (the previous
+        // pixel's fit: its warm start), that evaluation serves.
+        match s
+            .cur_at
+            .filter(|c| c.serves(model.id(), d, th, (d_lo, d_hi), (lo, hi)))
+        {
+            Some(c) => (d, th) = c.at,
+            None => eval(d, th, &mut s.cur),
+        }
         let mut cur_sse = sse(&s.spectrum, &s.weight, &s.cur.r);
         let mut mu = 1e-4;
         // Never jump more than a quarter fringe in one step.
@@ -136,6 +144,10 @@ impl Solver {
                 break;
             }
         }
+        s.cur_at = Some(CurAt {
+            model: model.id(),
+            at: (d, th),
+        });
         let (mut a, mut b, mut c) = (0.0, 0.0, 0.0);
         for k in 0..s.spectrum.len() {
             let w = s.weight[k];
@@ -200,6 +212,29 @@ impl Solver {
 /// A refinement stops where its next step would lower χ² by less than
 /// this (in noise variances; see `Solver::min_noise_var`).
 pub(super) const STEP_CHI2: f64 = 1e-4;
+
+/// Where [`Scratch`]'s `cur` holds the model with its derivatives: left
+/// there by a refinement of `model` (its id) that ended at `at`.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct CurAt {
+    model: u64,
+    at: (f64, f64),
+}
+
+impl CurAt {
+    /// Whether a refinement of `model` starting at `(d, θ)` within the
+    /// given ranges may take `cur` as it is: the start is `at` (to
+    /// rounding: a warm start's angle went through degrees and back, and
+    /// a start that close is the same start), within the ranges.
+    fn serves(&self, model: u64, d: f64, th: f64, dr: (f64, f64), tr: (f64, f64)) -> bool {
+        let near = |a: f64, b: f64| (a - b).abs() <= 1e-9 * (1.0 + b.abs());
+        self.model == model
+            && near(d, self.at.0)
+            && near(th, self.at.1)
+            && (dr.0..=dr.1).contains(&self.at.0)
+            && (tr.0..=tr.1).contains(&self.at.1)
+    }
+}
 
 #[inline]
 pub(super) fn sse(y: &[f64], w: &[f64], r: &[f64]) -> f64 {

@@ -109,6 +109,7 @@ impl Solver {
             (Some(t), Some(flat)) => t.chi2_flat(d, y, mask, flat),
             (Some(t), None) => t.chi2_model(d, y, mask, noise),
             (None, _) => {
+                scratch.cur_at = None;
                 model.eval(d, best.theta, &mut scratch.cur, false);
                 self.chi2_and_noise_var(scratch, &scratch.cur.r)
             }
