@@ -339,9 +339,8 @@ fn a_thick_film_near_normal_incidence_reaches_the_valley_floor() {
 /// scene matrix's hard coat).
 #[test]
 fn a_thick_film_near_normal_incidence_is_efficient_and_its_sigma_honest() {
-    use irid::estimate::model::{FilmModel, ModelOut};
+    use irid::estimate::model::ModelOut;
     use irid::estimate::noise::{NoiseModel, NoiseSource};
-    use irid::scene::FilmKnowledge;
     const SIGMA_R: f64 = 0.001;
     let (mut err_sum, mut eff_sum, mut covered, mut valid, mut n) = (0.0, 0.0, 0, 0, 0);
     for seed in 1..=4 {
@@ -357,18 +356,7 @@ fn a_thick_film_near_normal_incidence_is_efficient_and_its_sigma_honest() {
         let r = Renderer::new(&s).unwrap();
         let cube = r.render_cube(&bands).unwrap();
         let truth = r.truth_maps(&bands);
-        let FilmKnowledge::Known(film) = &s.film else {
-            panic!("the film's material is known")
-        };
-        let model = FilmModel::new(
-            &bands,
-            &s.ambient,
-            film,
-            &s.substrate,
-            s.polarization,
-            &vec![false; bands.len()],
-        )
-        .unwrap();
+        let model = scene_common::point_model(&s, &bands);
         let mut out = ModelOut::new(bands.len());
         // The instrument's noise, as `irid run` measures it from its
         // calibration frames: estimated from this image without a model it

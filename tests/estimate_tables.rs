@@ -7,9 +7,9 @@
 //! with a different angle on every pixel (tables on an angle grid, each
 //! pixel refined at its own angle).
 
-use irid::estimate::model::{FilmModel, ModelOut};
+use irid::estimate::model::ModelOut;
 use irid::estimate::{Mode, Solver};
-use irid::scene::{AngleKnowledge, Field, FilmKnowledge, Scene};
+use irid::scene::{AngleKnowledge, Field, Scene};
 use irid::synth::{compare, scene_bands, Renderer};
 use std::path::Path;
 
@@ -51,18 +51,7 @@ seed = 7
 /// σ_R / √(Σ_k (∂R_k/∂d)²).
 fn crb_sigma(scene: &Scene, d: &[f32], theta_deg: &[f32]) -> f64 {
     let bands = scene_bands(scene).unwrap();
-    let FilmKnowledge::Known(film) = &scene.film else {
-        panic!("film known")
-    };
-    let model = FilmModel::new(
-        &bands,
-        &scene.ambient,
-        film,
-        &scene.substrate,
-        scene.polarization,
-        &vec![false; bands.len()],
-    )
-    .unwrap();
+    let model = scene_common::point_model(&scene, &bands);
     let mut out = ModelOut::new(bands.len());
     let mut sum = 0.0;
     for (d, t) in d.iter().zip(theta_deg) {

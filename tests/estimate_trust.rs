@@ -574,24 +574,12 @@ fn the_film_index_is_not_biased_where_noise_rivals_the_fringes() {
 
 #[test]
 fn no_valid_pixel_has_fringes_the_noise_buries() {
-    use irid::estimate::model::{FilmModel, ModelOut};
-    use irid::scene::FilmKnowledge;
+    use irid::estimate::model::ModelOut;
     let sigma = 0.03;
     let s = noisy_cylinder(sigma, 140, 14, "n = 1.37", 1);
     let bands = scene_bands(&s).unwrap();
     let (cube, _) = render(&s);
-    let FilmKnowledge::Known(film) = &s.film else {
-        panic!("film known")
-    };
-    let model = FilmModel::new(
-        &bands,
-        &s.ambient,
-        film,
-        &s.substrate,
-        s.polarization,
-        &vec![false; bands.len()],
-    )
-    .unwrap();
+    let model = scene_common::point_model(&s, &bands);
     let mut out = ModelOut::new(bands.len());
     for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
         let mut solver = Solver::new(&s, &bands, mode).unwrap();

@@ -12,14 +12,16 @@
 //! σ falling from 0.004 in the blue to 0.0008 in the red and, in the
 //! camera's case, a shot term proportional to the reflectance.
 
-use irid::estimate::model::{FilmModel, ModelOut};
+use irid::estimate::model::ModelOut;
 use irid::estimate::noise::{NoiseModel, NoiseSource};
 use irid::estimate::{Mode, Solver};
-use irid::scene::{FilmKnowledge, Scene};
+use irid::scene::Scene;
 use irid::synth::{compare, scene_bands, Renderer, TruthMaps};
 use rand::SeedableRng;
 use rand_distr::{Distribution, StandardNormal};
 use std::path::Path;
+
+mod scene_common;
 
 /// A thin dispersive coating on PET, unpolarised, 31 bands; 60–400 nm
 /// across, the angle down the image.
@@ -98,18 +100,7 @@ fn case(scene: Scene, shot: bool, angle_free: bool) -> Case {
             *v = (r + sd * z) as f32;
         }
     }
-    let FilmKnowledge::Known(film) = &scene.film else {
-        panic!("film known")
-    };
-    let model = FilmModel::new(
-        &bands,
-        &scene.ambient,
-        film,
-        &scene.substrate,
-        scene.polarization,
-        &vec![false; bands.len()],
-    )
-    .unwrap();
+    let model = scene_common::point_model(&scene, &bands);
     let mut out = ModelOut::new(bands.len());
     let (mut eff, mut ls) = (0.0, 0.0);
     for (d, t) in truth.thickness_nm.iter().zip(&truth.theta_deg) {

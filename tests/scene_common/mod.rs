@@ -1,10 +1,13 @@
 //! Helpers shared by the estimation tests: the truth's angle as a known
-//! per-pixel map, and two solves of one pixel compared.
+//! per-pixel map, two solves of one pixel compared, and the scene's known
+//! film as a model (for the Cramér–Rao bounds the tests compute).
 
 #![allow(dead_code)] // each test crate uses some of these
 
+use irid::estimate::model::FilmModel;
 use irid::estimate::PixelEstimate;
-use irid::scene::{AngleKnowledge, Scene};
+use irid::optics::band::Band;
+use irid::scene::{AngleKnowledge, FilmKnowledge, Scene};
 
 /// Assert that two solves of the same pixel (`row`, from a row path, and
 /// `lone`, the pixel solved alone) judge it alike — the same reason — and,
@@ -61,4 +64,21 @@ pub fn assert_rows_trustworthy(label: &str, valid: usize, total: usize, wrong: u
         wrong as f64 <= 0.01 * valid as f64,
         "{label}: {wrong} valid and wrong"
     );
+}
+
+/// The scene's known film seen in `bands`, every band point-sampled: the
+/// model whose Jacobian at the truth gives a test's Cramér–Rao bound.
+pub fn point_model(scene: &Scene, bands: &[Band]) -> FilmModel {
+    let FilmKnowledge::Known(film) = &scene.film else {
+        panic!("the film's material is known")
+    };
+    FilmModel::new(
+        bands,
+        &scene.ambient,
+        film,
+        &scene.substrate,
+        scene.polarization,
+        &vec![false; bands.len()],
+    )
+    .expect("the scene's model")
 }
