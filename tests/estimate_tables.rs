@@ -51,7 +51,7 @@ seed = 7
 /// σ_R / √(Σ_k (∂R_k/∂d)²).
 fn crb_sigma(scene: &Scene, d: &[f32], theta_deg: &[f32]) -> f64 {
     let bands = scene_bands(scene).unwrap();
-    let model = scene_common::point_model(&scene, &bands);
+    let model = scene_common::point_model(scene, &bands);
     let mut out = ModelOut::new(bands.len());
     let mut sum = 0.0;
     for (d, t) in d.iter().zip(theta_deg) {
