@@ -566,18 +566,18 @@ impl Solver {
         // The fit is judged against the noise model, and its σ never claims
         // more precision than the instrument's noise allows.
         let judging = noise.is_some() && self.judging();
-        // Where the bands' noise differs, the best fit weighed by it
-        // (`balanced` and `accurate`): its thickness, angle, χ² and σ are
-        // reported; the order checks below keep the fits as weighed alike.
         let tabled = if best.tabled {
             prep.tables.get_hinted(best.theta, &scratch.table_hint)
         } else {
             None
         };
-        let q2 = scratch.q2_mid(prep, best.theta);
-        let basin = 0.25 * lam_min / (2.0 * q2);
-        let weighed = if judging && Effort::of(self.mode).weigh {
-            let free = theta_known.is_none();
+        // Another basin: more than a quarter fringe away.
+        let basin = |s: &Scratch| 0.25 * lam_min / (2.0 * s.q2_mid(prep, best.theta));
+        // Where the bands' noise differs, the best fit weighed by it
+        // (`balanced` and `accurate`): its thickness, angle, χ² and σ are
+        // reported; the order checks below keep the fits as weighed alike.
+        let weighed = if judging && self.weigh_bands && Effort::of(self.mode).weigh {
+            let (free, basin) = (theta_known.is_none(), basin(scratch));
             self.weighed_fit(model, tabled, &best, free, basin, scratch)
         } else {
             None
@@ -657,6 +657,7 @@ impl Solver {
         // a ~500 nm one at 15° passed valid while the 500 nm basin, third,
         // fitted within the margin).
         if order.len() > 1 {
+            let basin = basin(scratch);
             let apart = |f: &Fit| (f.d - best.d).abs() > basin;
             if let Some(second) = order[1..].iter().map(|&i| fits[i]).find(apart) {
                 if second.sse - best.sse < AMBIGUITY_CHI2 * var {
