@@ -11,40 +11,12 @@ use irid::estimate::model::ModelOut;
 use irid::estimate::{Mode, Solver};
 use irid::scene::{AngleKnowledge, Field, Scene};
 use irid::synth::{compare, scene_bands, Renderer};
-use std::path::Path;
 
 mod scene_common;
 use scene_common::{assert_agree, assert_rows_trustworthy, valid_and_wrong};
 
 fn coating(angle: &str, width: usize, height: usize) -> Scene {
-    let text = format!(
-        r#"
-[ambient]
-n = 1.0
-[substrate]
-material = "PET-Zhang"
-[film]
-material = "SiO2-Malitson"
-{angle}
-[light]
-polarization = "u"
-[bands]
-start_nm = 400
-stop_nm = 700
-step_nm = 10
-fwhm_nm = 0
-[measurement]
-noise_sigma = 0.001
-[truth]
-width = {width}
-height = {height}
-thickness_nm = {{ linear_x = [60.0, 400.0] }}
-angle_deg = {{ linear_y = [20.0, 40.0] }}
-noise_sigma = 0.001
-seed = 7
-"#
-    );
-    Scene::from_toml(&text, "<test>", Path::new(".")).expect("test scene parses")
+    scene_common::thin_coating(angle, (width, height), 0.001, 7, Some(0.001))
 }
 
 /// Mean over the pixels of the Cramér–Rao σ_d (angle known) at the truth:

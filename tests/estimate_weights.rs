@@ -19,39 +19,13 @@ use irid::scene::Scene;
 use irid::synth::{compare, scene_bands, Renderer, TruthMaps};
 use rand::SeedableRng;
 use rand_distr::{Distribution, StandardNormal};
-use std::path::Path;
 
 mod scene_common;
 
 /// A thin dispersive coating on PET, unpolarised, 31 bands; 60–400 nm
 /// across, the angle down the image.
 fn coating(angle: &str) -> Scene {
-    let text = format!(
-        r#"
-[ambient]
-n = 1.0
-[substrate]
-material = "PET-Zhang"
-[film]
-material = "SiO2-Malitson"
-{angle}
-[light]
-polarization = "u"
-[bands]
-start_nm = 400
-stop_nm = 700
-step_nm = 10
-fwhm_nm = 0
-[truth]
-width = 100
-height = 40
-thickness_nm = {{ linear_x = [60.0, 400.0] }}
-angle_deg = {{ linear_y = [20.0, 40.0] }}
-noise_sigma = 0.0
-seed = 11
-"#
-    );
-    Scene::from_toml(&text, "<test>", Path::new(".")).expect("test scene parses")
+    scene_common::thin_coating(angle, (100, 40), 0.0, 11, None)
 }
 
 /// Per band: read-noise variance (σ from 0.004 at the first band to 0.0008

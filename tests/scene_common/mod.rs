@@ -82,3 +82,46 @@ pub fn point_model(scene: &Scene, bands: &[Band]) -> FilmModel {
     )
     .expect("the scene's model")
 }
+
+/// A thin production coating: 60–400 nm of silica across the image on PET,
+/// the angle 20–40° down it, unpolarised, 31 bands at 10 nm; `angle` the
+/// scene's `[angle]` section, the truth rendered with noise σ
+/// `truth_sigma` from `seed`, and `given_sigma` the `[measurement]` σ
+/// (none: the noise is the test's to set).
+pub fn thin_coating(
+    angle: &str,
+    (width, height): (usize, usize),
+    truth_sigma: f64,
+    seed: u64,
+    given_sigma: Option<f64>,
+) -> Scene {
+    let measurement = given_sigma.map_or(String::new(), |s| {
+        format!("[measurement]\nnoise_sigma = {s}\n")
+    });
+    let text = format!(
+        r#"
+[ambient]
+n = 1.0
+[substrate]
+material = "PET-Zhang"
+[film]
+material = "SiO2-Malitson"
+{angle}
+[light]
+polarization = "u"
+[bands]
+start_nm = 400
+stop_nm = 700
+step_nm = 10
+fwhm_nm = 0
+{measurement}[truth]
+width = {width}
+height = {height}
+thickness_nm = {{ linear_x = [60.0, 400.0] }}
+angle_deg = {{ linear_y = [20.0, 40.0] }}
+noise_sigma = {truth_sigma}
+seed = {seed}
+"#
+    );
+    Scene::from_toml(&text, "<test>", std::path::Path::new(".")).expect("test scene parses")
+}

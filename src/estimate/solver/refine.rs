@@ -227,12 +227,15 @@ impl CurAt {
     /// rounding: a warm start's angle went through degrees and back, and
     /// a start that close is the same start), within the ranges.
     fn serves(&self, model: u64, d: f64, th: f64, dr: (f64, f64), tr: (f64, f64)) -> bool {
-        let near = |a: f64, b: f64| (a - b).abs() <= 1e-9 * (1.0 + b.abs());
-        self.model == model
-            && near(d, self.at.0)
-            && near(th, self.at.1)
+        self.holds(model, d, th)
             && (dr.0..=dr.1).contains(&self.at.0)
             && (tr.0..=tr.1).contains(&self.at.1)
+    }
+
+    /// Whether `cur` holds `model` at `(d, θ)` (to rounding).
+    pub(super) fn holds(&self, model: u64, d: f64, th: f64) -> bool {
+        let near = |a: f64, b: f64| (a - b).abs() <= 1e-9 * (1.0 + b.abs());
+        self.model == model && near(d, self.at.0) && near(th, self.at.1)
     }
 }
 

@@ -89,19 +89,30 @@ impl Solver {
         if free_theta {
             return self.weighed_refit(model, best, basin, scratch);
         }
-        let trial = &mut scratch.trial;
+        // The model and its slopes at the fit: where the refinement that
+        // made it left them (`cur`, most fits off a table), else evaluated.
+        let holds = scratch
+            .cur_at
+            .is_some_and(|c| c.holds(model.id(), best.d, best.theta));
         let range = match table {
             Some(t) => {
-                t.interp(best.d, &mut trial.r, &mut trial.dr_dd);
+                t.interp(best.d, &mut scratch.trial.r, &mut scratch.trial.dr_dd);
                 t.d_range()
             }
             None => {
-                model.eval(best.d, best.theta, trial, true);
+                if !holds {
+                    model.eval(best.d, best.theta, &mut scratch.trial, true);
+                }
                 (self.d_min, self.d_max)
             }
         };
+        let at = if table.is_none() && holds {
+            &scratch.cur
+        } else {
+            &scratch.trial
+        };
         let (y, mask) = (&scratch.spectrum, &scratch.weight);
-        let step = Step::at(noise, y, mask, &trial.r, &trial.dr_dd)?;
+        let step = Step::at(noise, y, mask, &at.r, &at.dr_dd)?;
         let d = (best.d + step.g / step.a).clamp(range.0, range.1);
         if !(d.is_finite() && (d - best.d).abs() <= basin) {
             return None;
