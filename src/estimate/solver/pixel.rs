@@ -12,6 +12,7 @@ use super::{Effort, Fit, Job, Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
 use crate::estimate::model::FilmModel;
 use crate::estimate::noise::FlatNoise;
 use crate::estimate::{PixelEstimate, Reason};
+use multiversion::multiversion;
 use std::f64::consts::PI;
 
 /// What the warm start needs of its pixel (see [`Solver::try_warm`]).
@@ -25,6 +26,39 @@ struct WarmJob {
     alone: bool,
     /// The previous pixel's neighbouring-order margin in the row.
     prev_margin: Option<OrderMargin>,
+}
+
+/// A pixel's spectrum into `y` and its weights into `w` (finite values
+/// weighted 1, the rest 0 and weighted 0): the bands used, whether any
+/// lies beyond a reflectance, and their sum. Compiled for the best vector
+/// unit, in passes that each vectorise (the sum in four partial sums: one
+/// running sum is a chain of dependent additions).
+#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+fn load_spectrum(spectrum: &[f64], y: &mut [f64], w: &mut [f64]) -> (usize, bool, f64) {
+    let n = spectrum.len().min(y.len()).min(w.len());
+    let (spectrum, y, w) = (&spectrum[..n], &mut y[..n], &mut w[..n]);
+    let mut n_ok = 0usize;
+    let mut beyond = 0u64;
+    for ((&v, y), w) in spectrum.iter().zip(y.iter_mut()).zip(w.iter_mut()) {
+        let ok = v.is_finite();
+        beyond |= u64::from(ok & !(-0.2..=1.2).contains(&v));
+        *y = if ok { v } else { 0.0 };
+        *w = if ok { 1.0 } else { 0.0 };
+        n_ok += usize::from(ok);
+    }
+    let mut acc = [0.0f64; 4];
+    let chunks = y.chunks_exact(4);
+    let tail: f64 = chunks.remainder().iter().sum();
+    for c in chunks {
+        for (a, x) in acc.iter_mut().zip(c) {
+            *a += x;
+        }
+    }
+    (
+        n_ok,
+        beyond != 0,
+        (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail,
+    )
 }
 
 impl Solver {
@@ -51,18 +85,8 @@ impl Solver {
             return (PixelEstimate::invalid(Reason::MissingBands), f64::NAN);
         }
         scratch.ensure(nb);
-        // One branch-free pass (it vectorises): the bands used, their
-        // weights, their sum, and whether any lies beyond a reflectance.
-        let (mut n_ok, mut beyond, mut sum) = (0usize, false, 0.0);
-        let dst = scratch.spectrum.iter_mut().zip(scratch.weight.iter_mut());
-        for (&v, (y, w)) in spectrum.iter().zip(dst) {
-            let ok = v.is_finite();
-            beyond |= ok & !(-0.2..=1.2).contains(&v);
-            *y = if ok { v } else { 0.0 };
-            *w = if ok { 1.0 } else { 0.0 };
-            n_ok += usize::from(ok);
-            sum += *y;
-        }
+        let (n_ok, beyond, sum) =
+            load_spectrum(spectrum, &mut scratch.spectrum, &mut scratch.weight);
         if beyond {
             return (PixelEstimate::invalid(Reason::OutOfModel), f64::NAN);
         }
