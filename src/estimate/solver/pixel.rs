@@ -732,3 +732,44 @@ impl Solver {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::load_spectrum;
+
+    #[test]
+    fn a_spectrum_loads_with_its_weights_count_sum_and_range_check() {
+        // Lengths around the four lanes; missing values (NaN, ±∞) weigh 0
+        // and count nothing, and only a finite value outside [−0.2, 1.2]
+        // is beyond a reflectance.
+        for n in [1, 3, 4, 5, 31] {
+            let spectrum: Vec<f64> = (0..n)
+                .map(|k| match k % 5 {
+                    1 => f64::NAN,
+                    3 if k > 5 => f64::INFINITY,
+                    _ => 0.01 * k as f64,
+                })
+                .collect();
+            let (mut y, mut w) = (vec![9.0; n], vec![9.0; n]);
+            let (n_ok, beyond, sum) = load_spectrum(&spectrum, &mut y, &mut w);
+            let ok: Vec<bool> = spectrum.iter().map(|v| v.is_finite()).collect();
+            assert_eq!(n_ok, ok.iter().filter(|&&o| o).count(), "n {n}");
+            assert!(!beyond, "n {n}");
+            for k in 0..n {
+                assert_eq!(w[k], if ok[k] { 1.0 } else { 0.0 });
+                assert_eq!(y[k], if ok[k] { spectrum[k] } else { 0.0 });
+            }
+            let want: f64 = spectrum.iter().filter(|v| v.is_finite()).sum();
+            assert!(
+                (sum - want).abs() <= 1e-15 * n as f64,
+                "n {n}: {sum} vs {want}"
+            );
+        }
+        let (mut y, mut w) = (vec![0.0; 6], vec![0.0; 6]);
+        for bad in [-0.21, 1.21, 5.0] {
+            let s = [0.1, 0.2, bad, f64::NAN, 0.3, 0.4];
+            assert!(load_spectrum(&s, &mut y, &mut w).1, "{bad}");
+        }
+        assert!(!load_spectrum(&[-0.2, 1.2, f64::NEG_INFINITY], &mut y[..3], &mut w[..3]).1);
+    }
+}

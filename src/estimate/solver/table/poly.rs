@@ -40,16 +40,16 @@ fn value(p: &[f64; 7], t: f64) -> f64 {
 }
 
 /// The first and second derivatives of a degree-6 polynomial, as their
-/// own coefficients (lowest power first), for [`Slopes::at`].
-struct Slopes {
+/// own coefficients (lowest power first), for [`Derivatives::at`].
+struct Derivatives {
     d1: [f64; 6],
     d2: [f64; 5],
 }
 
-impl Slopes {
+impl Derivatives {
     #[inline(always)]
-    fn of(p: &[f64; 7]) -> Slopes {
-        Slopes {
+    fn of(p: &[f64; 7]) -> Derivatives {
+        Derivatives {
             d1: [
                 p[1],
                 2.0 * p[2],
@@ -92,7 +92,7 @@ pub(super) fn poly_min(p: &[f64; 7]) -> (f64, f64) {
     let ends = if v1 < v0 { (1.0, v1) } else { (0.0, v0) };
     let curv = v0 + v1 - 2.0 * vh;
     if curv > 0.0 {
-        let slopes = Slopes::of(p);
+        let slopes = Derivatives::of(p);
         let mut t = (0.5 + 0.25 * (v0 - v1) / curv).clamp(0.0, 1.0);
         for _ in 0..10 {
             let (d1, d2) = slopes.at(t);
@@ -171,7 +171,7 @@ mod tests {
             let c =
                 |k: usize| ((i * 7 + k * 13) as f64 * 0.37).sin() * 10f64.powi(k as i32 % 3 - 1);
             let p = [c(0).abs(), c(1), c(2).abs(), c(3), c(4), c(5), c(6)];
-            let s = Slopes::of(&p);
+            let s = Derivatives::of(&p);
             for j in 0..=12 {
                 let t = -0.1 + 1.2 * j as f64 / 12.0;
                 let (v, d1, d2) = poly_eval(&p, t);
