@@ -8,7 +8,8 @@
 //!
 //! `cargo bench --bench level_seeds` (options after `--`: `--seeds N`
 //! images per case, default 32; `--first S` the first seed, default 101,
-//! past the trust suite's 1–4; `--case NAME` one case).
+//! past the trust suite's 1–4; `--case NAME` one case; `--index-known`
+//! gives the solver the film index, 1.37, instead of searching it).
 //!
 //! Prints, per case: how often each level was chosen; the mean |Δd| over
 //! valid pixels (averaged over images); the 2σ coverage pooled over images
@@ -21,7 +22,7 @@ mod common;
 
 use irid::estimate::level::LevelMode;
 use irid::estimate::{Cube, Mode, Solver};
-use irid::scene::Scene;
+use irid::scene::{FilmKnowledge, Scene};
 use irid::synth::{compare, scene_bands, Renderer};
 
 /// A calibration error: `y_k = gain(k)·R_k + offset`.
@@ -87,9 +88,18 @@ struct Image {
     gain: Option<(f64, f64)>,
 }
 
-fn fit_one(case: &Case, seed: u64) -> Image {
+fn fit_one(case: &Case, seed: u64, index_known: bool) -> Image {
     let mut scene = Scene::paper_cylinder();
     scene.truth.as_mut().expect("the paper's truth").seed = seed;
+    if index_known {
+        let film = scene
+            .truth
+            .as_ref()
+            .expect("the paper's truth")
+            .film
+            .clone();
+        scene.film = FilmKnowledge::Known(film);
+    }
     let bands = scene_bands(&scene).expect("the scene's bands");
     let r = Renderer::new(&scene).expect("the scene renders");
     let mut cube: Cube = r.render_cube(&bands).expect("the cube renders");
@@ -129,6 +139,7 @@ fn main() {
     let seeds: u64 = common::arg(&args, "--seeds").unwrap_or(32);
     let first: u64 = common::arg(&args, "--first").unwrap_or(101);
     let only: Option<String> = common::arg(&args, "--case");
+    let index_known = args.iter().any(|a| a == "--index-known");
     println!("{}", common::machine());
     println!();
     println!("| calibration error | images | level `scaled` | mean \\|Δd\\| | \\|Δd\\| ≤ 2σ, pooled | images below 0.88 | valid and wrong: mean / worst image | one gain: RMS error / mean σ |");
@@ -137,7 +148,9 @@ fn main() {
         .iter()
         .filter(|c| only.as_deref().is_none_or(|o| c.name == o))
     {
-        let images: Vec<Image> = (first..first + seeds).map(|s| fit_one(case, s)).collect();
+        let images: Vec<Image> = (first..first + seeds)
+            .map(|s| fit_one(case, s, index_known))
+            .collect();
         let m = images.len() as f64;
         let scaled = images.iter().filter(|i| i.scaled).count();
         let mae = images.iter().map(|i| i.mae).sum::<f64>() / m;
