@@ -186,21 +186,22 @@ fn check(c: &Case, label: &str, tol: f64) {
 #[test]
 fn a_known_angle_with_per_band_noise_is_efficient() {
     // On the thickness table (one angle), variances fixed per band.
-    let mut s = coating("[angle]\ndeg = 30.0");
-    if let Some(t) = s.truth.as_mut() {
-        t.angle_deg = irid::scene::Field::Constant(30.0);
-    }
-    check(&case(s, false, false), "table, per-band σ", 1.08);
+    check(&case(at_30_deg(), false, false), "table, per-band σ", 1.08);
 }
 
 #[test]
 fn a_known_angle_with_camera_noise_is_efficient() {
     // On the table, variances growing with the reflectance (shot noise).
+    check(&case(at_30_deg(), true, false), "table, camera noise", 1.08);
+}
+
+/// The coating seen at one known angle, 30°, as its truth is rendered.
+fn at_30_deg() -> irid::scene::Scene {
     let mut s = coating("[angle]\ndeg = 30.0");
     if let Some(t) = s.truth.as_mut() {
         t.angle_deg = irid::scene::Field::Constant(30.0);
     }
-    check(&case(s, true, false), "table, camera noise", 1.08);
+    s
 }
 
 #[test]

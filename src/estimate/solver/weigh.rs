@@ -150,17 +150,32 @@ impl Solver {
     ) -> Option<(Fit, f64)> {
         let noise = self.noise.as_ref()?;
         let n = scratch.spectrum.len();
-        model.eval(best.d, best.theta, &mut scratch.trial, false);
+        // The model at the fit: where the refinement that made it left it
+        // (`cur`), else evaluated.
+        let holds = scratch
+            .cur_at
+            .is_some_and(|c| c.holds(model.id(), best.d, best.theta));
+        if !holds {
+            model.eval(best.d, best.theta, &mut scratch.trial, false);
+        }
+        let at = if holds {
+            &scratch.cur.r
+        } else {
+            &scratch.trial.r
+        };
         // The mask of bands used, kept to restore.
         scratch.band_mask.clear();
         scratch.band_mask.extend_from_slice(&scratch.weight);
         let (mut inv_sum, mut used) = (0.0, 0.0);
-        for k in 0..n {
-            let v = band_var(noise.var0[k], noise.shot[k], 0.0, scratch.trial.r[k]);
-            let w = scratch.band_mask[k] / v;
-            scratch.weight[k] = w;
-            inv_sum += w;
-            used += scratch.band_mask[k];
+        let bands = scratch.weight[..n]
+            .iter_mut()
+            .zip(&scratch.band_mask)
+            .zip(at)
+            .zip(noise.var0.iter().zip(&noise.shot));
+        for (((w, &m), &r), (&var0, &shot)) in bands {
+            *w = m / band_var(var0, shot, 0.0, r);
+            inv_sum += *w;
+            used += m;
         }
         if !(inv_sum > 0.0 && inv_sum.is_finite()) {
             scratch.weight.copy_from_slice(&scratch.band_mask);
