@@ -9,20 +9,21 @@
 //! `cargo bench --bench level_seeds` (options after `--`: `--seeds N`
 //! images per case, default 32; `--first S` the first seed, default 101,
 //! past the trust suite's 1–4; `--case NAME` one case; `--index-known`
-//! gives the solver the film index, 1.37, instead of searching it).
+//! gives the solver the film index, 1.37, instead of searching it;
+//! `--angle-known` gives it every pixel's true angle as a map).
 //!
 //! Prints, per case: how often each level was chosen; the mean |Δd| over
 //! valid pixels (averaged over images); the 2σ coverage pooled over images
 //! and the number of images whose own coverage is below 0.88; the valid
 //! pixels farther than max(3σ, 2 nm) from the truth (mean and worst
-//! image); and, where one gain was fitted, the RMS of its error over
+//! image); and, where one gain was fitted, the RMS and mean of its error over
 //! images against the mean σ it reported. Not a test: it asserts nothing.
 
 mod common;
 
 use irid::estimate::level::LevelMode;
 use irid::estimate::{Cube, Mode, Solver};
-use irid::scene::{FilmKnowledge, Scene};
+use irid::scene::{AngleKnowledge, FilmKnowledge, Scene};
 use irid::synth::{compare, scene_bands, Renderer};
 
 /// A calibration error: `y_k = gain(k)·R_k + offset`.
@@ -88,7 +89,7 @@ struct Image {
     gain: Option<(f64, f64)>,
 }
 
-fn fit_one(case: &Case, seed: u64, index_known: bool) -> Image {
+fn fit_one(case: &Case, seed: u64, index_known: bool, angle_known: bool) -> Image {
     let mut scene = Scene::paper_cylinder();
     scene.truth.as_mut().expect("the paper's truth").seed = seed;
     if index_known {
@@ -104,6 +105,13 @@ fn fit_one(case: &Case, seed: u64, index_known: bool) -> Image {
     let r = Renderer::new(&scene).expect("the scene renders");
     let mut cube: Cube = r.render_cube(&bands).expect("the cube renders");
     let truth = r.truth_maps(&bands);
+    if angle_known {
+        scene.angle = AngleKnowledge::Map {
+            width: truth.width,
+            height: truth.height,
+            deg: truth.theta_deg.clone(),
+        };
+    }
     let n = cube.plane_len();
     for k in 0..cube.bands.len() {
         let g = (case.gain)(k);
@@ -140,16 +148,17 @@ fn main() {
     let first: u64 = common::arg(&args, "--first").unwrap_or(101);
     let only: Option<String> = common::arg(&args, "--case");
     let index_known = args.iter().any(|a| a == "--index-known");
+    let angle_known = args.iter().any(|a| a == "--angle-known");
     println!("{}", common::machine());
     println!();
-    println!("| calibration error | images | level `scaled` | mean \\|Δd\\| | \\|Δd\\| ≤ 2σ, pooled | images below 0.88 | valid and wrong: mean / worst image | one gain: RMS error / mean σ |");
+    println!("| calibration error | images | level `scaled` | mean \\|Δd\\| | \\|Δd\\| ≤ 2σ, pooled | images below 0.88 | valid and wrong: mean / worst image | one gain: RMS error / mean error / mean σ |");
     println!("|---|---|---|---|---|---|---|---|");
     for case in CASES
         .iter()
         .filter(|c| only.as_deref().is_none_or(|o| c.name == o))
     {
         let images: Vec<Image> = (first..first + seeds)
-            .map(|s| fit_one(case, s, index_known))
+            .map(|s| fit_one(case, s, index_known, angle_known))
             .collect();
         let m = images.len() as f64;
         let scaled = images.iter().filter(|i| i.scaled).count();
@@ -167,8 +176,9 @@ fn main() {
             (Some(g0), false) => {
                 let k = gains.len() as f64;
                 let rms = (gains.iter().map(|(g, _)| (g - g0).powi(2)).sum::<f64>() / k).sqrt();
+                let mean = gains.iter().map(|(g, _)| g - g0).sum::<f64>() / k;
                 let sd = gains.iter().map(|(_, s)| s).sum::<f64>() / k;
-                format!("{:.4} / {:.4} ({} images)", rms, sd, gains.len())
+                format!("{rms:.4} / {mean:+.4} / {sd:.4} ({} images)", gains.len())
             }
             _ => "—".into(),
         };

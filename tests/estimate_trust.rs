@@ -65,8 +65,7 @@ fn report(label: &str, acc: &Accuracy, wrong: f64, solver: &Solver) {
     let (l, _, _) = solver.level();
     let vg = l.var_gain.iter().sum::<f64>() / l.var_gain.len() as f64;
     eprintln!(
-        "{label}: infl {:.2} sd_gain {:.2e} index {:?} valid {:.3} MAE {:.3} nm p99 {:.2} cover {:.3} wrong {:.4} level {} ({})",
-        l.sigma_inflation,
+        "{label}: sd_gain {:.2e} index {:?} valid {:.3} MAE {:.3} nm p99 {:.2} cover {:.3} wrong {:.4} level {} ({})",
         vg.sqrt(),
         solver.film_index().map(|i| (i.n, i.sigma, i.note.clone())),
         acc.valid_fraction,

@@ -40,6 +40,9 @@ const MIN_SPREAD: f64 = 0.003;
 const MIN_MEDIAN_SHIFT: f64 = 2.0;
 /// ... or where it lowers the sample's χ² by more than this per pixel.
 const MIN_CHI2_PER_PIXEL: f64 = 1.0;
+/// The step in the film index of the forward difference that gives the
+/// measured values' derivative with respect to it.
+pub(super) const INDEX_DN: f64 = 1e-4;
 /// Fewest sample pixels for a gain and offset per band.
 const MIN_PIXELS_PER_BAND_BASIS: usize = 50;
 
@@ -504,6 +507,21 @@ impl Solver {
         }
     }
 
+    /// The model at film index `n` + [`INDEX_DN`] (point-sampled bands):
+    /// the measured values' derivative with respect to the index, by a
+    /// forward difference, where the index is estimated with the level.
+    pub(super) fn index_step_model(&self, n: f64) -> Option<FilmModel> {
+        FilmModel::new(
+            &self.bands,
+            &self.scene.ambient,
+            &Dispersion::constant(n + INDEX_DN),
+            &self.scene.substrate,
+            self.scene.polarization,
+            &vec![false; self.bands.len()],
+        )
+        .ok()
+    }
+
     /// Each sample pixel fitted on its spectrum corrected by `level`, as
     /// the level fit needs it: raw values, model and model derivatives.
     fn level_pixels(&self, sample: &[SamplePixel], level: &Level) -> Vec<LevelPixel> {
@@ -527,17 +545,8 @@ impl Solver {
         let nb = self.bands.len();
         // Where the index is unknown, the model one step up in n2 gives each
         // pixel's derivative with respect to it (estimated with the level).
-        const DN: f64 = 1e-4;
         let up = match (&self.scene.film, &self.index) {
-            (FilmKnowledge::Unknown { .. }, Some(i)) => FilmModel::new(
-                &self.bands,
-                &self.scene.ambient,
-                &Dispersion::constant(i.n + DN),
-                &self.scene.substrate,
-                self.scene.polarization,
-                &vec![false; nb],
-            )
-            .ok(),
+            (FilmKnowledge::Unknown { .. }, Some(i)) => self.index_step_model(i.n),
             _ => None,
         };
         sample
@@ -592,7 +601,7 @@ impl Solver {
                         Some(m) => {
                             m.eval(est.thickness_nm, th, out_up, false);
                             vec![(0..nb)
-                                .map(|k| level.gain[k] * (out_up.r[k] - out.r[k]) / DN)
+                                .map(|k| level.gain[k] * (out_up.r[k] - out.r[k]) / INDEX_DN)
                                 .collect()]
                         }
                         None => Vec::new(),
@@ -691,7 +700,6 @@ impl Solver {
     }
 }
 
-/// Median over the pixels fitted both ways of |d_b − d_a| / σ_a.
 /// Largest difference of a gain or an offset between two levels.
 fn level_moved(a: &Level, b: &Level) -> f64 {
     a.gain
@@ -702,6 +710,7 @@ fn level_moved(a: &Level, b: &Level) -> f64 {
         .fold(0.0, f64::max)
 }
 
+/// Median over the pixels fitted both ways of |d_b − d_a| / σ_a.
 fn median_shift(a: &[LevelPixel], b: &[LevelPixel]) -> f64 {
     let by_id: std::collections::HashMap<usize, &LevelPixel> =
         b.iter().map(|p| (p.id, p)).collect();

@@ -77,6 +77,7 @@ use crate::scene::{AngleKnowledge, FilmKnowledge, Scene};
 use bands::BandTable;
 use closed_form::Slopes;
 use index::SamplePixel;
+use level_fit::INDEX_DN;
 use search::FringeBasis;
 use std::cell::Cell;
 use std::f64::consts::PI;
@@ -192,6 +193,18 @@ pub struct Scratch {
     angle_memo: Cell<Option<AngleMemo>>,
     /// Where the last table lookup found its angle (`Tables::get_hinted`).
     table_hint: Cell<usize>,
+    /// The level's share of σ (`Solver::with_level`).
+    share: ShareScratch,
+}
+
+/// Working memory of [`Solver::with_level`]: the model and its
+/// derivatives at a pixel's fit, the model one step up in the index, and
+/// the measured values' derivative with respect to the index.
+#[derive(Clone, Debug, Default)]
+struct ShareScratch {
+    out: ModelOut,
+    up: ModelOut,
+    dn: Vec<f64>,
 }
 
 impl Scratch {
@@ -484,6 +497,10 @@ pub struct Solver {
     /// `absolute` was asked for, but the image shows a correctable
     /// calibration error: every pixel is flagged.
     calibration_suspect: bool,
+    /// The model one small step up in the film index, where the index is
+    /// estimated jointly with the level: each pixel's derivative with
+    /// respect to it carries the index's share of the level's covariance.
+    index_step: Option<FilmModel>,
     /// Raise the model-free noise estimate to the index sample's pooled
     /// residual (see [`Solver::set_residual_noise_floor`]).
     residual_noise_floor: bool,
@@ -614,6 +631,7 @@ impl Solver {
             },
             level_note: String::new(),
             calibration_suspect: false,
+            index_step: None,
             residual_noise_floor: false,
             table: BandTable::new(bands),
         };
@@ -866,8 +884,12 @@ impl Solver {
 
     /// Use this film index from now on (e.g. one estimated on an earlier sweep).
     pub fn set_film_index(&mut self, est: IndexEstimate) -> Result<(), EstimateError> {
+        self.index_step = None;
         if let FilmKnowledge::Unknown { .. } = self.scene.film {
             self.prepared = Some(self.prepare(&Dispersion::constant(est.n))?);
+            if est.sigma_in_level {
+                self.index_step = self.index_step_model(est.n);
+            }
         }
         self.index = Some(est);
         Ok(())
@@ -917,7 +939,7 @@ impl Solver {
             },
             scratch,
         );
-        self.with_level(&mut est);
+        self.with_level(prep, spectrum, theta_known.is_none(), &mut est, scratch);
         Self::with_index(prep, index, &mut est, scratch);
         est
     }
@@ -973,14 +995,60 @@ impl Solver {
         }
     }
 
-    /// The image-wide level's share of a valid pixel's σ.
-    fn with_level(&self, est: &mut PixelEstimate) {
+    /// The image-wide level's share of a valid pixel's σ (thickness and,
+    /// where `angle_free`, angle), through the pixel's own fit to its
+    /// `spectrum` ([`crate::estimate::level::LevelShare`]).
+    fn with_level(
+        &self,
+        prep: &Prepared,
+        spectrum: &[f64],
+        angle_free: bool,
+        est: &mut PixelEstimate,
+        scratch: &mut Scratch,
+    ) {
         if est.is_valid() && self.calibration_suspect {
             *est = PixelEstimate::invalid(Reason::PoorFit);
         }
-        if est.is_valid() {
-            est.sigma_thickness_nm *= self.level.sigma_inflation;
+        let share = &self.level.share;
+        if !est.is_valid() || share.is_empty() {
+            return;
         }
+        let nb = self.bands.len();
+        let s = &mut scratch.share;
+        if s.dn.len() != nb {
+            *s = ShareScratch {
+                out: ModelOut::new(nb),
+                up: ModelOut::new(nb),
+                dn: vec![0.0; nb],
+            };
+        }
+        let (d, th) = (est.thickness_nm, est.theta_deg.to_radians());
+        prep.model.eval(d, th, &mut s.out, true);
+        let with_index = match (share.n_extra(), &self.index_step) {
+            (0, _) => false,
+            (1, Some(up)) => {
+                up.eval(d, th, &mut s.up, false);
+                for k in 0..nb {
+                    s.dn[k] = self.level.gain[k] * (s.up.r[k] - s.out.r[k]) / INDEX_DN;
+                }
+                true
+            }
+            // A global parameter the pixel cannot differentiate: σ stays
+            // as the fit gave it (not reached: the level's only global
+            // parameter is the index, whose model is kept with it).
+            _ => return,
+        };
+        let extra: &[&[f64]] = if with_index { &[&s.dn[..]] } else { &[] };
+        let (vd, vt) = share.var_of(
+            spectrum,
+            &self.level.gain,
+            &s.out.r,
+            &s.out.dr_dd,
+            angle_free.then_some(&s.out.dr_dth[..]),
+            extra,
+        );
+        est.sigma_thickness_nm = est.sigma_thickness_nm.hypot(vd.sqrt());
+        est.sigma_theta_deg = est.sigma_theta_deg.hypot(vt.sqrt().to_degrees());
     }
 
     /// Use this noise model from now on (given, measured by the camera's

@@ -211,7 +211,12 @@ impl Solver {
                 }
                 out[x] = match est {
                     Some(mut e) => {
-                        self.with_level(&mut e);
+                        if !self.level.share.is_empty() {
+                            // The level's share of σ goes through the
+                            // pixel's own fit to these values.
+                            cube.spectrum_into(x, y, pixel);
+                        }
+                        self.with_level(prep, pixel, theta_known.is_none(), &mut e, scratch);
                         e
                     }
                     None if retry_from.is_some() => {
