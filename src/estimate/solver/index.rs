@@ -215,8 +215,9 @@ impl Solver {
         est
     }
 
-    /// Up to `max` pixels on a regular lattice with complete spectra, with
-    /// their known angles.
+    /// About `max` distinct pixels (at most every pixel of the cube) on a
+    /// stratified lattice, those with complete enough spectra, with their
+    /// known angles.
     fn sample_pixels(&self, cube: &Cube, max: usize) -> Vec<SamplePixel> {
         let (w, h) = (cube.width, cube.height);
         // A 2-D stratified grid (cells of the image's aspect), one pixel per
@@ -231,12 +232,20 @@ impl Solver {
         let nb = cube.bands.len();
         let mut spec = vec![0.0; nb];
         let mut scratch = Scratch::default();
+        // Where the grid is finer than the image in one direction two
+        // cells can land on one pixel: it is taken once (the same data
+        // twice would count as twice the information, and σ of what the
+        // sample estimates would shrink by what it does not know).
+        let mut taken = std::collections::HashSet::with_capacity(nx * ny);
         for k in 0..nx * ny {
             let (i, j) = (k % nx, k / nx);
             let fx = (i as f64 + (j as f64 * PHI).fract()) / nx as f64;
             let fy = (j as f64 + (i as f64 * PHI).fract()) / ny as f64;
             let x = ((fx * w as f64) as usize).min(w - 1);
             let y = ((fy * h as f64) as usize).min(h - 1);
+            if !taken.insert((x, y)) {
+                continue;
+            }
             cube.spectrum_into(x, y, &mut spec);
             // Missing bands (NaN: a dropped frame) are allowed as in any
             // pixel's solve, up to a quarter of them.
@@ -524,5 +533,44 @@ impl Solver {
         // The value at the vertex itself, not the parabola's.
         let s = cost(result.0)?;
         Ok((result.0, s, result.2))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::estimate::{Cube, Mode, Solver};
+    use crate::optics::band::Band;
+    use crate::scene::Scene;
+
+    #[test]
+    fn a_sample_never_holds_a_pixel_twice() {
+        // Each pixel's first band carries its own index; lattices finer than
+        // the image in one direction or both (the paper's 140 × 14 at 1600
+        // pixels put 146 pixels in twice) must still give distinct pixels.
+        let scene = Scene::paper_cylinder();
+        let bands: Vec<Band> = (0..31)
+            .map(|k| Band::new(400.0 + 10.0 * k as f64, 0.0).expect("a band"))
+            .collect();
+        let solver = Solver::new(&scene, &bands, Mode::Fast).expect("the solver");
+        for (w, h, max) in [(140, 14, 1600), (64, 64, 1600), (7, 3, 400), (300, 2, 400)] {
+            let mut cube = Cube::zeros(w, h, bands.clone());
+            let n = w * h;
+            for (k, v) in cube.data.iter_mut().enumerate() {
+                let (band, i) = (k / n, k % n);
+                *v = if band == 0 { i as f32 * 1e-4 } else { 0.05 };
+            }
+            let sample = solver.sample_pixels(&cube, max);
+            let mut ids: Vec<usize> = sample
+                .iter()
+                .map(|p| (p.spectrum[0] * 1e4).round() as usize)
+                .collect();
+            let len = ids.len();
+            ids.sort_unstable();
+            ids.dedup();
+            assert_eq!(ids.len(), len, "{w}×{h} at {max}: a pixel taken twice");
+            // Most of what was asked (or of the image) is still there.
+            assert!(2 * len >= max.min(n), "{w}×{h} at {max}: {len}");
+            assert!(len <= n);
+        }
     }
 }
