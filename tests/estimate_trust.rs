@@ -155,6 +155,62 @@ fn calibration_errors_are_corrected_by_default_and_flagged_when_absolute() {
 }
 
 #[test]
+fn each_pixel_carries_the_level_share_its_own_fit_gives_it() {
+    // Two images (noise seeds 101 and 106 of `cargo bench --bench
+    // level_seeds`) whose fitted gain comes out about 2 of its σ off, low and
+    // high: every thickness then moves with the gain, and σ must carry
+    // that share pixel by pixel. The rows at large angles, whose own σ is
+    // smallest, must be off by as many of their σ as the rows near normal
+    // incidence (one factor for every pixel, set by the median pixel,
+    // left them 2.8 against 1.5), and every angle by as many of its σ as
+    // its thickness (with no share, angles were 3.4–6.1 of their σ off).
+    for seed in [101, 106] {
+        let mut base = Scene::paper_cylinder();
+        base.truth.as_mut().unwrap().seed = seed;
+        let (mut cube, truth) = render(&base);
+        miscalibrate(&mut cube, &|_| 1.0 / 1.05, 0.0);
+        let (maps, solver) = fit_with(&base, &cube, Mode::Balanced);
+        let (level, mode, _) = solver.level();
+        assert_eq!(mode, LevelMode::Scaled);
+        let z_gain = (level.gain[0] - 1.0 / 1.05) / level.var_gain[0].sqrt();
+        // The premise: the gain is well off on these images.
+        assert!(z_gain.abs() > 1.5, "seed {seed}: gain z {z_gain:.2}");
+        // Σ z² and counts: thickness in the four rows at 10–17.5°, in the
+        // four at 35–42.5°, and the angle over every valid pixel.
+        let (mut z2, mut nz) = ([0.0f64; 3], [0usize; 3]);
+        let mut add = |k: usize, z: f64| {
+            z2[k] += z * z;
+            nz[k] += 1;
+        };
+        for i in (0..maps.width * maps.height).filter(|&i| maps.valid[i] > 0.5) {
+            let zd = f64::from(maps.thickness_nm[i] - truth.thickness_nm[i])
+                / f64::from(maps.sigma_thickness_nm[i]);
+            let zt = f64::from(maps.theta_deg[i] - truth.theta_deg[i])
+                / f64::from(maps.sigma_theta_deg[i]);
+            match i / maps.width {
+                r if r < 4 => add(0, zd),
+                r if r + 4 >= maps.height => add(1, zd),
+                _ => {}
+            }
+            add(2, zt);
+        }
+        let rms = |k: usize| (z2[k] / nz[k] as f64).sqrt();
+        let (low, high, angle) = (rms(0), rms(1), rms(2));
+        eprintln!("seed {seed}: gain z {z_gain:+.2}; thickness RMS z {low:.2} at 10–17.5°, {high:.2} at 35–42.5°; angle RMS z {angle:.2}");
+        assert!(
+            (0.8..=1.25).contains(&(high / low)),
+            "seed {seed}: thickness RMS z {low:.2} near normal incidence, {high:.2} at large angles"
+        );
+        assert!(
+            (0.6..=1.4).contains(&(angle / (0.5 * (low + high)))),
+            "seed {seed}: angle RMS z {angle:.2} against the thickness's {low:.2}–{high:.2}"
+        );
+        // And none of it beyond what the gain's own error explains.
+        assert!(high.max(low) <= z_gain.abs() + 0.5, "seed {seed}");
+    }
+}
+
+#[test]
 fn clean_data_keep_the_absolute_level_and_the_statistical_limit() {
     let base = Scene::paper_cylinder();
     let (cube, truth) = render(&base);
