@@ -148,7 +148,9 @@ impl LevelShare {
     /// thickness and (where estimated) angle, and the derivatives of the
     /// measured values with respect to each global parameter. Zero where
     /// the pixel's own normal matrix is singular or the inputs do not
-    /// match the level.
+    /// match the level. `work` is working memory (no allocation once it
+    /// has grown to the level's parameters).
+    #[allow(clippy::too_many_arguments)]
     pub fn var_of(
         &self,
         y: &[f64],
@@ -157,6 +159,7 @@ impl LevelShare {
         dr_dd: &[f64],
         dr_dth: Option<&[f64]>,
         extra: &[&[f64]],
+        work: &mut Vec<[f64; 2]>,
     ) -> (f64, f64) {
         let nb = self.w.len();
         let (m, ml) = (self.m, self.m_level);
@@ -173,8 +176,10 @@ impl LevelShare {
             return (0.0, 0.0);
         }
         let mut a = [[0.0f64; 2]; 2];
-        // B, at most the level's 2·nb parameters and a few global ones.
-        let mut b = vec![[0.0f64; 2]; m];
+        // B (m × 2), then t = A⁻¹B in its place.
+        work.clear();
+        work.resize(m, [0.0; 2]);
+        let b = &mut work[..];
         for k in (0..nb).filter(|&k| y[k].is_finite() && r[k].is_finite()) {
             let w = self.w[k];
             let jl = [gain[k] * dr_dd[k], dr_dth.map_or(0.0, |j| gain[k] * j[k])];
@@ -212,15 +217,13 @@ impl LevelShare {
                 [-a[1][0] / det, a[0][0] / det],
             ]
         };
-        let t: Vec<[f64; 2]> = b
-            .iter()
-            .map(|bj| {
-                [
-                    ainv[0][0] * bj[0] + ainv[0][1] * bj[1],
-                    ainv[1][0] * bj[0] + ainv[1][1] * bj[1],
-                ]
-            })
-            .collect();
+        for bj in b.iter_mut() {
+            *bj = [
+                ainv[0][0] * bj[0] + ainv[0][1] * bj[1],
+                ainv[1][0] * bj[0] + ainv[1][1] * bj[1],
+            ];
+        }
+        let t = &*b;
         let (mut vd, mut vt) = (0.0, 0.0);
         for j in 0..m {
             for l in 0..m {
@@ -895,8 +898,15 @@ mod tests {
                     .map(|(a, b)| t[a][i] * cov[a * m + b] * t[b][i])
                     .sum()
             };
-            let (vd, vt) =
-                share.var_of(&y, &gain, &r, &jd, angle_free.then_some(&jt[..]), &[&e[..]]);
+            let (vd, vt) = share.var_of(
+                &y,
+                &gain,
+                &r,
+                &jd,
+                angle_free.then_some(&jt[..]),
+                &[&e[..]],
+                &mut Vec::new(),
+            );
             let (want_d, want_t) = (quad(0), quad(1));
             assert!(
                 want_d > 0.0 && (vd / want_d - 1.0).abs() < 1e-5,
@@ -914,10 +924,14 @@ mod tests {
         // A missing band is left out of the pixel's fit, as its refit does.
         let mut y_gap = y.clone();
         y_gap[4] = f64::NAN;
-        let full = share.var_of(&y, &gain, &r, &jd, Some(&jt), &[&e]);
-        let gap = share.var_of(&y_gap, &gain, &r, &jd, Some(&jt), &[&e]);
+        let w = &mut Vec::new();
+        let full = share.var_of(&y, &gain, &r, &jd, Some(&jt), &[&e], w);
+        let gap = share.var_of(&y_gap, &gain, &r, &jd, Some(&jt), &[&e], w);
         assert!(gap.0.is_finite() && gap.0 != full.0);
         // Inputs that do not match the level carry nothing.
-        assert_eq!(share.var_of(&y, &gain, &r, &jd, Some(&jt), &[]), (0.0, 0.0));
+        assert_eq!(
+            share.var_of(&y, &gain, &r, &jd, Some(&jt), &[], w),
+            (0.0, 0.0)
+        );
     }
 }

@@ -205,6 +205,7 @@ struct ShareScratch {
     out: ModelOut,
     up: ModelOut,
     dn: Vec<f64>,
+    work: Vec<[f64; 2]>,
 }
 
 impl Scratch {
@@ -1020,6 +1021,7 @@ impl Solver {
                 out: ModelOut::new(nb),
                 up: ModelOut::new(nb),
                 dn: vec![0.0; nb],
+                work: Vec::new(),
             };
         }
         let (d, th) = (est.thickness_nm, est.theta_deg.to_radians());
@@ -1046,6 +1048,7 @@ impl Solver {
             &s.out.dr_dd,
             angle_free.then_some(&s.out.dr_dth[..]),
             extra,
+            &mut s.work,
         );
         est.sigma_thickness_nm = est.sigma_thickness_nm.hypot(vd.sqrt());
         est.sigma_theta_deg = est.sigma_theta_deg.hypot(vt.sqrt().to_degrees());
