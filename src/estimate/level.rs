@@ -136,6 +136,11 @@ impl LevelShare {
         self.m == 0
     }
 
+    /// The number of parameters: the level's and the global ones.
+    pub fn n_params(&self) -> usize {
+        self.m
+    }
+
     /// The number of global parameters beyond the level (whose per-band
     /// derivatives [`LevelShare::var_of`] takes in `extra`).
     pub fn n_extra(&self) -> usize {
@@ -149,7 +154,8 @@ impl LevelShare {
     /// measured values with respect to each global parameter. Zero where
     /// the pixel's own normal matrix is singular or the inputs do not
     /// match the level. `work` is working memory (no allocation once it
-    /// has grown to the level's parameters).
+    /// has grown to the level's parameters); it is left holding the
+    /// responses `t` (see [`LevelShare::quad`]), or empty.
     #[allow(clippy::too_many_arguments)]
     pub fn var_of(
         &self,
@@ -173,6 +179,7 @@ impl LevelShare {
             || self.rows.len() != nb * ml
             || self.cov.len() != m * m
         {
+            work.clear();
             return (0.0, 0.0);
         }
         let mut a = [[0.0f64; 2]; 2];
@@ -204,12 +211,14 @@ impl LevelShare {
         // A⁻¹ (the angle's row only where it is estimated).
         let ainv = if dr_dth.is_none() {
             if a[0][0] <= 0.0 {
+                work.clear();
                 return (0.0, 0.0);
             }
             [[1.0 / a[0][0], 0.0], [0.0, 0.0]]
         } else {
             let det = a[0][0] * a[1][1] - a[0][1] * a[1][0];
             if det <= 0.0 {
+                work.clear();
                 return (0.0, 0.0);
             }
             [
@@ -223,7 +232,17 @@ impl LevelShare {
                 ainv[1][0] * bj[0] + ainv[1][1] * bj[1],
             ];
         }
-        let t = &*b;
+        self.quad(b)
+    }
+
+    /// `tᵀΣt` for the thickness and the angle, from their responses `t`
+    /// to each parameter (as `work` holds them after
+    /// [`LevelShare::var_of`]); zero where `t` does not match the level.
+    pub fn quad(&self, t: &[[f64; 2]]) -> (f64, f64) {
+        let m = self.m;
+        if t.len() != m || self.cov.len() != m * m {
+            return (0.0, 0.0);
+        }
         let (mut vd, mut vt) = (0.0, 0.0);
         for j in 0..m {
             for l in 0..m {

@@ -308,6 +308,7 @@ impl Solver {
                 shift
             );
             self.level = level;
+            self.share_table = std::sync::OnceLock::new();
             self.level_mode = LevelMode::Scaled;
             if unknown_index {
                 // The index's σ is in the level's joint covariance, whose
