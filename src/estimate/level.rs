@@ -209,28 +209,12 @@ impl LevelShare {
             }
         }
         // A⁻¹ (the angle's row only where it is estimated).
-        let ainv = if dr_dth.is_none() {
-            if a[0][0] <= 0.0 {
-                work.clear();
-                return (0.0, 0.0);
-            }
-            [[1.0 / a[0][0], 0.0], [0.0, 0.0]]
-        } else {
-            let det = a[0][0] * a[1][1] - a[0][1] * a[1][0];
-            if det <= 0.0 {
-                work.clear();
-                return (0.0, 0.0);
-            }
-            [
-                [a[1][1] / det, -a[0][1] / det],
-                [-a[1][0] / det, a[0][0] / det],
-            ]
+        let Some(ainv) = local_inverse(a, dr_dth.is_some(), 0.0) else {
+            work.clear();
+            return (0.0, 0.0);
         };
         for bj in b.iter_mut() {
-            *bj = [
-                ainv[0][0] * bj[0] + ainv[0][1] * bj[1],
-                ainv[1][0] * bj[0] + ainv[1][1] * bj[1],
-            ];
+            *bj = times(&ainv, *bj);
         }
         self.quad(b)
     }
@@ -253,6 +237,26 @@ impl LevelShare {
         }
         (vd.max(0.0), vt.max(0.0))
     }
+}
+
+/// The inverse of a pixel's local normal matrix `a` (symmetric), over its
+/// thickness and, where `two`, its angle (else the angle's row and column
+/// are zero), each diagonal raised by `ridge`; `None` where singular.
+fn local_inverse(a: [[f64; 2]; 2], two: bool, ridge: f64) -> Option<[[f64; 2]; 2]> {
+    let (p, q, r) = (a[0][0] + ridge, a[0][1], a[1][1] + ridge);
+    if !two {
+        return (p > 0.0).then(|| [[1.0 / p, 0.0], [0.0, 0.0]]);
+    }
+    let det = p * r - q * q;
+    (det > 0.0).then(|| [[r / det, -q / det], [-q / det, p / det]])
+}
+
+/// `m·v` for a 2 × 2 matrix.
+fn times(m: &[[f64; 2]; 2], v: [f64; 2]) -> [f64; 2] {
+    [
+        m[0][0] * v[0] + m[0][1] * v[1],
+        m[1][0] * v[0] + m[1][1] * v[1],
+    ]
 }
 
 impl Level {
@@ -501,26 +505,10 @@ pub fn level_step(
             }
         }
         // Eliminate the pixel: S −= Bᵀ A⁻¹ B, rhs −= Bᵀ A⁻¹ a.
-        let ainv = if nl == 1 {
-            let d = a[0][0] + 1e-12;
-            [[1.0 / d, 0.0], [0.0, 0.0]]
-        } else {
-            let (p, q, r) = (a[0][0] + 1e-12, a[0][1], a[1][1] + 1e-12);
-            let det = p * r - q * q;
-            if det <= 0.0 {
-                continue;
-            }
-            [[r / det, -q / det], [-q / det, p / det]]
+        let Some(ainv) = local_inverse(a, nl == 2, 1e-12) else {
+            continue;
         };
-        let t: Vec<[f64; 2]> = b
-            .iter()
-            .map(|bj| {
-                [
-                    ainv[0][0] * bj[0] + ainv[0][1] * bj[1],
-                    ainv[1][0] * bj[0] + ainv[1][1] * bj[1],
-                ]
-            })
-            .collect();
+        let t: Vec<[f64; 2]> = b.iter().map(|bj| times(&ainv, *bj)).collect();
         for j in 0..m {
             if b[j] == [0.0, 0.0] {
                 continue;

@@ -211,9 +211,10 @@ impl Solver {
                 }
                 out[x] = match est {
                     Some(mut e) => {
-                        if !self.level.share.is_empty() {
+                        if !self.level.share.is_empty() && !self.judging() {
                             // The level's share of σ goes through the
-                            // pixel's own fit to these values.
+                            // pixel's own fit to these values (already
+                            // read where the closed form was judged).
                             cube.spectrum_into(x, y, pixel);
                         }
                         self.with_level(prep, pixel, theta_known.is_none(), &mut e, scratch);
