@@ -6,7 +6,7 @@
 
 use super::SCAN_STRIDE;
 use crate::estimate::lanes::{load, widen, Chi2Lanes};
-use crate::estimate::noise::{band_var, band_var4, NoiseModel};
+use crate::estimate::noise::{NoiseModel, SIGMA_FLOOR};
 use multiversion::multiversion;
 use wide::f64x4;
 
@@ -138,51 +138,157 @@ pub(super) fn interp_chi2(
     sums.totals()
 }
 
-/// [`ThicknessTable::chi2_model`]: per band the interpolant's value (the
-/// arithmetic of [`interp_values`]) and `NoiseModel::chi2_and_mean_var`'s
-/// sums over it (the variance at that value, [`band_var`]),
-/// in the same four lanes: the values never leave the registers.
-#[allow(clippy::too_many_arguments)]
+/// [`ThicknessTable::chi2_model`]: per band the interpolant's value and
+/// its χ² term under the reflectance-dependent noise (the variance at
+/// that value, as [`band_var`] forms it), eight bands a step in `f32`
+/// lanes: the values never leave the registers, and an `f32` division
+/// costs a third of an `f64` one per lane (this pass was a fifth of a
+/// live pixel's time, its 31 divisions the half of it).
+///
+/// Precision: the residual `y − R` is formed in `f32` from values of
+/// order 1, so it carries ~1e-8 of absolute rounding against a noise σ of
+/// at least `SIGMA_FLOOR` = 1e-4: χ² to ~1e-4 relative at that floor and
+/// ~1e-5 at a camera's 1e-3, against the ±25 % that χ² itself scatters
+/// by over 31 bands — a test decision moves only for a pixel within that
+/// sliver of its threshold. The sums are `f64` across the lanes.
+#[allow(clippy::needless_range_loop, clippy::too_many_arguments)] // eight lanes, indexed alike
 #[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
 pub(super) fn interp_model_chi2(
     r: [&[f32]; 2],
     dr: [&[f32]; 2],
     centre: &[f64],
-    [h00, h10, h01, h11]: [f64; 4],
+    hm: [f64; 4],
     y: &[f64],
     w: &[f64],
     noise: &NoiseModel,
 ) -> (f64, f64) {
-    let (var0, shot, rel2) = (&noise.var0[..], &noise.shot[..], noise.rel2);
+    let (var0, shot) = (&noise.var0[..], &noise.shot[..]);
     let n = centre
         .len()
         .min(y.len())
         .min(w.len())
         .min(var0.len())
-        .min(shot.len());
-    let (ra, rb, da, db) = (&r[0][..n], &r[1][..n], &dr[0][..n], &dr[1][..n]);
-    let (centre, y, w, var0, shot) = (&centre[..n], &y[..n], &w[..n], &var0[..n], &shot[..n]);
-    let rel4 = f64x4::splat(rel2);
-    let mut lanes = Chi2Lanes::new();
-    let g = [h00, h10, h01, h11].map(f64x4::splat);
-    let quads = end_quads([ra, rb, da, db], centre)
-        .zip(y.chunks_exact(4))
-        .zip(
-            w.chunks_exact(4)
-                .zip(var0.chunks_exact(4))
-                .zip(shot.chunks_exact(4)),
-        );
-    for ((q, y), ((w, var0), shot)) in quads {
-        let r = hermite_quad(q, g);
-        let var = band_var4(load(var0), load(shot), rel4, r);
-        lanes.add_div(load(w), load(y) - r, var);
+        .min(shot.len())
+        .min(r[0].len())
+        .min(r[1].len())
+        .min(dr[0].len())
+        .min(dr[1].len());
+    let [h00, h10, h01, h11] = hm.map(|h| h as f32);
+    let rel2 = noise.rel2 as f32;
+    let floor = (SIGMA_FLOOR * SIGMA_FLOOR) as f32;
+    let mut acc = Lanes8::default();
+    let whole = n - n % 8;
+    let mut k0 = 0;
+    while k0 < whole {
+        let b = Chunk8 {
+            ra: eight(&r[0][k0..]),
+            rb: eight(&r[1][k0..]),
+            da: eight(&dr[0][k0..]),
+            db: eight(&dr[1][k0..]),
+            centre: eight(&centre[k0..]).map(|v| v as f32),
+            y: eight(&y[k0..]).map(|v| v as f32),
+            w: eight(&w[k0..]).map(|v| v as f32),
+            var0: eight(&var0[k0..]).map(|v| v as f32),
+            shot: eight(&shot[k0..]).map(|v| v as f32),
+        };
+        acc.add(&b, [h00, h10, h01, h11], rel2, floor);
+        k0 += 8;
     }
-    let mut sums = lanes.sums();
-    for k in n - n % 4..n {
-        let r = hermite_at([ra, rb, da, db], centre, [h00, h10, h01, h11], k);
-        sums.add_div(w[k], y[k] - r, band_var(var0[k], shot[k], rel2, r));
+    if whole < n {
+        // The rest padded into one more chunk (a padded band weighs 0 and
+        // its variance is 1: it adds nothing).
+        let mut b = Chunk8::PADDING;
+        for (l, k) in (whole..n).enumerate() {
+            b.ra[l] = r[0][k];
+            b.rb[l] = r[1][k];
+            b.da[l] = dr[0][k];
+            b.db[l] = dr[1][k];
+            b.centre[l] = centre[k] as f32;
+            b.y[l] = y[k] as f32;
+            b.w[l] = w[k] as f32;
+            b.var0[l] = var0[k] as f32;
+            b.shot[l] = shot[k] as f32;
+        }
+        acc.add(&b, [h00, h10, h01, h11], rel2, floor);
     }
-    sums.totals()
+    acc.totals()
+}
+
+/// Eight bands' inputs of [`interp_model_chi2`] in `f32` (fixed-size
+/// arrays: the lane loop carries no bounds checks and vectorises).
+#[derive(Clone, Copy)]
+struct Chunk8 {
+    ra: [f32; 8],
+    rb: [f32; 8],
+    da: [f32; 8],
+    db: [f32; 8],
+    centre: [f32; 8],
+    y: [f32; 8],
+    w: [f32; 8],
+    var0: [f32; 8],
+    shot: [f32; 8],
+}
+
+impl Chunk8 {
+    /// Bands that add nothing: weight 0, variance 1.
+    const PADDING: Chunk8 = Chunk8 {
+        ra: [0.0; 8],
+        rb: [0.0; 8],
+        da: [0.0; 8],
+        db: [0.0; 8],
+        centre: [0.0; 8],
+        y: [0.0; 8],
+        w: [0.0; 8],
+        var0: [1.0; 8],
+        shot: [0.0; 8],
+    };
+}
+
+/// Eight lanes of χ², variance and count sums.
+#[derive(Default)]
+struct Lanes8 {
+    chi2: [f32; 8],
+    var: [f32; 8],
+    used: [f32; 8],
+}
+
+/// The first eight values of `v` (which holds at least eight).
+#[inline(always)]
+fn eight<T: Copy + Default>(v: &[T]) -> [T; 8] {
+    let mut out = [T::default(); 8];
+    out.copy_from_slice(&v[..8]);
+    out
+}
+
+impl Lanes8 {
+    /// One chunk's terms: the interpolant's value (Hermite weights `h`),
+    /// its variance, and `on · w · e² / var` into each lane.
+    #[inline(always)]
+    fn add(&mut self, b: &Chunk8, [h00, h10, h01, h11]: [f32; 4], rel2: f32, floor: f32) {
+        for l in 0..8 {
+            let rv = b.centre[l] + h00 * b.ra[l] + h10 * b.da[l] + h01 * b.rb[l] + h11 * b.db[l];
+            let rp = rv.max(0.0);
+            let var = (b.var0[l] + b.shot[l] * rp + rel2 * rp * rp).max(floor);
+            let e = b.y[l] - rv;
+            let on = if b.w[l] != 0.0 { 1.0 } else { 0.0 };
+            self.chi2[l] += on * b.w[l] * e * e / var;
+            self.var[l] += on * var;
+            self.used[l] += on;
+        }
+    }
+
+    /// χ² and the mean variance of the bands used (0 with none), summed
+    /// across the lanes in `f64`.
+    fn totals(&self) -> (f64, f64) {
+        let sum = |a: &[f32; 8]| a.iter().map(|&v| f64::from(v)).sum::<f64>();
+        let used = sum(&self.used);
+        let mean = if used > 0.0 {
+            sum(&self.var) / used
+        } else {
+            0.0
+        };
+        (sum(&self.chi2), mean)
+    }
 }
 
 /// Four bands of a grid interval's ends and the bands' centres: `A`,

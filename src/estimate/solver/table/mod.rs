@@ -627,7 +627,8 @@ impl ThicknessTable {
     /// χ² of `y` (weights `w`) against the interpolant at `d` under the
     /// reflectance-dependent `noise`, and the bands' mean variance:
     /// [`Self::values`] and [`NoiseModel::chi2_and_mean_var`] in one pass,
-    /// with their arithmetic (the same numbers to the bit).
+    /// in `f32` lanes (to ~1e-5 of χ² at a camera's noise, ~1e-4 at the
+    /// σ floor: see `interp_model_chi2`).
     pub fn chi2_model(&self, d: f64, y: &[f64], w: &[f64], noise: &NoiseModel) -> (f64, f64) {
         let (j, t) = self.interval_of(d);
         let hm = self.hermite(t);
@@ -1067,9 +1068,13 @@ mod tests {
 
     /// The fused χ² under a reflectance-dependent noise model (read, shot
     /// and scale terms, as a camera's calibration gives) is the values
-    /// then [`NoiseModel::chi2_and_mean_var`], to the bit, and both are
-    /// the definition summed plainly (to rounding), with bands dropped
-    /// and spectra lying off the model by up to 0.02.
+    /// then [`NoiseModel::chi2_and_mean_var`] to the `f32` lanes'
+    /// precision, and that is the definition summed plainly (to
+    /// rounding), with bands dropped and spectra lying off the model by up
+    /// to 0.02. The fused pass forms `y − R` in `f32`: ~1e-8 of rounding
+    /// on a residual of σ ≥ 1e-3 here, so χ² within 1e-4 (ten times the
+    /// expected error) and the mean variance, a sum of positive terms,
+    /// within 1e-6.
     #[test]
     fn fused_chi2_matches_values_then_model_chi2() {
         use crate::estimate::noise::{NoiseModel, NoiseSource};
@@ -1083,6 +1088,7 @@ mod tests {
         };
         let mut out = ModelOut::new(31);
         let mut r = vec![0.0; 31];
+        let mut worst = 0f64;
         for i in 0..500 {
             let d = 3.1 + i as f64 * 3.97;
             let offset = if i % 7 == 0 { -0.02 } else { 0.0 };
@@ -1104,12 +1110,15 @@ mod tests {
                 "{c1} vs {plain}"
             );
             assert!((v1 - mean).abs() <= 1e-12 * mean, "{v1} vs {mean}");
-            assert_eq!(
-                (c1.to_bits(), v1.to_bits()),
-                (c2.to_bits(), v2.to_bits()),
-                "d = {d}"
-            );
+            assert!((c2 - c1).abs() <= 1e-4 * c1, "d = {d}: {c2} vs {c1}");
+            assert!((v2 - v1).abs() <= 1e-6 * v1, "d = {d}: {v2} vs {v1}");
+            worst = worst.max((c2 - c1).abs() / c1);
         }
+        // Not vacuous: f32 rounding shows, well inside the bound.
+        assert!(
+            worst > 0.0 && worst < 1e-4,
+            "worst relative χ² error {worst}"
+        );
     }
 
     /// The interpolant against the exact model between grid points: its
@@ -1274,7 +1283,11 @@ mod tests {
     /// `poly_min` against a dense scan of random sextics shaped like a
     /// residual on one interval (a parabola plus smaller higher powers, the
     /// vertex anywhere near or beyond the interval): never above the scan's
-    /// lowest value, and at the same place.
+    /// lowest value by more than 1e-9 of it, and at the same place. Newton
+    /// stops after a step under 1e-3, which leaves the point within
+    /// ~K·1e-6 of the minimum (K = |p‴/2p″|, below 1 for these shapes) and
+    /// the value within ~p″·1e-12 of it: for a residual, a billionth of a
+    /// noise variance.
     #[test]
     fn polynomial_minimum_matches_a_dense_scan() {
         use rand::{Rng, SeedableRng};
@@ -1296,11 +1309,7 @@ mod tests {
                     (x, poly_eval(&p, x).0)
                 })
                 .fold((0.0, f64::INFINITY), |a, b| if b.1 < a.1 { b } else { a });
-            assert!(
-                v <= scan.1 + 1e-12 * scan.1.abs(),
-                "{p:?}: {v} > {}",
-                scan.1
-            );
+            assert!(v <= scan.1 + 1e-9 * scan.1.abs(), "{p:?}: {v} > {}", scan.1);
             assert!((t - scan.0).abs() < 2e-3, "{p:?}: t {t} vs {}", scan.0);
         }
     }
