@@ -117,7 +117,54 @@ pub(super) fn poly_min(p: &[f64; 7]) -> (f64, f64) {
             t = nt;
         }
     }
+    // Where Newton left the interval: on a convex residual whose slope
+    // keeps its sign across the interval the minimum is the end it falls
+    // towards (a walk's intervals short of the minimum), which the
+    // bracketed search below would reach after nine evaluations.
+    if let Some(end) = convex_end(p) {
+        let v = value_at_end(p, end);
+        return if v <= ends.1 { (end, v) } else { ends };
+    }
     poly_min_bracketed(p, ends)
+}
+
+/// The end of `[0, 1]` where `p` is lowest, if `p` is convex on the
+/// interval (every Bernstein coefficient of `p″` positive: `p″` lies in
+/// their convex hull) and its slope does not change sign there; `None`
+/// otherwise.
+fn convex_end(p: &[f64; 7]) -> Option<f64> {
+    let a = [
+        2.0 * p[2],
+        6.0 * p[3],
+        12.0 * p[4],
+        20.0 * p[5],
+        30.0 * p[6],
+    ];
+    // `p″` of degree 4 in Bernstein form: b_j = Σ_{i≤j} C(j,i)/C(4,i)·a_i.
+    let b = [
+        a[0],
+        a[0] + a[1] / 4.0,
+        a[0] + a[1] / 2.0 + a[2] / 6.0,
+        a[0] + 0.75 * a[1] + 0.5 * a[2] + 0.25 * a[3],
+        a[0] + a[1] + a[2] + a[3] + a[4],
+    ];
+    if !b.iter().all(|&v| v > 0.0) {
+        return None;
+    }
+    let slope_1 = p[1] + 2.0 * p[2] + 3.0 * p[3] + 4.0 * p[4] + 5.0 * p[5] + 6.0 * p[6];
+    if slope_1 <= 0.0 {
+        Some(1.0)
+    } else if p[1] >= 0.0 {
+        Some(0.0)
+    } else {
+        None
+    }
+}
+
+/// `p` at an end of the interval as [`poly_min_bracketed`] evaluates it
+/// there (Horner), so both give the same numbers.
+fn value_at_end(p: &[f64; 7], end: f64) -> f64 {
+    poly_eval(p, end).0
 }
 
 /// [`poly_min`]'s fallback: the best of nine samples (or an end), then
@@ -165,6 +212,49 @@ pub(super) fn poly_min_bracketed(p: &[f64; 7], ends: (f64, f64)) -> (f64, f64) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Where the minimum is an end of a convex residual, the shortcut gives
+    /// what the bracketed search gives, to the bit: parabolas with their
+    /// vertex beyond either end plus smaller higher powers.
+    #[test]
+    fn a_convex_residuals_end_is_the_bracketed_searchs() {
+        let mut shortcuts = 0;
+        for i in 0..400 {
+            let c = |k: usize| ((i * 7 + k * 13) as f64 * 0.37).sin();
+            let vertex = if i % 2 == 0 {
+                1.2 + c(0).abs()
+            } else {
+                -0.2 - c(0).abs()
+            };
+            let curv = 0.1 + 5.0 * c(1).abs();
+            let mut p = [0.0; 7];
+            p[0] = 1.0 + curv * vertex * vertex;
+            p[1] = -2.0 * curv * vertex;
+            p[2] = curv;
+            for (k, q) in p.iter_mut().enumerate().skip(3) {
+                *q = 0.05 * curv * c(k);
+            }
+            let ends = if p.iter().sum::<f64>() < p[0] {
+                (1.0, p.iter().sum::<f64>())
+            } else {
+                (0.0, p[0])
+            };
+            if let Some(end) = convex_end(&p) {
+                shortcuts += 1;
+                let v = value_at_end(&p, end);
+                let short = if v <= ends.1 { (end, v) } else { ends };
+                let full = poly_min_bracketed(&p, ends);
+                assert_eq!(
+                    (short.0.to_bits(), short.1.to_bits()),
+                    (full.0.to_bits(), full.1.to_bits()),
+                    "{p:?}"
+                );
+                assert_eq!(end, if vertex > 1.0 { 1.0 } else { 0.0 }, "{p:?}");
+            }
+        }
+        // These shapes are convex with the vertex outside: every one.
+        assert_eq!(shortcuts, 400);
+    }
 
     #[test]
     fn estrins_values_and_slopes_match_horners() {
