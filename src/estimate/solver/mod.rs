@@ -164,9 +164,10 @@ pub struct Scratch {
     trial: ModelOut,
     /// The thickness table's working memory.
     grid: table::GridScratch,
-    /// `fast`: the previous pixel's table (angle bits) and grid point,
-    /// within the current row.
-    hint: Option<(u64, usize)>,
+    /// The previous pixel's table (angle bits) and fitted thickness, and
+    /// the one before it at the same table (NaN where it had none), within
+    /// the current row: where the walk on the table starts.
+    hint: Option<table::Hint>,
     /// `balanced`: how far the previous pixel's neighbouring fringe order
     /// fell short of its fit, within the current row.
     order_margin: Option<alternatives::OrderMargin>,

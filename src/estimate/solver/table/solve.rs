@@ -4,7 +4,7 @@
 //! angles), judged as every fit is; runs of poor fits settled without a
 //! scan.
 
-use super::{GridMin, ThicknessTable, ORDER_GAP_SAFE};
+use super::{GridMin, Hint, ThicknessTable, ORDER_GAP_SAFE};
 use crate::estimate::noise::FlatNoise;
 use crate::estimate::solver::alternatives::{OrderMargin, WEAK_FRINGES};
 use crate::estimate::solver::refine::sse;
@@ -44,12 +44,13 @@ impl Solver {
         // test: at σ = 0.01 on the thin coating 1.2 % of its valid pixels
         // were a fringe order off.)
         if exact && effort.warm {
-            if let Some((_, j0)) = scratch.hint.filter(|h| h.0 == key) {
+            if let Some(hint) = scratch.hint.filter(|h| h.key == key) {
                 let verify = effort.verify_order;
+                let j0 = table.interval_index(hint.predicted(table.step()));
                 if let Some(out) = self.table_warm(
                     prep, table, theta, j0, n_ok, noise, lam_min, verify, scratch,
                 ) {
-                    scratch.hint = Some((key, table.interval_index(out.0.thickness_nm)));
+                    scratch.hint = Some(hint.then(out.0.thickness_nm));
                     // A valid pixel ends the run of poor ones: the next
                     // poor pixel scans and becomes the reference (the
                     // distance to a stale one would be paid on every
@@ -100,8 +101,17 @@ impl Solver {
             }
         }
         let out = self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch);
-        scratch.hint =
-            (exact && out.0.is_valid()).then(|| (key, table.interval_index(out.0.thickness_nm)));
+        scratch.hint = (exact && out.0.is_valid()).then(|| {
+            let start = Hint {
+                key,
+                d: f64::NAN,
+                before: f64::NAN,
+            };
+            match scratch.hint.filter(|h| h.key == key) {
+                Some(h) => h.then(out.0.thickness_nm),
+                None => start.then(out.0.thickness_nm),
+            }
+        });
         if out.0.is_valid() {
             scratch.poor = None;
         }
