@@ -140,10 +140,10 @@ pub(super) fn interp_chi2(
 
 /// [`ThicknessTable::chi2_model`]: per band the interpolant's value and
 /// its χ² term under the reflectance-dependent noise (the variance at
-/// that value, as [`band_var`] forms it), eight bands a step in `f32`
-/// lanes: the values never leave the registers, and an `f32` division
-/// costs a third of an `f64` one per lane (this pass was a fifth of a
-/// live pixel's time, its 31 divisions the half of it).
+/// that value, as `noise::band_var` forms it), eight bands a step in
+/// `f32` lanes: the values never leave the registers, and an `f32`
+/// division costs a third of an `f64` one per lane (this pass had taken
+/// 15 % of a live pixel's time; 8 % since).
 ///
 /// Precision: the residual `y − R` is formed in `f32` from values of
 /// order 1, so it carries ~1e-8 of absolute rounding against a noise σ of

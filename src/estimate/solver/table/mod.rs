@@ -65,6 +65,15 @@ pub(in crate::estimate::solver) struct Hint {
 }
 
 impl Hint {
+    /// A row's first fit at table `key` is yet to come.
+    pub fn start(key: u64) -> Hint {
+        Hint {
+            key,
+            d: f64::NAN,
+            before: f64::NAN,
+        }
+    }
+
     /// After a pixel fitted at `d`.
     pub fn then(self, d: f64) -> Hint {
         Hint {
@@ -1425,12 +1434,7 @@ mod tests {
     #[test]
     fn the_next_walk_starts_on_the_rows_ramp() {
         let h = 0.5;
-        let first = Hint {
-            key: 7,
-            d: f64::NAN,
-            before: f64::NAN,
-        }
-        .then(100.0);
+        let first = Hint::start(7).then(100.0);
         assert_eq!(first.predicted(h), 100.0);
         let ramp = first.then(101.5);
         assert_eq!(ramp.predicted(h), 103.0);

@@ -102,15 +102,8 @@ impl Solver {
         }
         let out = self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch);
         scratch.hint = (exact && out.0.is_valid()).then(|| {
-            let start = Hint {
-                key,
-                d: f64::NAN,
-                before: f64::NAN,
-            };
-            match scratch.hint.filter(|h| h.key == key) {
-                Some(h) => h.then(out.0.thickness_nm),
-                None => start.then(out.0.thickness_nm),
-            }
+            let hint = scratch.hint.filter(|h| h.key == key);
+            hint.unwrap_or(Hint::start(key)).then(out.0.thickness_nm)
         });
         if out.0.is_valid() {
             scratch.poor = None;
