@@ -672,12 +672,14 @@ impl Solver {
         // a ~500 nm one at 15° passed valid while the 500 nm basin, third,
         // fitted within the margin).
         // The best fit in another basin: the lowest of those apart from the
-        // best (the best itself never is).
-        let basin = basin(scratch);
-        let apart = |f: &&Fit| (f.d - best.d).abs() > basin;
-        if let Some(second) = all().filter(apart).min_by(by_sse) {
-            if second.sse - best.sse < AMBIGUITY_CHI2 * var {
-                reason = Reason::AmbiguousOrder;
+        // best (the best itself never is; a lone fit has none to weigh).
+        if own.len() + n_alt > 1 {
+            let basin = basin(scratch);
+            let apart = |f: &&Fit| (f.d - best.d).abs() > basin;
+            if let Some(second) = all().filter(apart).min_by(by_sse) {
+                if second.sse - best.sse < AMBIGUITY_CHI2 * var {
+                    reason = Reason::AmbiguousOrder;
+                }
             }
         }
         if judging && !self.fit_passes(chi2, n_ok, n_par) {

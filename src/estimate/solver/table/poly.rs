@@ -122,7 +122,8 @@ pub(super) fn poly_min(p: &[f64; 7]) -> (f64, f64) {
     // towards (a walk's intervals short of the minimum), which the
     // bracketed search below would reach after nine evaluations.
     if let Some(end) = convex_end(p) {
-        let v = value_at_end(p, end);
+        // Horner, as the bracketed search evaluates it: the same numbers.
+        let v = poly_eval(p, end).0;
         return if v <= ends.1 { (end, v) } else { ends };
     }
     poly_min_bracketed(p, ends)
@@ -133,13 +134,7 @@ pub(super) fn poly_min(p: &[f64; 7]) -> (f64, f64) {
 /// their convex hull) and its slope does not change sign there; `None`
 /// otherwise.
 fn convex_end(p: &[f64; 7]) -> Option<f64> {
-    let a = [
-        2.0 * p[2],
-        6.0 * p[3],
-        12.0 * p[4],
-        20.0 * p[5],
-        30.0 * p[6],
-    ];
+    let Derivatives { d1, d2: a } = Derivatives::of(p);
     // `p″` of degree 4 in Bernstein form: b_j = Σ_{i≤j} C(j,i)/C(4,i)·a_i.
     let b = [
         a[0],
@@ -151,7 +146,7 @@ fn convex_end(p: &[f64; 7]) -> Option<f64> {
     if !b.iter().all(|&v| v > 0.0) {
         return None;
     }
-    let slope_1 = p[1] + 2.0 * p[2] + 3.0 * p[3] + 4.0 * p[4] + 5.0 * p[5] + 6.0 * p[6];
+    let slope_1: f64 = d1.iter().sum();
     if slope_1 <= 0.0 {
         Some(1.0)
     } else if p[1] >= 0.0 {
@@ -159,12 +154,6 @@ fn convex_end(p: &[f64; 7]) -> Option<f64> {
     } else {
         None
     }
-}
-
-/// `p` at an end of the interval as [`poly_min_bracketed`] evaluates it
-/// there (Horner), so both give the same numbers.
-fn value_at_end(p: &[f64; 7], end: f64) -> f64 {
-    poly_eval(p, end).0
 }
 
 /// [`poly_min`]'s fallback: the best of nine samples (or an end), then
@@ -241,7 +230,7 @@ mod tests {
             };
             if let Some(end) = convex_end(&p) {
                 shortcuts += 1;
-                let v = value_at_end(&p, end);
+                let v = poly_eval(&p, end).0;
                 let short = if v <= ends.1 { (end, v) } else { ends };
                 let full = poly_min_bracketed(&p, ends);
                 assert_eq!(
