@@ -472,7 +472,9 @@ pub fn run(a: &FitArgs) -> anyhow::Result<()> {
         solve_s,
         solve_pixels_per_s: pixels as f64 / solve_s.max(1e-9),
         mode: a.mode.name(),
-        noise_sigma: solver.noise().map_or(f64::NAN, |n| n.typical_sigma(0.05)),
+        noise_sigma: solver
+            .noise()
+            .map_or(f64::NAN, |n| n.instrument_sigma(0.05)),
         noise_source: solver.noise().map_or("none", |n| n.source.name()),
         reflectance_accuracy: solver.noise().map_or(0.0, |n| n.accuracy()),
         level: solver.level().1.name(),

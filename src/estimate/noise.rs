@@ -340,6 +340,19 @@ impl NoiseModel {
         ((0..self.var0.len()).map(|k| self.var(k, r)).sum::<f64>() / n).sqrt()
     }
 
+    /// The instrument's typical σ at reflectance `r`: [`typical_sigma`]
+    /// without the reflectance-scale accuracy, which is reported beside it
+    /// (a σ of 1e-3 judged with ε = 10 % would otherwise read 5e-3).
+    ///
+    /// [`typical_sigma`]: NoiseModel::typical_sigma
+    pub fn instrument_sigma(&self, r: f64) -> f64 {
+        let n = self.var0.len().max(1) as f64;
+        let sum: f64 = (0..self.var0.len())
+            .map(|k| band_var(self.var0[k], self.shot[k], 0.0, r))
+            .sum();
+        (sum / n).sqrt()
+    }
+
     /// Whether every band's variance is the same constant (a scalar σ).
     pub fn is_uniform(&self) -> bool {
         self.rel2 == 0.0
@@ -588,6 +601,20 @@ mod tests {
     /// `max_var_below` against a dense scan of the variance over [0, r_max]
     /// (a shot term that falls with R against a scale accuracy that rises,
     /// so neither end alone is the largest for every band).
+    #[test]
+    fn the_instrument_sigma_leaves_the_scale_accuracy_out() {
+        // σ = 1e-3 judged with ε = 10 %: at R = 0.05 the variance the fits
+        // are judged with is 1e-6 + (0.1 · 0.05)², 26× the instrument's.
+        let m = NoiseModel::uniform(1e-3, 4, NoiseSource::Given).with_accuracy(0.1);
+        let judged = (1e-6_f64 + 0.005 * 0.005).sqrt();
+        assert!((m.typical_sigma(0.05) - judged).abs() < 1e-12 * judged);
+        assert!((m.instrument_sigma(0.05) - 1e-3).abs() < 1e-15);
+        // A shot term stays the instrument's: σ² = 1e-6 + 4e-6 · R.
+        let mut shot = NoiseModel::uniform(1e-3, 2, NoiseSource::Given).with_accuracy(0.1);
+        shot.shot = vec![4e-6; 2];
+        assert!((shot.instrument_sigma(0.5) - 3e-6_f64.sqrt()).abs() < 1e-15);
+    }
+
     #[test]
     fn max_var_below_is_the_largest_variance_up_to_r_max() {
         let src = NoiseSource::Given;

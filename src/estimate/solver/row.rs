@@ -375,7 +375,7 @@ impl Solver {
             (
                 "noise_sigma".to_string(),
                 self.noise.as_ref().map_or("unknown".into(), |n| {
-                    format!("{:.3e}", n.typical_sigma(0.05))
+                    format!("{:.3e}", n.instrument_sigma(0.05))
                 }),
             ),
             (
