@@ -31,6 +31,7 @@ macro_rules! overlapped {
 
 mod node;
 mod real;
+mod real32;
 
 use super::fastmath::{sin_cos, sin_cos_bounded};
 use crate::optics::airy;
@@ -40,6 +41,7 @@ use crate::optics::{Complex64, Media, Polarization};
 use multiversion::multiversion;
 use node::NodeCoef;
 use real::{real_nodes_kernel, RealArgs, RealNodes};
+use real32::{real_nodes_kernel32, RealNodes32};
 use std::f64::consts::PI;
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -343,6 +345,8 @@ pub struct FilmModel {
     /// The real path's per-node constants where the media are lossless
     /// but disperse (empty otherwise).
     real_nodes: RealNodes,
+    /// The same in `f32`, for films and angles where that is exact enough.
+    real_nodes32: RealNodes32,
     /// Node `i` is band `i`'s only node (every band point-sampled).
     one_node_per_band: bool,
     s_weight: f64,
@@ -531,6 +535,7 @@ impl FilmModel {
         let one_node_per_band =
             nodes.len() == bands.len() && nodes.iter().enumerate().all(|(i, n)| n.band == i);
         Ok(FilmModel {
+            real_nodes32: RealNodes32::new(&real_nodes),
             real_nodes,
             one_node_per_band,
             grid: Default::default(),
@@ -777,6 +782,16 @@ impl FilmModel {
         );
     }
 
+    /// Every node of the real dispersive path: in `f32` lanes where they
+    /// are exact enough ([`real32`]), else in `f64`.
+    fn real_kernel(&self, args: RealArgs, r: &mut [f64], dd: &mut [f64], dth: &mut [f64]) {
+        if self.real_nodes32.applies(args.d, args.s) {
+            real_nodes_kernel32(&self.real_nodes32, args, r, dd, dth);
+        } else {
+            real_nodes_kernel(&self.real_nodes, args, r, dd, dth);
+        }
+    }
+
     /// Lossless dispersive media ([`real`]): every node exact at its own
     /// indices, straight into the bands where each band is one node,
     /// summed by weight where passbands are integrated.
@@ -796,13 +811,7 @@ impl FilmModel {
             let ModelOut {
                 r, dr_dd, dr_dth, ..
             } = out;
-            real_nodes_kernel(
-                &self.real_nodes,
-                args,
-                &mut r[..nb],
-                &mut dr_dd[..nb],
-                &mut dr_dth[..nb],
-            );
+            self.real_kernel(args, &mut r[..nb], &mut dr_dd[..nb], &mut dr_dth[..nb]);
             return;
         }
         let nn = self.nodes.len();
@@ -810,7 +819,7 @@ impl FilmModel {
             v.resize(nn, 0.0);
         }
         let [nr, ndd, ndth] = &mut out.node;
-        real_nodes_kernel(&self.real_nodes, args, nr, ndd, ndth);
+        self.real_kernel(args, nr, ndd, ndth);
         out.r[..nb].fill(0.0);
         if deriv {
             out.dr_dd[..nb].fill(0.0);
@@ -1078,33 +1087,47 @@ mod tests {
                 )
                 .unwrap();
                 assert_eq!(m.real_nodes.len(), m.nodes.len(), "the real path applies");
-                let mut out = ModelOut::new(31);
-                let (mut refr, mut hi, mut lo) =
-                    (ModelOut::new(31), ModelOut::new(31), ModelOut::new(31));
-                for (d, deg) in [(87.0, 0.0), (487.0, 12.5), (1312.0, 45.0), (3001.0, 80.0)] {
-                    let th = f64::to_radians(deg);
-                    m.eval(d, th, &mut out, true);
-                    refr.r.fill(0.0);
-                    m.eval_complex(d, th, &mut refr, false);
-                    for k in 0..31 {
-                        assert!((out.r[k] - refr.r[k]).abs() < 1e-13, "{deg}° band {k}");
-                    }
-                    let (e_d, e_t) = (1e-4, 1e-5);
-                    for (step, analytic, scale) in [
-                        ((e_d, 0.0), &out.dr_dd, 1e-7),
-                        ((0.0, e_t), &out.dr_dth, 1e-6),
-                    ] {
-                        hi.r.fill(0.0);
-                        lo.r.fill(0.0);
-                        m.eval_complex(d + step.0, th + step.1, &mut hi, false);
-                        m.eval_complex(d - step.0, (th - step.1).abs(), &mut lo, false);
-                        let h = 2.0 * (step.0 + step.1);
-                        for (k, &an) in analytic.iter().enumerate().take(31) {
-                            let fd = (hi.r[k] - lo.r[k]) / h;
-                            assert!(
-                                (fd - an).abs() < scale * (1.0 + fd.abs()) * 10.0,
-                                "{pol:?} {deg}° band {k}: {fd} vs {an}"
-                            );
+                // The f64 kernel alone (its f32 lanes taken away), then the
+                // model as it runs: f32 lanes where they apply, within
+                // their error budget (`real32`: |ΔR| ≲ 1e-5; here, at
+                // phases up to ~140 rad, 1e-6).
+                let mut m64 = m.clone();
+                m64.real_nodes32 = RealNodes32::default();
+                for (m, tol) in [(&m64, 1e-13), (&m, 1e-6)] {
+                    let mut out = ModelOut::new(31);
+                    let (mut refr, mut hi, mut lo) =
+                        (ModelOut::new(31), ModelOut::new(31), ModelOut::new(31));
+                    for (d, deg) in [(87.0, 0.0), (487.0, 12.5), (1312.0, 45.0), (3001.0, 80.0)] {
+                        let th = f64::to_radians(deg);
+                        assert_eq!(
+                            m.real_nodes32.applies(d, th.sin()),
+                            tol > 1e-13,
+                            "{d} nm at {deg}°: the f32 lanes apply in the model as it runs"
+                        );
+                        m.eval(d, th, &mut out, true);
+                        refr.r.fill(0.0);
+                        m.eval_complex(d, th, &mut refr, false);
+                        let worst = (0..31)
+                            .map(|k| (out.r[k] - refr.r[k]).abs())
+                            .fold(0.0, f64::max);
+                        assert!(worst < tol, "{deg}°: {worst}");
+                        let (e_d, e_t) = (1e-4, 1e-5);
+                        for (step, analytic, scale) in [
+                            ((e_d, 0.0), &out.dr_dd, 1e-7),
+                            ((0.0, e_t), &out.dr_dth, 1e-6),
+                        ] {
+                            hi.r.fill(0.0);
+                            lo.r.fill(0.0);
+                            m.eval_complex(d + step.0, th + step.1, &mut hi, false);
+                            m.eval_complex(d - step.0, (th - step.1).abs(), &mut lo, false);
+                            let h = 2.0 * (step.0 + step.1);
+                            for (k, &an) in analytic.iter().enumerate().take(31) {
+                                let fd = (hi.r[k] - lo.r[k]) / h;
+                                assert!(
+                                    (fd - an).abs() < scale * (1.0 + fd.abs()) * 10.0,
+                                    "{pol:?} {deg}° band {k}: {fd} vs {an}"
+                                );
+                            }
                         }
                     }
                 }
