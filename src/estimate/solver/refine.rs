@@ -7,6 +7,7 @@
 use super::{Fit, Scratch, Solver};
 use crate::estimate::fastmath::sin_cos;
 use crate::estimate::model::{FilmModel, ModelOut};
+use multiversion::multiversion;
 
 /// The smallest angle a free-angle refinement starts from (rad, ~3°).
 pub(super) const MIN_FREE_THETA: f64 = 0.05;
@@ -68,6 +69,8 @@ impl Solver {
         let max_dd = 0.25 * 400.0 / (2.0 * model.n2_mid());
         let valley = Valley::new(model);
         let mut stalled = true;
+        // The raw sums at (d, θ), while they are its.
+        let mut final_sums = None;
         for _ in 0..iters {
             // With the angle free the steps are taken in (g, s): the
             // optical thickness g = d·n2·cos θ2 and s = sin²θ. The fringes
@@ -79,17 +82,9 @@ impl Solver {
             // its minimum). R is smooth in s, so normal incidence is no
             // longer a point where the angle's slope vanishes.
             let jac = valley.jacobian(d, th, free_theta);
-            let (mut a, mut b, mut c, mut gd, mut gt) = (0.0, 0.0, 0.0, 0.0, 0.0);
-            for k in 0..s.spectrum.len() {
-                let w = s.weight[k];
-                let e = s.spectrum[k] - s.cur.r[k];
-                let (jd, jt) = jac.apply(s.cur.dr_dd[k], s.cur.dr_dth[k]);
-                a += w * jd * jd;
-                b += w * jd * jt;
-                c += w * jt * jt;
-                gd += w * jd * e;
-                gt += w * jt * e;
-            }
+            let sums = raw_sums(s, free_theta);
+            final_sums = Some(sums);
+            let [a, b, c, gd, gt] = jac.apply_sums(sums);
             let mut accepted = false;
             for _ in 0..6 {
                 let (sd, st) = if free_theta {
@@ -132,6 +127,7 @@ impl Solver {
                     d = nd;
                     th = nt;
                     cur_sse = new_sse;
+                    final_sums = None;
                     std::mem::swap(&mut s.cur, &mut s.trial);
                     mu = (mu * 0.3).max(1e-9);
                     accepted = !small;
@@ -148,15 +144,7 @@ impl Solver {
             model: model.id(),
             at: (d, th),
         });
-        let (mut a, mut b, mut c) = (0.0, 0.0, 0.0);
-        for k in 0..s.spectrum.len() {
-            let w = s.weight[k];
-            let jd = s.cur.dr_dd[k];
-            let jt = if free_theta { s.cur.dr_dth[k] } else { 0.0 };
-            a += w * jd * jd;
-            b += w * jd * jt;
-            c += w * jt * jt;
-        }
+        let [a, b, c, _, _] = final_sums.unwrap_or_else(|| raw_sums(s, free_theta));
         Fit {
             d,
             theta: th,
@@ -239,13 +227,62 @@ impl CurAt {
     }
 }
 
-#[inline]
+/// `Σ w (y − r)²`, in four independent lanes (a single sum waits on
+/// each addition; four vectorise).
+#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
 pub(super) fn sse(y: &[f64], w: &[f64], r: &[f64]) -> f64 {
-    y.iter()
-        .zip(w)
-        .zip(r)
-        .map(|((y, w), r)| w * (y - r) * (y - r))
-        .sum()
+    let n = y.len().min(w.len()).min(r.len());
+    let (y, w, r) = (&y[..n], &w[..n], &r[..n]);
+    let mut acc = [0.0; 4];
+    let whole = n - n % 4;
+    for k0 in (0..whole).step_by(4) {
+        for l in 0..4 {
+            let e = y[k0 + l] - r[k0 + l];
+            acc[l] += w[k0 + l] * e * e;
+        }
+    }
+    for k in whole..n {
+        let e = y[k] - r[k];
+        acc[0] += w[k] * e * e;
+    }
+    (acc[0] + acc[1]) + (acc[2] + acc[3])
+}
+
+/// The weighted sums of one Gauss–Newton step in `(d, θ)`: `[Σ w jd²,
+/// Σ w jd jt, Σ w jt², Σ w jd e, Σ w jt e]`, `e = y − r`; with `theta`
+/// false the angle's terms are 0 (its slope may not even be computed).
+/// Four independent lanes, so the band loop vectorises.
+#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+fn normal_sums(y: &[f64], w: &[f64], r: &[f64], jd: &[f64], jt: &[f64], theta: bool) -> [f64; 5] {
+    let n = y
+        .len()
+        .min(w.len())
+        .min(r.len())
+        .min(jd.len())
+        .min(jt.len());
+    let (y, w, r, jd, jt) = (&y[..n], &w[..n], &r[..n], &jd[..n], &jt[..n]);
+    let mut acc = [[0.0; 4]; 5];
+    let whole = n - n % 4;
+    let term = |acc: &mut [[f64; 4]; 5], l: usize, k: usize| {
+        let e = y[k] - r[k];
+        let wd = w[k] * jd[k];
+        // No NaN from a slope not computed.
+        let t = if theta { jt[k] } else { 0.0 };
+        acc[0][l] += wd * jd[k];
+        acc[1][l] += wd * t;
+        acc[2][l] += w[k] * t * t;
+        acc[3][l] += wd * e;
+        acc[4][l] += w[k] * t * e;
+    };
+    for k0 in (0..whole).step_by(4) {
+        for l in 0..4 {
+            term(&mut acc, l, k0 + l);
+        }
+    }
+    for k in whole..n {
+        term(&mut acc, 0, k);
+    }
+    acc.map(|a| (a[0] + a[1]) + (a[2] + a[3]))
 }
 
 /// The refinement's coordinates with the angle free: the optical thickness
@@ -272,10 +309,35 @@ struct ValleyJacobian {
     g0: f64,
 }
 
+/// [`normal_sums`] of the current evaluation in `s`.
+fn raw_sums(s: &Scratch, theta: bool) -> [f64; 5] {
+    let c = &s.cur;
+    normal_sums(&s.spectrum, &s.weight, &c.r, &c.dr_dd, &c.dr_dth, theta)
+}
+
 impl ValleyJacobian {
+    /// The Gauss–Newton matrix and gradient in the step's coordinates,
+    /// `[a, b, c, gd, gt]`, from the raw sums in `(d, θ)` ([`normal_sums`]):
+    /// the chain rule of [`ValleyJacobian::apply`] taken on the sums (it is
+    /// linear), not band by band.
+    fn apply_sums(&self, [sdd, sdt, stt, gd, gt]: [f64; 5]) -> [f64; 5] {
+        let g = self.dd_dg;
+        if self.dth_ds == 0.0 {
+            return [g * g * sdd, 0.0, 0.0, g * gd, 0.0];
+        }
+        let (u, v) = (self.dd_ds, self.dth_ds);
+        [
+            g * g * sdd,
+            g * (u * sdd + v * sdt),
+            u * u * sdd + 2.0 * u * v * sdt + v * v * stt,
+            g * gd,
+            u * gd + v * gt,
+        ]
+    }
+
     /// `(∂R/∂g, ∂R/∂s)` from `(∂R/∂d, ∂R/∂θ)` (with the angle known,
     /// `(∂R/∂d, 0)`).
-    #[inline]
+    #[cfg(test)]
     fn apply(&self, jd: f64, jt: f64) -> (f64, f64) {
         if self.dth_ds == 0.0 {
             // The angle held: its slope may not even be computed.
@@ -407,5 +469,59 @@ impl Valley {
         } else {
             (nd, nt)
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The chain rule taken on the sums equals the step's sums formed band
+    /// by band, with the angle free and held (a NaN slope where the angle
+    /// is held is never read), and the lanes' `sse` equals the plain sum.
+    #[test]
+    fn the_sums_chain_rule_matches_band_by_band() {
+        let n = 37; // not a multiple of four: the tail counts too
+        let f = |k: usize, a: f64, b: f64| (a * k as f64 + b).sin();
+        let y: Vec<f64> = (0..n).map(|k| 0.3 + 0.1 * f(k, 0.7, 0.1)).collect();
+        let r: Vec<f64> = (0..n).map(|k| 0.3 + 0.1 * f(k, 0.69, 0.2)).collect();
+        let w: Vec<f64> = (0..n)
+            .map(|k| {
+                if k == 5 {
+                    0.0
+                } else {
+                    1.0 + 0.5 * f(k, 1.3, 0.0)
+                }
+            })
+            .collect();
+        let jd: Vec<f64> = (0..n).map(|k| 0.01 * f(k, 0.4, 1.0)).collect();
+        let jt: Vec<f64> = (0..n).map(|k| 0.2 * f(k, 0.9, -0.3)).collect();
+        let valley = Valley {
+            n1_sq: 1.0,
+            n2_sq: 1.46 * 1.46,
+        };
+        for free in [true, false] {
+            let jac = valley.jacobian(812.0, 0.4, free);
+            let jt_used: Vec<f64> = if free { jt.clone() } else { vec![f64::NAN; n] };
+            let sums = normal_sums(&y, &w, &r, &jd, &jt_used, free);
+            let got = jac.apply_sums(sums);
+            let mut want = [0.0; 5];
+            for k in 0..n {
+                let (a, b) = jac.apply(jd[k], jt_used[k]);
+                let e = y[k] - r[k];
+                for (v, t) in want.iter_mut().zip([a * a, a * b, b * b, a * e, b * e]) {
+                    *v += w[k] * t;
+                }
+            }
+            for (g, w) in got.iter().zip(want) {
+                assert!(
+                    (g - w).abs() <= 1e-12 * (w.abs() + 1e-12),
+                    "{free}: {got:?} vs {want:?}"
+                );
+            }
+            assert_eq!(got[1] == 0.0 && got[2] == 0.0 && got[4] == 0.0, !free);
+        }
+        let plain: f64 = (0..n).map(|k| w[k] * (y[k] - r[k]).powi(2)).sum();
+        assert!((sse(&y, &w, &r) - plain).abs() <= 1e-14 * plain);
     }
 }
