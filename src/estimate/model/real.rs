@@ -59,9 +59,9 @@ impl RealNodes {
         self.w.len()
     }
 
-    /// `(4π/λ, n1, n1², n2², n3²)` per node.
-    pub(super) fn parts(&self) -> (&[f64], &[f64], &[f64], &[f64], &[f64]) {
-        (&self.w, &self.n1, &self.n1s, &self.n2s, &self.n3s)
+    /// `[4π/λ, n1, n1², n2², n3²]` per node.
+    pub(super) fn parts(&self) -> [&[f64]; 5] {
+        [&self.w, &self.n1, &self.n1s, &self.n2s, &self.n3s]
     }
 }
 

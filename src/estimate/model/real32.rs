@@ -61,7 +61,7 @@ impl RealNodes32 {
             o.resize(padded, fill);
             o
         };
-        let (w, n1, n1s, n2s, n3s) = k.parts();
+        let [w, n1, n1s, n2s, n3s] = k.parts();
         let mut w64 = w.to_vec();
         w64.resize(padded, 0.0);
         let phase_rate = w
@@ -112,9 +112,15 @@ fn sin_cos_reduced(r: f32, q: u32) -> (f32, f32) {
 }
 
 /// One chunk of eight nodes starting at `i0`: R, dR/dd, dR/dθ into the
-/// chunk's outputs.
+/// chunk's outputs. `S` and `P` say which polarisations carry weight: a
+/// polarised beam (an LCTF is a polariser) computes one side only.
 #[inline(always)]
-fn chunk<const DERIV: bool>(k: &RealNodes32, i0: usize, a: &RealArgs, out: &mut [[f64; L]; 3]) {
+fn chunk<const DERIV: bool, const S: bool, const P: bool>(
+    k: &RealNodes32,
+    i0: usize,
+    a: &RealArgs,
+    out: &mut [[f64; L]; 3],
+) {
     let (s, c) = (a.s as f32, a.c as f32);
     let dk_angle = (a.sm * a.cm) as f32;
     let (sm, ws) = (a.sm as f32, a.ws as f32);
@@ -140,25 +146,32 @@ fn chunk<const DERIV: bool>(k: &RealNodes32, i0: usize, a: &RealArgs, out: &mut 
         let q1 = n1 * c;
         let q2 = (n2s - kx2).sqrt();
         let q3 = (n3s - kx2).sqrt();
+        // Denominators of the side not computed are 1 (x·1 folds away).
         let (s12, s23) = (q1 + q2, q2 + q3);
         let (p12, p23) = (n2s * q1 + n1s * q2, n3s * q2 + n2s * q3);
-        let (m_q, m_s, m_p) = (q2 * q3, s12 * s23, p12 * p23);
+        let m_q = q2 * q3;
+        let m_s = if S { s12 * s23 } else { 1.0 };
+        let m_p = if P { p12 * p23 } else { 1.0 };
         let inv = 1.0 / (m_q * m_s * m_p);
         let (inv_q, inv_s, inv_p) = (inv * m_s * m_p, inv * m_q * m_p, inv * m_q * m_s);
         let dk = n1s * dk_angle;
         let (dq1, dq2, dq3) = (-n1 * sm, -dk * inv_q * q3, -dk * inv_q * q2);
-        let (rs12, ds12) = ratio(q1, q2, dq1, dq2, inv_s * s23);
-        let (rs23, ds23) = ratio(q2, q3, dq2, dq3, inv_s * s12);
-        let (rp12, dp12) = ratio(n2s * q1, n1s * q2, n2s * dq1, n1s * dq2, inv_p * p23);
-        let (rp23, dp23) = ratio(n3s * q2, n2s * q3, n3s * dq2, n2s * dq3, inv_p * p12);
-        pre[0][l] = rs12;
-        pre[1][l] = rs23;
-        pre[2][l] = ds12;
-        pre[3][l] = ds23;
-        pre[4][l] = rp12;
-        pre[5][l] = rp23;
-        pre[6][l] = dp12;
-        pre[7][l] = dp23;
+        if S {
+            let (rs12, ds12) = ratio(q1, q2, dq1, dq2, inv_s * s23);
+            let (rs23, ds23) = ratio(q2, q3, dq2, dq3, inv_s * s12);
+            pre[0][l] = rs12;
+            pre[1][l] = rs23;
+            pre[2][l] = ds12;
+            pre[3][l] = ds23;
+        }
+        if P {
+            let (rp12, dp12) = ratio(n2s * q1, n1s * q2, n2s * dq1, n1s * dq2, inv_p * p23);
+            let (rp23, dp23) = ratio(n3s * q2, n2s * q3, n3s * dq2, n2s * dq3, inv_p * p12);
+            pre[4][l] = rp12;
+            pre[5][l] = rp23;
+            pre[6][l] = dp12;
+            pre[7][l] = dp23;
+        }
         pre[8][l] = dq2;
         q2v[l] = q2;
     }
@@ -183,12 +196,17 @@ fn chunk<const DERIV: bool>(k: &RealNodes32, i0: usize, a: &RealArgs, out: &mut 
         let (ps, pp) = (rs12 * rs23, rp12 * rp23);
         let (as_, bs, cs) = (rs12 * rs12 + rs23 * rs23, 2.0 * ps, 1.0 + ps * ps);
         let (ap, bp, cp) = (rp12 * rp12 + rp23 * rp23, 2.0 * pp, 1.0 + pp * pp);
-        let (es, ep) = (cs + bs * x, cp + bp * x);
+        let es = if S { cs + bs * x } else { 1.0 };
+        let ep = if P { cp + bp * x } else { 1.0 };
         let inv_e = 1.0 / (es * ep);
         let (inv_s, inv_p) = (inv_e * ep, inv_e * es);
         let r_s = (as_ + bs * x) * inv_s;
         let r_p = (ap + bp * x) * inv_p;
-        res[0][l] = ws * r_s + wp * r_p;
+        res[0][l] = match (S, P) {
+            (true, false) => r_s,
+            (false, true) => r_p,
+            _ => ws * r_s + wp * r_p,
+        };
         if DERIV {
             let x_s = bs * (cs - as_) * inv_s * inv_s;
             let x_p = bp * (cp - ap) * inv_p * inv_p;
@@ -202,10 +220,14 @@ fn chunk<const DERIV: bool>(k: &RealNodes32, i0: usize, a: &RealArgs, out: &mut 
                 let db = 2.0 * (dp12 * rp23 + rp12 * dp23);
                 (da + x * db - r_p * (pp * db + x * db)) * inv_p
             };
-            let dx = ws * x_s + wp * x_p;
+            let (dx, dcoef) = match (S, P) {
+                (true, false) => (x_s, t_s),
+                (false, true) => (x_p, t_p),
+                _ => (ws * x_s + wp * x_p, ws * t_s + wp * t_p),
+            };
             let dphase = -sn * w32[l];
             res[1][l] = dx * dphase * q2v[l];
-            res[2][l] = ws * t_s + wp * t_p + dx * dphase * d32 * pre[8][l];
+            res[2][l] = dcoef + dx * dphase * d32 * pre[8][l];
         }
     }
     for (o, r) in out.iter_mut().zip(&res) {
@@ -228,10 +250,13 @@ pub(super) fn real_nodes_kernel32(
     let n = k.len.min(r.len()).min(dd.len()).min(dth.len());
     let mut out = [[0f64; L]; 3];
     for i0 in (0..n).step_by(L) {
-        if a.deriv {
-            chunk::<true>(k, i0, &a, &mut out);
-        } else {
-            chunk::<false>(k, i0, &a, &mut out);
+        match (a.deriv, a.ws) {
+            (true, 1.0) => chunk::<true, true, false>(k, i0, &a, &mut out),
+            (true, 0.0) => chunk::<true, false, true>(k, i0, &a, &mut out),
+            (true, _) => chunk::<true, true, true>(k, i0, &a, &mut out),
+            (false, 1.0) => chunk::<false, true, false>(k, i0, &a, &mut out),
+            (false, 0.0) => chunk::<false, false, true>(k, i0, &a, &mut out),
+            (false, _) => chunk::<false, true, true>(k, i0, &a, &mut out),
         }
         let outs: [&mut [f64]; 3] = [r, dd, dth];
         let used = if a.deriv { 3 } else { 1 };
