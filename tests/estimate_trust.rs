@@ -669,3 +669,59 @@ fn no_valid_pixel_has_fringes_the_noise_buries() {
         assert_eq!(buried, 0, "{mode:?}: {buried} of {valid} valid pixels");
     }
 }
+
+/// A dispersive film (fused silica, Sellmeier) fitted with its index
+/// unknown — one constant index — on a PET web, unpolarised, the angle
+/// free: no constant index explains the fringes, and the misfit it leaves
+/// is no calibration error. A level absorbs much of it (a gain and an
+/// offset per band, Δχ² in the thousands), but one fitted on the thinner
+/// films and one on the thicker differ by ~19 σ, where every calibration
+/// error of the tests above leaves their two halves within 2.3 σ. Until
+/// that test `auto` took the level and left 74 % of the pixels valid and
+/// 5.6 nm off on average (σ ~1 nm); now every mode flags them.
+#[test]
+fn a_constant_index_for_a_dispersive_film_is_flagged_not_taken_for_a_level() {
+    let text = r#"
+[ambient]
+n = 1.0
+[substrate]
+material = "PET-Zhang"
+[film]
+[angle]
+search_deg = [0.0, 80.0]
+[light]
+polarization = "u"
+[bands]
+start_nm = 400
+stop_nm = 700
+step_nm = 10
+fwhm_nm = 0
+[truth]
+width = 170
+height = 12
+film_material = "SiO2-Malitson"
+thickness_nm = { linear_x = [60.0, 400.0] }
+angle_deg = { rows = [28.0, 0.3] }
+noise_sigma = 0.001
+seed = 3
+"#;
+    let s = Scene::from_toml(text, "<test>", std::path::Path::new(".")).unwrap();
+    let (cube, truth) = render(&s);
+    for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
+        let (maps, solver) = fit_with(&s, &cube, mode);
+        let wrong = valid_wrong(&maps, &truth);
+        report(
+            &format!("dispersive film, constant index {}", mode.name()),
+            &compare(&maps, &truth),
+            wrong,
+            &solver,
+        );
+        assert!(wrong <= 0.01, "{mode:?}: {wrong}");
+        let note = solver.level().2;
+        assert_eq!(solver.level().1, LevelMode::Absolute, "{mode:?}: {note}");
+        if mode != Mode::Accurate {
+            // `accurate` integrates passbands and tests no level.
+            assert!(note.contains("no calibration error"), "{mode:?}: {note}");
+        }
+    }
+}

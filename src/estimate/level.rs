@@ -293,6 +293,44 @@ impl Level {
             && self.offset.iter().all(|o| o.abs() <= MAX_OFFSET)
     }
 
+    /// The level's value at reflectance `r` averaged over the bands
+    /// `ks`, `mean(g_k·r + o_k)`, and its variance from the level's joint
+    /// covariance (NaN without one): a linear functional of the level's
+    /// parameters, so two levels fitted on disjoint samples can be
+    /// compared through it.
+    pub fn mean_at(&self, ks: std::ops::Range<usize>, r: f64) -> (f64, f64) {
+        let ks = ks.start.min(self.gain.len())..ks.end.min(self.gain.len());
+        let n = ks.len().max(1) as f64;
+        let value = ks
+            .clone()
+            .map(|k| self.gain[k] * r + self.offset[k])
+            .sum::<f64>()
+            / n;
+        let sh = &self.share;
+        let (m, ml) = (sh.m, sh.m_level);
+        if m == 0 || sh.rows.len() < self.gain.len() * ml || sh.cov.len() != m * m {
+            return (value, f64::NAN);
+        }
+        let u: Vec<f64> = (0..ml)
+            .map(|j| {
+                ks.clone()
+                    .map(|k| {
+                        let (dg, doff) = sh.rows[k * ml + j];
+                        dg * r + doff
+                    })
+                    .sum::<f64>()
+                    / n
+            })
+            .collect();
+        let mut var = 0.0;
+        for j in 0..ml {
+            for l in 0..ml {
+                var += u[j] * u[l] * sh.cov[j * m + l];
+            }
+        }
+        (value, var)
+    }
+
     /// The mean gain and offset over bands (for summaries).
     pub fn mean(&self) -> (f64, f64) {
         let n = self.gain.len().max(1) as f64;

@@ -43,6 +43,14 @@ const MIN_CHI2_PER_PIXEL: f64 = 1.0;
 /// The step in the film index of the forward difference that gives the
 /// measured values' derivative with respect to it.
 pub(super) const INDEX_DN: f64 = 1e-4;
+/// The most the levels fitted on the sample's thinner and thicker halves
+/// may differ (in σ of their difference, the largest of four comparisons)
+/// for the misfit to be one calibration error: four tests at ~1e-5 each,
+/// with room for the level's σ running ~1.2× narrow (README, "Over many
+/// images").
+const MAX_HALVES_Z: f64 = 5.0;
+/// Fewest pixels in each half for that comparison.
+const MIN_HALF_PIXELS: usize = 40;
 /// Fewest sample pixels for a gain and offset per band.
 const MIN_PIXELS_PER_BAND_BASIS: usize = 50;
 
@@ -287,6 +295,29 @@ impl Solver {
             }
             return Ok(None);
         }
+        let mut halves = None;
+        if want && chi2_scaled.is_finite() && level.is_plausible() {
+            // One calibration error is the same for every film: a level
+            // fitted on the thinner half of the sample must agree with one
+            // fitted on the thicker half. A model error the level absorbs
+            // (the wrong polarisation, a constant index for a dispersive
+            // film) depends on the film, and the halves part.
+            halves = self.level_halves_z(sample, &scaled_px, &level, basis, &est, &wn, &var)?;
+            if let Some(z) = halves {
+                if z > MAX_HALVES_Z {
+                    self.level_note = format!(
+                        "absolute: the image's misfit is no calibration error (a level fitted on its thinner films and one on its thicker differ by {z:.1} σ: a wrong polarisation, film or substrate?): every pixel flagged poor fit"
+                    );
+                    self.level = identity;
+                    self.level_mode = LevelMode::Absolute;
+                    self.calibration_suspect = true;
+                    if unknown_index {
+                        self.set_film_index(est_abs.clone())?;
+                    }
+                    return Ok(None);
+                }
+            }
+        }
         if want && chi2_scaled.is_finite() {
             self.level_note = format!(
                 "scaled ({}, {} parameters): gain {:.4} (per band {:.4}–{:.4}), offset {:.5}; Δχ² = {:.0} against absolute (threshold {:.0}), thicknesses moved by {:.1} σ",
@@ -307,6 +338,11 @@ impl Solver {
                 threshold,
                 shift
             );
+            if let Some(z) = halves {
+                self.level_note += &format!(
+                    "; the levels of the thinner and the thicker films agree within {z:.1} σ"
+                );
+            }
             self.level = level;
             self.share_table = std::sync::OnceLock::new();
             self.level_mode = LevelMode::Scaled;
@@ -329,6 +365,76 @@ impl Solver {
             }
             Ok(None)
         }
+    }
+
+    /// How far apart (in σ, the largest of four comparisons) the level
+    /// fitted on the sample's thinner half and the one fitted on its
+    /// thicker half lie: their value averaged over the blue and the red
+    /// half of the bands, each at a low and a high reflectance of the
+    /// sample. `None` where a half holds too few pixels to tell. The film
+    /// index (where unknown) is estimated with each half's level and
+    /// restored to `est` after.
+    #[allow(clippy::too_many_arguments)]
+    fn level_halves_z(
+        &mut self,
+        sample: &[SamplePixel],
+        fits: &[LevelPixel],
+        level: &Level,
+        basis: LevelBasis,
+        est: &IndexEstimate,
+        wn: &[f64],
+        var: &[f64],
+    ) -> Result<Option<f64>, EstimateError> {
+        if fits.len() < 2 * MIN_HALF_PIXELS {
+            return Ok(None);
+        }
+        let unknown_index = matches!(self.scene.film, FilmKnowledge::Unknown { .. });
+        let mut d: Vec<f64> = fits.iter().map(|p| p.d).collect();
+        d.sort_by(f64::total_cmp);
+        let median = d[d.len() / 2];
+        let mut r: Vec<f64> = fits
+            .iter()
+            .map(|p| p.r.iter().sum::<f64>() / p.r.len().max(1) as f64)
+            .collect();
+        r.sort_by(f64::total_cmp);
+        let (r_lo, r_hi) = (r[r.len() / 10], r[r.len() * 9 / 10]);
+        let nb = self.bands.len();
+        let mut halves = Vec::with_capacity(2);
+        for thin in [true, false] {
+            let half: Vec<SamplePixel> = fits
+                .iter()
+                .filter(|p| (p.d < median) == thin)
+                .map(|p| sample[p.id].clone())
+                .collect();
+            if half.len() < MIN_HALF_PIXELS {
+                return Ok(None);
+            }
+            if unknown_index {
+                self.set_film_index(est.clone())?;
+            }
+            let mut est_half = est.clone();
+            let (lv, _, chi2) =
+                self.level_gauss_newton(&half, level, None, basis, &mut est_half, wn, var)?;
+            if !chi2.is_finite() {
+                return Ok(None);
+            }
+            halves.push(lv);
+        }
+        if unknown_index {
+            self.set_film_index(est.clone())?;
+        }
+        let mut z: f64 = 0.0;
+        for ks in [0..nb / 2, nb / 2..nb] {
+            for rr in [r_lo, r_hi] {
+                let (a, va) = halves[0].mean_at(ks.clone(), rr);
+                let (b, vb) = halves[1].mean_at(ks.clone(), rr);
+                let v = va + vb;
+                if v.is_finite() && v > 0.0 {
+                    z = z.max((a - b).abs() / v.sqrt());
+                }
+            }
+        }
+        Ok(Some(z))
     }
 
     /// A gain per band, or a gain and an offset per band, where either
