@@ -150,14 +150,14 @@ fn a_spread_of_angles_is_modelled_per_band_and_without_it_the_rows_are_biased() 
     assert!((0.9..=0.99).contains(&on.cover), "2σ coverage {}", on.cover);
     // Every complete row right: σ is ~0.5 nm per pixel.
     assert!(on.worst_row <= 2.0, "{on:?}");
-    // Without the correction the same rows are biased by several σ: the
-    // χ² test rejects over half the pixels (measured 57 %), and those it
-    // lets through are off by 2–3× what noise explains (mean |error|/σ is
-    // ≈ 0.8 for an unbiased Gaussian estimate; measured 2.3), whole rows
-    // by up to ~10 σ (measured 4.9 nm).
-    assert!(off.valid < 0.8, "{off:?}");
-    assert!(off.mean_z > 2.0, "{off:?}");
-    assert!(off.worst_row > 5.0 * on.sigma, "{off:?} vs σ {}", on.sigma);
+    // Without the correction the same rows carry a misfit that depends on
+    // the film (every band at another angle than modelled): a level fitted
+    // on the thinner films and one fitted on the thicker part, so the
+    // misfit is no calibration error and every pixel is flagged. Before
+    // that test (2026-12-05) a level absorbed part of it and 43 % of the
+    // pixels were let through, 2.3× off what noise explains (mean
+    // |error|/σ ≈ 0.8 for an unbiased estimate), whole rows by 4.9 nm.
+    assert_eq!(off.valid, 0.0, "{off:?}");
     assert!(on.mean_z < 1.0, "{on:?}");
 }
 
