@@ -61,6 +61,22 @@ fn count(maps: &ParamMaps, r: Reason) -> usize {
     maps.reason.iter().filter(|&&c| c as u8 == r as u8).count()
 }
 
+/// Fit `cube` under `s` in `mode`, report it as `label` and return the
+/// maps, the solver and the fraction of pixels valid and wrong.
+fn fit_reported(
+    label: &str,
+    s: &Scene,
+    cube: &Cube,
+    truth: &TruthMaps,
+    mode: Mode,
+) -> (ParamMaps, Solver, f64) {
+    let (maps, solver) = fit_with(s, cube, mode);
+    let wrong = valid_wrong(&maps, truth);
+    let label = format!("{label} {}", mode.name());
+    report(&label, &compare(&maps, truth), wrong, &solver);
+    (maps, solver, wrong)
+}
+
 fn report(label: &str, acc: &Accuracy, wrong: f64, solver: &Solver) {
     let (l, _, _) = solver.level();
     let vg = l.var_gain.iter().sum::<f64>() / l.var_gain.len() as f64;
@@ -257,14 +273,7 @@ fn a_cube_that_is_not_reflectance_is_never_valid_and_wrong() {
         let flagged = count(&maps, Reason::OutOfModel) + count(&maps, Reason::PoorFit);
         assert!(flagged * 10 >= 9 * n, "{mode:?}");
         // auto either corrects it or flags it: never valid and wrong.
-        let (maps, solver) = fit_with(&base, &cube, mode);
-        let wrong = valid_wrong(&maps, &truth);
-        report(
-            &format!("x5+0.1 {} auto", mode.name()),
-            &compare(&maps, &truth),
-            wrong,
-            &solver,
-        );
+        let (_, _, wrong) = fit_reported("x5+0.1 auto", &base, &cube, &truth, mode);
         assert!(wrong <= 0.01, "{mode:?}: {wrong}");
     }
     // With the angle known, the levels alone lie beyond anything a film on
@@ -708,14 +717,8 @@ seed = 3
     let s = Scene::from_toml(text, "<test>", std::path::Path::new(".")).unwrap();
     let (cube, truth) = render(&s);
     for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
-        let (maps, solver) = fit_with(&s, &cube, mode);
-        let wrong = valid_wrong(&maps, &truth);
-        report(
-            &format!("dispersive film, constant index {}", mode.name()),
-            &compare(&maps, &truth),
-            wrong,
-            &solver,
-        );
+        let label = "dispersive film, constant index";
+        let (_, solver, wrong) = fit_reported(label, &s, &cube, &truth, mode);
         assert!(wrong <= 0.01, "{mode:?}: {wrong}");
         let note = solver.level().2;
         assert_eq!(solver.level().1, LevelMode::Absolute, "{mode:?}: {note}");

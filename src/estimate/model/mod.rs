@@ -1135,6 +1135,45 @@ mod tests {
         }
     }
 
+    /// At the edge of the `f32` lanes' range (a phase of ~390 rad at the
+    /// bluest node, a few µm of film) they stay within their error budget
+    /// of the complex Airy sum (|ΔR| ≲ 1e-5, `real32`), and just past it
+    /// the `f64` kernel takes over.
+    #[test]
+    fn the_f32_lanes_hold_their_budget_to_the_edge_of_their_range() {
+        let film = Dispersion::cauchy(1.46, 0.0036, 0.0, 0.0).unwrap();
+        let sub = Dispersion::cauchy(1.58, 0.0090, 1e-3, 0.0).unwrap();
+        let pol = Polarization::Unpolarized;
+        let m = FilmModel::new(
+            &bands(),
+            &Dispersion::constant(1.0),
+            &film,
+            &sub,
+            pol,
+            &[false; 31],
+        )
+        .unwrap();
+        let edge = real32::MAX_PHASE / m.real_nodes32.phase_rate();
+        let (mut out, mut refr) = (ModelOut::new(31), ModelOut::new(31));
+        for (d, deg) in [(0.97 * edge, 0.0), (0.97 * edge, 60.0), (0.9 * edge, 79.0)] {
+            let th = f64::to_radians(deg);
+            assert!(m.real_nodes32.applies(d, th.sin()), "{d} nm at {deg}°");
+            m.eval(d, th, &mut out, false);
+            refr.r.fill(0.0); // the complex sum adds into its output
+            m.eval_complex(d, th, &mut refr, false);
+            let worst = (0..31)
+                .map(|k| (out.r[k] - refr.r[k]).abs())
+                .fold(0.0, f64::max);
+            // Measured 4–7e-7, inside the budget of 1e-5 (which allows
+            // for `q2`'s worst rounding at 400 rad).
+            assert!(worst < 2e-6, "{d} nm at {deg}°: {worst}");
+        }
+        assert!(!m.real_nodes32.applies(1.01 * edge, 0.0));
+        assert!(!m
+            .real_nodes32
+            .applies(0.5 * edge, f64::to_radians(81.0).sin()));
+    }
+
     /// A substrate that barely absorbs (a polymer web, k ~ 1e-6) is taken
     /// as lossless — the real path, within 1e-6 of the complex Airy sum
     /// with its absorption — and one that absorbs (k = 0.01) is not.

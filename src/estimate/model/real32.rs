@@ -80,6 +80,12 @@ impl RealNodes32 {
         }
     }
 
+    /// The largest phase per nm of film at any node.
+    #[cfg(test)]
+    pub(super) fn phase_rate(&self) -> f64 {
+        self.phase_rate
+    }
+
     /// Whether the `f32` lanes are exact enough at thickness `d` (nm) and
     /// `sin θ = s` (see the module's error budget).
     pub(super) fn applies(&self, d: f64, s: f64) -> bool {
