@@ -148,8 +148,11 @@ fn a_spread_of_angles_is_modelled_per_band_and_without_it_the_rows_are_biased() 
         base.mae
     );
     assert!((0.9..=0.99).contains(&on.cover), "2σ coverage {}", on.cover);
-    // Every complete row right: σ is ~0.5 nm per pixel.
-    assert!(on.worst_row <= 2.0, "{on:?}");
+    // Every complete row right: an unbiased pixel's mean |error| is 0.8 σ
+    // (σ ~0.55 nm here); the worst of ~400 rows of 96 pixels lies within
+    // ~0.2 σ of that, so 1.5 σ leaves no room for a row biased by more
+    // than ~0.7 σ.
+    assert!(on.worst_row <= 1.5 * on.sigma, "{on:?}");
     // Without the correction the same rows carry a misfit that depends on
     // the film (every band at another angle than modelled): a level fitted
     // on the thinner films and one fitted on the thicker part, so the
