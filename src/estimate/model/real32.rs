@@ -7,12 +7,14 @@
 //! (1 − r12²)(1 − r23²)`), so R comes out within a few ulps of `f32`
 //! (~1e-7) of the `f64` path, except through the phase: `q2 = √(n2² −
 //! kx²)` in `f32` is off by up to ~6e-8 of itself, which moves Δ by
-//! 6e-8·Δ. The caller takes this path only where Δ ≤ [`MAX_PHASE`]
-//! (2.4e-5 rad, so |ΔR| ≲ 1e-5, a tenth of the smallest noise irid judges
-//! against, 1e-4) and below [`MAX_SIN`] (80°). Thickness stays `f64` in
-//! the phase, so a refinement's steps of 1e-4 nm are not rounded away.
-//! Beyond those limits the `f64` kernel runs. The tests hold this path to
-//! the `f64` one over films, angles and both polarisations.
+//! 6e-8·Δ. The caller takes this path only where Δ ≤ [`MAX_PHASE`] (the
+//! phase then off by at most 2.4e-5 rad, so |ΔR| ≲ 1e-5, a tenth of the
+//! smallest noise irid judges against, 1e-4) and below [`MAX_SIN`] (80°).
+//! Thickness stays `f64` in the phase, so a refinement's steps of 1e-4 nm
+//! are not rounded away. Beyond those limits the `f64` kernel runs. The
+//! tests hold this path to the complex Airy sum (within 7e-7 measured, up
+//! to the edge of its range) for s, p and unpolarised light, values and
+//! derivatives.
 //!
 //! Why: the node loop's cost is two square roots and two divisions per
 //! node, which `f64` AVX2 does four at a time and `f32` eight, each

@@ -45,9 +45,10 @@ const MIN_CHI2_PER_PIXEL: f64 = 1.0;
 pub(super) const INDEX_DN: f64 = 1e-4;
 /// The most the levels fitted on the sample's thinner and thicker halves
 /// may differ (in σ of their difference, the largest of four comparisons)
-/// for the misfit to be one calibration error: four tests at ~1e-5 each,
-/// with room for the level's σ running ~1.2× narrow (README, "Over many
-/// images").
+/// for the misfit to be one calibration error: 5 σ is p ≈ 6e-7 per
+/// comparison (~2e-6 for four), with room for the level's σ running ~1.2×
+/// narrow (README, "Over many images"); calibration errors over 256
+/// images gave at most 2.54.
 const MAX_HALVES_Z: f64 = 5.0;
 /// Fewest pixels in each half for that comparison.
 const MIN_HALF_PIXELS: usize = 40;
