@@ -55,23 +55,48 @@ pub fn sin_cos(x: f64) -> (f64, f64) {
 /// Branch-free, so loops over it vectorise.
 #[inline(always)]
 pub fn sin_cos_bounded(x: f64) -> (f64, f64) {
-    // Round to nearest by the 1.5·2⁵² trick (see [`round`]); the low
-    // mantissa bits of `t` then hold k mod 4.
-    let t = x * FRAC_2_PI + SHIFT;
-    let k = t - SHIFT;
-    let r = (x - k * PIO2_HI) - k * PIO2_LO;
+    let (r, q) = reduce_quadrant(x);
     let z = r * r;
     let s = r + r * z * (S1 + z * (S2 + z * (S3 + z * (S4 + z * (S5 + z * S6)))));
     let c = 1.0 - 0.5 * z + z * z * (C1 + z * (C2 + z * (C3 + z * (C4 + z * (C5 + z * C6)))));
     // Quadrant fix-up with bit operations only (swap on odd k, sign flips
     // by XOR), so it vectorises even without SSE4.1.
-    let q = t.to_bits();
     let swap = 0u64.wrapping_sub(q & 1);
     let (sb, cb) = (s.to_bits(), c.to_bits());
     let sin_b = (cb & swap) | (sb & !swap);
     let cos_b = (sb & swap) | (cb & !swap);
     let sin = f64::from_bits(sin_b ^ ((q & 2) << 62));
     let cos = f64::from_bits(cos_b ^ ((q.wrapping_add(1) & 2) << 62));
+    (sin, cos)
+}
+
+/// `x` reduced by the nearest multiple k of π/2 (|x| ≤ 1e5: a
+/// two-constant Cody–Waite reduction), and bits whose lowest two hold
+/// k mod 4. Branch-free.
+#[inline(always)]
+pub fn reduce_quadrant(x: f64) -> (f64, u64) {
+    // Round to nearest by the 1.5·2⁵² trick (see [`round`]); the low
+    // mantissa bits of `t` then hold k mod 4.
+    let t = x * FRAC_2_PI + SHIFT;
+    let k = t - SHIFT;
+    ((x - k * PIO2_HI) - k * PIO2_LO, t.to_bits())
+}
+
+/// `(sin, cos)` in `f32` of `r` in [−π/4, π/4] (the Cephes minimax
+/// polynomials, ~1 ulp), with the quadrant `q` (its lowest two bits k mod
+/// 4) applied as [`sin_cos_bounded`] does: `x` = `r` + k·π/2 from
+/// [`reduce_quadrant`]. Branch-free, so eight lanes vectorise.
+#[inline(always)]
+pub fn sin_cos_reduced_f32(r: f32, q: u32) -> (f32, f32) {
+    let z = r * r;
+    let s = r + r * z * (-1.666_665_5e-1 + z * (8.332_161e-3 + z * -1.951_529_6e-4));
+    let c = 1.0 - 0.5 * z + z * z * (4.166_664_6e-2 + z * (-1.388_731_6e-3 + z * 2.443_315_7e-5));
+    let swap = 0u32.wrapping_sub(q & 1);
+    let (sb, cb) = (s.to_bits(), c.to_bits());
+    let sin_b = (cb & swap) | (sb & !swap);
+    let cos_b = (sb & swap) | (cb & !swap);
+    let sin = f32::from_bits(sin_b ^ ((q & 2) << 30));
+    let cos = f32::from_bits(cos_b ^ ((q.wrapping_add(1) & 2) << 30));
     (sin, cos)
 }
 

@@ -336,8 +336,17 @@ impl NoiseModel {
 
     /// A typical σ (root mean variance over bands at reflectance `r`).
     pub fn typical_sigma(&self, r: f64) -> f64 {
+        self.root_mean_var(self.rel2, r)
+    }
+
+    /// Root mean variance over bands at reflectance `r` with the scale
+    /// accuracy `rel2` (ε²).
+    fn root_mean_var(&self, rel2: f64, r: f64) -> f64 {
         let n = self.var0.len().max(1) as f64;
-        ((0..self.var0.len()).map(|k| self.var(k, r)).sum::<f64>() / n).sqrt()
+        let sum: f64 = (0..self.var0.len())
+            .map(|k| band_var(self.var0[k], self.shot[k], rel2, r))
+            .sum();
+        (sum / n).sqrt()
     }
 
     /// The instrument's typical σ at reflectance `r`: [`typical_sigma`]
@@ -346,11 +355,7 @@ impl NoiseModel {
     ///
     /// [`typical_sigma`]: NoiseModel::typical_sigma
     pub fn instrument_sigma(&self, r: f64) -> f64 {
-        let n = self.var0.len().max(1) as f64;
-        let sum: f64 = (0..self.var0.len())
-            .map(|k| band_var(self.var0[k], self.shot[k], 0.0, r))
-            .sum();
-        (sum / n).sqrt()
+        self.root_mean_var(0.0, r)
     }
 
     /// Whether every band's variance is the same constant (a scalar σ).

@@ -21,6 +21,7 @@
 //! faster.
 
 use super::real::{RealArgs, RealNodes};
+use crate::estimate::fastmath::{reduce_quadrant, sin_cos_reduced_f32};
 use multiversion::multiversion;
 
 /// Largest phase (rad) at any node for which the `f32` lanes are used.
@@ -30,12 +31,6 @@ pub(super) const MAX_SIN: f64 = 0.985;
 
 /// Lanes per chunk.
 const L: usize = 8;
-
-const PIO2_HI: f64 = 1.570_796_326_734_125_6;
-const PIO2_LO: f64 = 6.077_100_506_506_192e-11;
-const FRAC_2_PI: f64 = std::f64::consts::FRAC_2_PI;
-/// 1.5·2⁵²: see `fastmath::round`.
-const SHIFT: f64 = 6_755_399_441_055_744.0;
 
 /// The nodes' constants in `f32`, padded to whole chunks of eight (the
 /// padding is a benign node: ambient, film and substrate of index 1.5,
@@ -99,24 +94,6 @@ impl RealNodes32 {
 #[inline(always)]
 fn ratio(a: f32, b: f32, da: f32, db: f32, inv: f32) -> (f32, f32) {
     ((a - b) * inv, 2.0 * (b * da - a * db) * inv * inv)
-}
-
-/// `(sin, cos)` of `r` in [−π/4, π/4] (minimax polynomials, ~1 ulp of
-/// `f32`), the quadrant applied from `q` (k mod 4).
-#[inline(always)]
-fn sin_cos_reduced(r: f32, q: u32) -> (f32, f32) {
-    let z = r * r;
-    let s = r + r * z * (-1.666_665_5e-1 + z * (8.332_161e-3 + z * -1.951_529_6e-4));
-    let c = 1.0 - 0.5 * z + z * z * (4.166_664_6e-2 + z * (-1.388_731_6e-3 + z * 2.443_315_7e-5));
-    // Swap on odd k, sign flips by XOR: bit operations only, so the lane
-    // loop has no branch.
-    let swap = 0u32.wrapping_sub(q & 1);
-    let (sb, cb) = (s.to_bits(), c.to_bits());
-    let sin_b = (cb & swap) | (sb & !swap);
-    let cos_b = (sb & swap) | (cb & !swap);
-    let sin = f32::from_bits(sin_b ^ ((q & 2) << 30));
-    let cos = f32::from_bits(cos_b ^ ((q.wrapping_add(1) & 2) << 30));
-    (sin, cos)
 }
 
 /// One chunk of eight nodes starting at `i0`: R, dR/dd, dR/dθ into the
@@ -191,14 +168,12 @@ fn chunk<const DERIV: bool, const S: bool, const P: bool>(
     let mut res = [[0f32; L]; 3];
     let mut quad = [0u32; L];
     for l in 0..L {
-        let t = phase[l] * FRAC_2_PI + SHIFT;
-        let kq = t - SHIFT;
-        red[l] = ((phase[l] - kq * PIO2_HI) - kq * PIO2_LO) as f32;
-        // The low bits of the mantissa hold k mod 4.
-        quad[l] = t.to_bits() as u32;
+        let (r, q) = reduce_quadrant(phase[l]);
+        red[l] = r as f32;
+        quad[l] = q as u32;
     }
     for l in 0..L {
-        let (sn, x) = sin_cos_reduced(red[l], quad[l]);
+        let (sn, x) = sin_cos_reduced_f32(red[l], quad[l]);
         let (rs12, rs23, ds12, ds23) = (pre[0][l], pre[1][l], pre[2][l], pre[3][l]);
         let (rp12, rp23, dp12, dp23) = (pre[4][l], pre[5][l], pre[6][l], pre[7][l]);
         let (ps, pp) = (rs12 * rs23, rp12 * rp23);
