@@ -728,3 +728,43 @@ seed = 3
         }
     }
 }
+
+#[test]
+fn a_calibration_error_below_the_test_is_hedged_not_trusted() {
+    // A white reference 3 % low on the paper's cylinder (index and every
+    // angle unknown): the gain trades with the angles, so the level test
+    // (p = 1e-4) rarely sees it, and `absolute` left 99 % of the pixels
+    // valid and 3.5 nm off (σ ~0.4 nm). `auto` now weighs a gain and an
+    // offset against the calibration by their evidence and fits under the
+    // mixture (`level_hedge`). Over `level_seeds`' 32 images about one in
+    // seven still reads mostly wrong — where the noise hides the gain, no
+    // method can tell it from a clean image — so the suite's four seeds
+    // are pooled, and what is asserted is what the mixture guarantees on
+    // average: most images corrected, the error against σ no worse than
+    // a Gaussian's tail allows pooled over the four.
+    let (mut wrong, mut err, mut valid, mut levels) = (0.0, 0.0, 0, 0);
+    for seed in 1..=4u64 {
+        let mut base = Scene::paper_cylinder();
+        base.truth.as_mut().unwrap().seed = seed;
+        let (mut cube, truth) = render(&base);
+        miscalibrate(&mut cube, &|_| 1.03, 0.0);
+        let (maps, solver, w) = fit_reported(
+            &format!("white 3 % low seed {seed}"),
+            &base,
+            &cube,
+            &truth,
+            Mode::Balanced,
+        );
+        wrong += w / 4.0;
+        levels += usize::from(solver.level().1 == LevelMode::Scaled);
+        for i in (0..maps.width * maps.height).filter(|&i| maps.valid[i] > 0.5) {
+            err += (maps.thickness_nm[i] - truth.thickness_nm[i]).abs() as f64;
+            valid += 1;
+        }
+    }
+    let mae = err / valid as f64;
+    eprintln!("white 3 % low: {levels} of 4 images levelled, mean |Δd| {mae:.2} nm, valid and wrong {wrong:.3}");
+    assert_eq!(levels, 4);
+    assert!(wrong <= 0.25, "{wrong}");
+    assert!(mae <= 2.0, "{mae}");
+}

@@ -141,6 +141,20 @@ impl LevelShare {
         self.m
     }
 
+    /// Entry `(j, l)` of the joint covariance (NaN outside it).
+    pub fn cov_entry(&self, j: usize, l: usize) -> f64 {
+        if j < self.m && l < self.m && self.cov.len() == self.m * self.m {
+            self.cov[j * self.m + l]
+        } else {
+            f64::NAN
+        }
+    }
+
+    /// The band weights (1/σ²) the level was fitted with.
+    pub fn weights(&self) -> &[f64] {
+        &self.w
+    }
+
     /// The number of global parameters beyond the level (whose per-band
     /// derivatives [`LevelShare::var_of`] takes in `extra`).
     pub fn n_extra(&self) -> usize {
@@ -270,6 +284,40 @@ impl Level {
             cov: vec![0.0; n_bands],
             share: LevelShare::default(),
         }
+    }
+
+    /// One gain and one offset for every band, `y_k = gain·R_k + offset`,
+    /// with `cov` the joint covariance of (gain, offset) and `n_extra`
+    /// global parameters after them (`(2 + n_extra)²`, row-major), fitted
+    /// with band weights `w` (1/σ²).
+    pub fn gain_offset(
+        gain: f64,
+        offset: f64,
+        cov: Vec<f64>,
+        n_extra: usize,
+        w: Vec<f64>,
+    ) -> Level {
+        let nb = w.len();
+        let m = 2 + n_extra;
+        assert_eq!(
+            cov.len(),
+            m * m,
+            "a covariance over the gain, the offset and the extras"
+        );
+        let mut out = Level::identity(nb);
+        out.gain.fill(gain);
+        out.offset.fill(offset);
+        out.var_gain.fill(cov[0]);
+        out.var_offset.fill(cov[m + 1]);
+        out.cov.fill(cov[1]);
+        out.share = LevelShare {
+            rows: (0..nb).flat_map(|_| [(1.0, 0.0), (0.0, 1.0)]).collect(),
+            m_level: 2,
+            cov,
+            m,
+            w,
+        };
+        out
     }
 
     /// Whether this is the identity with no uncertainty.

@@ -2,6 +2,7 @@
 //! profiled over the index (coarse grid, then a local quadratic fit), both
 //! branches of the n2 ↔ n1·n3/n2 near-symmetry compared.
 
+use super::level_hedge::Look;
 use super::linalg::solve3;
 use super::search::{Candidate, MAX_CANDIDATES};
 use super::{
@@ -91,7 +92,15 @@ impl Solver {
         // The level: absolute unless asked, or (auto) unless the sample
         // shows a systematic misfit a gain and offset per band correct.
         if self.scene.level != LevelMode::Free {
-            if let Some(fitted) = self.fit_level(&sample, &est)? {
+            let est_small = est.clone();
+            // An image no larger than the index sample gets no second
+            // look: its first is final.
+            let look = if sample.len() < n_sample {
+                Look::Final
+            } else {
+                Look::First
+            };
+            if let Some(fitted) = self.fit_level(&sample, &est, look)? {
                 est = fitted;
                 // A level is in force. Its gain trades with each pixel's
                 // angle and with the index, so it is fitted again, with the
@@ -100,9 +109,18 @@ impl Solver {
                 let big = self.sample_pixels(cube, LEVEL_SAMPLE_PIXELS);
                 if big.len() > sample.len() {
                     let nb = self.bands.len();
+                    // A hedge (a level the small sample only hints at, as
+                    // on most clean images) looks again with the index
+                    // refined about the small sample's absolute one; a
+                    // level the test established, with a new search.
+                    let hedged = self.level_hedge.is_some();
                     self.set_level(Level::identity(nb), LevelMode::Absolute, String::new());
-                    let est_abs = self.index_for(&big)?;
-                    est = match self.fit_level(&big, &est_abs)? {
+                    let est_abs = if hedged {
+                        self.index_near(&big, &est_small)?
+                    } else {
+                        self.index_for(&big)?
+                    };
+                    est = match self.fit_level(&big, &est_abs, Look::Final)? {
                         Some(fitted) => fitted,
                         None => est_abs,
                     };
@@ -335,6 +353,84 @@ impl Solver {
         Ok(self.sample_sse(&prep, sample))
     }
 
+    /// The profile's cost of a trial index over `sample`: the summed
+    /// residual, pixels the index cannot fit at all charged their total
+    /// sum of squares (so that dropping them never looks like a better fit).
+    fn index_cost<'a>(
+        &'a self,
+        sample: &'a [SamplePixel],
+    ) -> impl Fn(f64) -> Result<f64, EstimateError> + Sync + 'a {
+        let total_ss: f64 = sample
+            .iter()
+            .map(|px| {
+                let s = &px.spectrum;
+                let ok = s.iter().filter(|v| v.is_finite());
+                let n = ok.clone().count().max(1) as f64;
+                let m = ok.clone().sum::<f64>() / n;
+                ok.map(|v| (v - m) * (v - m)).sum::<f64>()
+            })
+            .sum();
+        move |n: f64| -> Result<f64, EstimateError> {
+            let (sse, _, _, fitted) = self.profile_at(n, sample)?;
+            let missing = sample.len() as f64 - fitted;
+            Ok(sse + missing * total_ss / sample.len() as f64)
+        }
+    }
+
+    /// The film index for a larger `sample` of the image whose smaller one
+    /// gave `near`: refined locally about it (the basin and the twin are
+    /// the smaller sample's; a global search over four times the pixels
+    /// would cost three times the local one), then prepared as
+    /// [`Solver::index_for`] does. A known index is simply set.
+    pub(super) fn index_near(
+        &mut self,
+        sample: &[SamplePixel],
+        near: &IndexEstimate,
+    ) -> Result<IndexEstimate, EstimateError> {
+        let FilmKnowledge::Unknown { search, prior } = self.scene.film.clone() else {
+            return self.index_for(sample);
+        };
+        if !near.estimated || near.at_bound || near.ambiguous {
+            return self.index_for(sample);
+        }
+        let (lo, hi) = (search.0.max(1.0 + 1e-3), search.1);
+        let (n, sse, curvature) = {
+            let cost = self.index_cost(sample);
+            self.refine_index(near.n, (lo, hi), &cost)?
+        };
+        let (_, n_obs, n_par, _) = self.profile_at(n, sample)?;
+        let dof = (n_obs - n_par - 1.0).max(1.0);
+        let noise_var = self
+            .noise
+            .as_ref()
+            .map_or(0.0, |m| m.typical_sigma(0.05).powi(2));
+        let var = (sse / dof).max(noise_var);
+        let at_bound = n <= lo + 2e-3 || n >= hi - 2e-3;
+        if at_bound {
+            return self.index_for(sample);
+        }
+        let est = IndexEstimate {
+            n,
+            sigma: if curvature > 0.0 {
+                (var / curvature).sqrt()
+            } else {
+                f64::NAN
+            },
+            noise_sigma: var.sqrt(),
+            sigma_in_level: false,
+            scale_branches: None,
+            ..near.clone()
+        };
+        let eps = self.noise.as_ref().map_or(0.0, |m| m.accuracy());
+        let est = if eps > 0.0 {
+            self.with_scale_spread(sample, search, prior, eps, est)
+        } else {
+            est
+        };
+        self.set_film_index(est.clone())?;
+        Ok(est)
+    }
+
     pub(super) fn search_index(
         &self,
         sample: &[SamplePixel],
@@ -352,21 +448,7 @@ impl Solver {
         let grid: Vec<f64> = (0..=steps)
             .map(|i| lo + (hi - lo) * i as f64 / steps as f64)
             .collect();
-        let total_ss: f64 = sample
-            .iter()
-            .map(|px| {
-                let s = &px.spectrum;
-                let ok = s.iter().filter(|v| v.is_finite());
-                let n = ok.clone().count().max(1) as f64;
-                let m = ok.clone().sum::<f64>() / n;
-                ok.map(|v| (v - m) * (v - m)).sum::<f64>()
-            })
-            .sum();
-        let cost = |n: f64| -> Result<f64, EstimateError> {
-            let (sse, _, _, fitted) = self.profile_at(n, sample)?;
-            let missing = sample.len() as f64 - fitted;
-            Ok(sse + missing * total_ss / sample.len() as f64)
-        };
+        let cost = self.index_cost(sample);
         // The trial indices in parallel too: a spectrum table's sample is
         // one or a few pixels.
         let prof = grid

@@ -7,6 +7,7 @@
 #![allow(clippy::needless_range_loop)] // band-indexed numeric loops read clearer with indices
 
 use super::index::SamplePixel;
+use super::level_hedge::Look;
 use super::{Effort, IndexEstimate, Job, Scratch, Solver};
 use crate::estimate::level::{
     level_step, Level, LevelBasis, LevelMode, LevelPixel, AUTO_PROBABILITY,
@@ -64,6 +65,7 @@ impl Solver {
         &mut self,
         sample: &[SamplePixel],
         est_abs: &IndexEstimate,
+        look: Look,
     ) -> Result<Option<IndexEstimate>, EstimateError> {
         if self
             .prepared
@@ -245,6 +247,7 @@ impl Solver {
             .map_or(chi2_abs, |s| s.chi2.min(chi2_abs));
         let threshold = chi2_upper_quantile(tested.0.n_params(nb) as f64, AUTO_PROBABILITY);
         let significant = chi2_abs - tested.1 > threshold || per_band;
+        let detected = significant;
         let delta = chi2_abs - chi2_scaled;
         let m = basis.n_params(nb);
         // And it must matter: a level worth modelling moves the sample's
@@ -355,6 +358,32 @@ impl Solver {
             }
             Ok(Some(est))
         } else {
+            if self.scene.level == LevelMode::Auto && !detected {
+                // Below the test, a level the data hint at is weighed
+                // against the calibration (see `level_hedge`).
+                if let Some(h) =
+                    self.hedge_level(sample, &abs, chi2_abs, est_abs, &wn, &var, look)?
+                {
+                    let (g, o) = h.level.mean();
+                    self.level_note = format!(
+                        "hedged: below the test ({threshold:.0}), a gain {:.4} (Δχ² {:.1}) and an offset {:.5} (Δχ² {:.1}) weighed against the calibration at p = {:.3} and {:.3}; applied as their mixture, gain {g:.4}, offset {o:.5}, the doubt in every σ",
+                        h.fitted[0],
+                        h.delta_chi2[0],
+                        h.fitted[1],
+                        h.delta_chi2[1],
+                        h.weights[0],
+                        h.weights[1],
+                    );
+                    self.level = h.level;
+                    self.level_hedge = Some(h.weights[0] + h.weights[1]);
+                    self.share_table = std::sync::OnceLock::new();
+                    self.level_mode = LevelMode::Scaled;
+                    if unknown_index {
+                        self.set_film_index(h.est.clone())?;
+                    }
+                    return Ok(Some(h.est));
+                }
+            }
             self.level_note = format!(
                 "absolute (a fitted level of {m} parameters would lower χ² by {delta:.0}, threshold {threshold:.0}, and move thicknesses by {shift:.2} σ, at least {MIN_MEDIAN_SHIFT} needed)"
             );
@@ -505,7 +534,7 @@ impl Solver {
     /// every step. Returns the level and the sample's χ² at the start and
     /// at the end.
     #[allow(clippy::too_many_arguments)]
-    fn level_gauss_newton(
+    pub(super) fn level_gauss_newton(
         &mut self,
         sample: &[SamplePixel],
         start: &Level,
@@ -670,6 +699,11 @@ impl Solver {
                     )
                 },
                 |(scratch, out, out_up, corr), (id, px)| {
+                    // Each pixel as if first: the level's fit never depends
+                    // on how the sample was split between threads (a
+                    // replay then reproduces a live run's level bit for
+                    // bit).
+                    scratch.start_afresh();
                     for (k, (c, &y)) in corr.iter_mut().zip(&px.spectrum).enumerate() {
                         *c = level.correct(k, y);
                     }

@@ -55,6 +55,7 @@ mod fringes;
 mod index;
 mod judge;
 mod level_fit;
+mod level_hedge;
 mod linalg;
 mod pixel;
 mod profile_bias;
@@ -207,6 +208,20 @@ impl Scratch {
     /// distance to an earlier one in the row without a scan).
     pub fn fit_thickness(&self) -> &[f64] {
         &self.fits
+    }
+
+    /// Forget the previous pixel (its table walk, fringe-order margin,
+    /// warm start, poor fit, closed form and the model evaluation its
+    /// refinement left, which a start within rounding of it would take):
+    /// what follows is solved as if first, whichever thread solved what
+    /// before it.
+    fn start_afresh(&mut self) {
+        self.cur_at = None;
+        self.hint = None;
+        self.order_margin = None;
+        self.warm = None;
+        self.closed_form_last = false;
+        self.poor = None;
     }
 
     /// After a pixel of a row: its fit as the next pixel's warm start if
@@ -486,6 +501,9 @@ pub struct Solver {
     level_mode: LevelMode,
     /// What the level estimate found (for summaries).
     level_note: String,
+    /// The level in force is `auto`'s hedge, weighed at this probability
+    /// against the calibration (`level_hedge`).
+    level_hedge: Option<f64>,
     /// `absolute` was asked for, but the image shows a correctable
     /// calibration error: every pixel is flagged.
     calibration_suspect: bool,
@@ -626,6 +644,7 @@ impl Solver {
                 l => l,
             },
             level_note: String::new(),
+            level_hedge: None,
             calibration_suspect: false,
             index_step: None,
             share_table: std::sync::OnceLock::new(),
@@ -1033,6 +1052,7 @@ impl Solver {
     /// Use this level from now on (e.g. one estimated on an earlier sweep).
     pub fn set_level(&mut self, level: Level, mode: LevelMode, note: String) {
         self.calibration_suspect = false;
+        self.level_hedge = None;
         self.level = level;
         self.level_mode = mode;
         self.level_note = note;

@@ -34,11 +34,7 @@ impl Solver {
     ) {
         // Each row starts afresh: a row's result never depends on which
         // thread solved which row before it.
-        scratch.hint = None;
-        scratch.order_margin = None;
-        scratch.warm = None;
-        scratch.closed_form_last = false;
-        scratch.poor = None;
+        scratch.start_afresh();
         let mut pixel = std::mem::take(&mut scratch.pixel);
         pixel.resize(cube.bands.len(), 0.0);
         let mut done = 0;
