@@ -176,9 +176,15 @@ impl Solver {
         let n_of = |e: &IndexEstimate| if unknown_index { e.n } else { 0.0 };
         let mut means = [vec![0.0; m], vec![0.0; m], vec![0.0; m]];
         let mut covs = [vec![0.0; m * m], vec![0.0; m * m], vec![0.0; m * m]];
+        // The reflectance scale's share of the index's σ (a spectrum
+        // table's accuracy ε: the index found again at 1 ± ε) stays apart,
+        // as the pixels carry it through the two branches.
+        let spread = est_abs
+            .scale_branches
+            .map_or(0.0, |b| 0.5 * (b[0] - b[1]).abs());
         if extra > 0 {
             means[0][2] = n_of(est_abs);
-            covs[0][2 * m + 2] = est_abs.sigma.powi(2);
+            covs[0][2 * m + 2] = (est_abs.sigma.powi(2) - spread * spread).max(0.0);
         }
         for (i, (lv, _, est)) in fits.iter().enumerate() {
             let (mean, cov) = (&mut means[i + 1], &mut covs[i + 1]);
@@ -220,7 +226,7 @@ impl Solver {
         let mut est = est_abs.clone();
         if unknown_index {
             est.n = mu[2];
-            est.sigma = cov[2 * m + 2].max(0.0).sqrt();
+            est.sigma = cov[2 * m + 2].max(0.0).sqrt().hypot(spread);
             // The index's σ is in the mixture's covariance, which each
             // pixel's σ carries.
             est.sigma_in_level = true;
