@@ -180,19 +180,8 @@ impl Solver {
                 if small == LevelBasis::GainOffset && best_one.is_some() {
                     break;
                 }
-                let mut est_small = est_abs.clone();
-                if unknown_index {
-                    self.set_film_index(est_abs.clone())?;
-                }
-                let (lv, _, chi2_small) = self.level_gauss_newton(
-                    sample,
-                    &identity,
-                    Some(abs.clone()),
-                    small,
-                    &mut est_small,
-                    &wn,
-                    &var,
-                )?;
+                let (lv, _, chi2_small, est_small) =
+                    self.level_from_identity(sample, &abs, small, est_abs, &wn, &var)?;
                 let extra = (LevelBasis::Smooth.n_params(nb) - small.n_params(nb)) as f64;
                 let passes =
                     chi2_small - chi2_smooth <= chi2_upper_quantile(extra, AUTO_PROBABILITY);
@@ -246,8 +235,8 @@ impl Solver {
         let chi2_abs = level_step(&abs, &identity, tested.0, &wn, &var)
             .map_or(chi2_abs, |s| s.chi2.min(chi2_abs));
         let threshold = chi2_upper_quantile(tested.0.n_params(nb) as f64, AUTO_PROBABILITY);
-        let significant = chi2_abs - tested.1 > threshold || per_band;
-        let detected = significant;
+        // Detected: the test passes (what `auto` would hedge is below it).
+        let detected = chi2_abs - tested.1 > threshold || per_band;
         let delta = chi2_abs - chi2_scaled;
         let m = basis.n_params(nb);
         // And it must matter: a level worth modelling moves the sample's
@@ -258,8 +247,7 @@ impl Solver {
         // tests: on average more than one unit of χ² per pixel.
         let shift = median_shift(&abs, &scaled_px);
         let per_pixel = delta / abs.len() as f64;
-        let significant =
-            significant && (shift > MIN_MEDIAN_SHIFT || per_pixel > MIN_CHI2_PER_PIXEL);
+        let significant = detected && (shift > MIN_MEDIAN_SHIFT || per_pixel > MIN_CHI2_PER_PIXEL);
         let (g, o) = level.mean();
         if self.scene.level == LevelMode::Absolute {
             // Told to trust the calibration: the level is only tested. A
@@ -395,6 +383,36 @@ impl Solver {
             }
             Ok(None)
         }
+    }
+
+    /// A level of `basis` fitted from the identity, the index (where
+    /// unknown) starting from `est_abs`'s, with the sample's pixels as
+    /// fitted under the identity (`abs`): the level, the sample's χ² at
+    /// the start and at the end, and the index found with it.
+    pub(super) fn level_from_identity(
+        &mut self,
+        sample: &[SamplePixel],
+        abs: &[LevelPixel],
+        basis: LevelBasis,
+        est_abs: &IndexEstimate,
+        wn: &[f64],
+        var: &[f64],
+    ) -> Result<(Level, f64, f64, IndexEstimate), EstimateError> {
+        let mut est = est_abs.clone();
+        if matches!(self.scene.film, FilmKnowledge::Unknown { .. }) {
+            self.set_film_index(est_abs.clone())?;
+        }
+        let identity = Level::identity(self.bands.len());
+        let (level, chi2_start, chi2) = self.level_gauss_newton(
+            sample,
+            &identity,
+            Some(abs.to_vec()),
+            basis,
+            &mut est,
+            wn,
+            var,
+        )?;
+        Ok((level, chi2_start, chi2, est))
     }
 
     /// How far apart (in σ, the largest of four comparisons) the level
@@ -534,7 +552,7 @@ impl Solver {
     /// every step. Returns the level and the sample's χ² at the start and
     /// at the end.
     #[allow(clippy::too_many_arguments)]
-    pub(super) fn level_gauss_newton(
+    fn level_gauss_newton(
         &mut self,
         sample: &[SamplePixel],
         start: &Level,
@@ -700,9 +718,7 @@ impl Solver {
                 },
                 |(scratch, out, out_up, corr), (id, px)| {
                     // Each pixel as if first: the level's fit never depends
-                    // on how the sample was split between threads (a
-                    // replay then reproduces a live run's level bit for
-                    // bit).
+                    // on how the sample was split between threads.
                     scratch.start_afresh();
                     for (k, (c, &y)) in corr.iter_mut().zip(&px.spectrum).enumerate() {
                         *c = level.correct(k, y);

@@ -130,23 +130,11 @@ impl Solver {
         look: Look,
     ) -> Result<Option<Hedge>, EstimateError> {
         let unknown_index = matches!(self.scene.film, FilmKnowledge::Unknown { .. });
-        let identity = Level::identity(self.bands.len());
         let mut chi2_abs = chi2_abs;
         let mut fits = Vec::with_capacity(2);
         for basis in [LevelBasis::Gain, LevelBasis::Offset] {
-            let mut est = est_abs.clone();
-            if unknown_index {
-                self.set_film_index(est_abs.clone())?;
-            }
-            let (lv, chi2_start, chi2) = self.level_gauss_newton(
-                sample,
-                &identity,
-                Some(abs.to_vec()),
-                basis,
-                &mut est,
-                wn,
-                var,
-            )?;
+            let (lv, chi2_start, chi2, est) =
+                self.level_from_identity(sample, abs, basis, est_abs, wn, var)?;
             chi2_abs = chi2_abs.min(chi2_start);
             fits.push((lv, chi2, est));
         }
