@@ -1480,6 +1480,30 @@ mod tests {
     }
 
     #[test]
+    fn the_noise_model_survives_its_json_header_bit_for_bit() {
+        // A recording and a calibration file carry the camera's noise in
+        // their JSON header; a replay must judge with exactly the live
+        // run's variances (one unit in the last place off moved a level's
+        // fit in the 12th digit and flipped σ bits in the replayed maps).
+        // Values a best-effort float parser reads one ulp off:
+        let var0 = vec![
+            4.618_744_340_240_223_7e-7,
+            3.349_800_507_325_057_5e-7,
+            1.137_373_361_724_169_4e-7,
+        ];
+        let mut m = meta();
+        m.noise = Some(CalNoise {
+            var0: var0.clone(),
+            shot: var0.iter().map(|v| v * 3.7).collect(),
+        });
+        let back: CalMeta = serde_json::from_str(&serde_json::to_string(&m).unwrap()).unwrap();
+        let noise = back.noise.expect("the noise is kept");
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<u64>>();
+        assert_eq!(bits(&noise.var0), bits(&var0));
+        assert_eq!(bits(&noise.shot), bits(&m.noise.unwrap().shot));
+    }
+
+    #[test]
     fn round_trip_and_refusals() {
         let mut d = Accumulator::new(4, 1);
         d.add(0, &frame([1, 2, 3, 4])).unwrap();
