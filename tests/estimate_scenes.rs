@@ -820,6 +820,118 @@ fn balanced_rows_with_the_angle_free_agree_with_lone_pixels() {
     }
 }
 
+/// Films past what the bands resolve, the angle free (the bundled thick
+/// hard coat: 1–4 µm of Si3N4 at 61 bands, resolved to ~3.2 µm): a row
+/// flags the run past the range "poor fit" as lone pixels searching
+/// afresh do, but after a search it skips the next ones where the χ²
+/// distance to that pixel proves no fit can pass (their best-fit thickness
+/// then reads NaN) — only far from every fit, and never more than 16 in a
+/// row before a search runs again (the angle-free search is not
+/// exhaustive: a reference it got wrong must not flag a long run).
+/// `balanced` and `accurate` (`fast` takes the row pass, which keeps no
+/// per-pixel fit to tell a skipped pixel by).
+#[test]
+fn angle_free_runs_past_the_range_are_flagged_as_a_search_flags_them() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/scenes/thick-hardcoat.toml");
+    // Its 300 × 20 pixels: the noise is estimated from the data, between
+    // rows whose angles differ by 0.1°.
+    let s = Scene::load(&path).expect("the bundled scene loads");
+    let bands = scene_bands(&s).unwrap();
+    let cube = Renderer::new(&s).unwrap().render_cube(&bands).unwrap();
+    for mode in [Mode::Balanced, Mode::Accurate] {
+        let mut solver = Solver::new(&s, &bands, mode).unwrap();
+        solver.estimate_film_index(&cube).unwrap();
+        let mut scratch = irid::estimate::solver::Scratch::default();
+        let mut row = vec![irid::estimate::PixelEstimate::invalid(Reason::Masked); cube.width];
+        let mut spec = vec![0.0; bands.len()];
+        let (mut poor, mut skipped, mut longest) = (0, 0, 0);
+        for y in 0..cube.height {
+            solver.solve_row(&cube, y, &mut row, &mut scratch);
+            let mut run = 0;
+            for (x, r) in row.iter().enumerate() {
+                let at = format!("{} ({x}, {y})", mode.name());
+                let skip = scratch.fit_thickness()[x].is_nan();
+                if r.reason == Reason::PoorFit {
+                    poor += 1;
+                }
+                if skip {
+                    assert_eq!(r.reason, Reason::PoorFit, "{at}: skipped but {r:?}");
+                    cube.spectrum_into(x, y, &mut spec);
+                    let mut lone = irid::estimate::solver::Scratch::default();
+                    let p = solver.solve_pixel(&spec, None, &mut lone);
+                    assert_eq!(p.reason, Reason::PoorFit, "{at}: a search finds {p:?}");
+                    skipped += 1;
+                    run += 1;
+                    longest = longest.max(run);
+                } else {
+                    run = 0;
+                }
+            }
+        }
+        eprintln!(
+            "{}: {poor} poor fits, {skipped} without a search, longest run {longest}",
+            mode.name()
+        );
+        // ~28 % of the ramp lies past the range, nearly all of it poor;
+        // its spectra move fast (10 nm a pixel), so a reference settles
+        // about every other pixel (measured: 640 of 1 320 in `balanced`).
+        assert!(
+            poor >= cube.width * cube.height / 5,
+            "{}: {poor}",
+            mode.name()
+        );
+        assert!(skipped >= poor / 3, "{}: {skipped} skipped", mode.name());
+        assert!(longest <= 16, "{}: a run of {longest}", mode.name());
+    }
+    // A film of one thickness under a ripple no film makes (30× the noise,
+    // over the middle of each row): the rippled spectra lie within the
+    // noise of each other, so one reference could settle them all; it
+    // settles 16, then a search runs again.
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/scenes/thin-coating.toml");
+    let mut s = Scene::load(&path).expect("the bundled scene loads");
+    let t = s.truth.as_mut().unwrap();
+    (t.width, t.height) = (90, 8);
+    t.thickness_nm = irid::scene::Field::Constant(250.0);
+    let bands = scene_bands(&s).unwrap();
+    let mut cube = Renderer::new(&s).unwrap().render_cube(&bands).unwrap();
+    let (w, h) = (cube.width, cube.height);
+    let rippled = 20..70;
+    for (k, plane) in cube.data.chunks_exact_mut(w * h).enumerate() {
+        let ripple = 0.03 * (std::f64::consts::TAU * k as f64 / 7.0).sin();
+        for y in 0..h {
+            for x in rippled.clone() {
+                plane[y * w + x] += ripple as f32;
+            }
+        }
+    }
+    let mut solver = Solver::new(&s, &bands, Mode::Balanced).unwrap();
+    solver.estimate_film_index(&cube).unwrap();
+    let mut scratch = irid::estimate::solver::Scratch::default();
+    let mut row = vec![irid::estimate::PixelEstimate::invalid(Reason::Masked); w];
+    let (mut searched, mut longest) = (0, 0);
+    for y in 0..h {
+        solver.solve_row(&cube, y, &mut row, &mut scratch);
+        let mut run = 0;
+        for x in rippled.clone() {
+            assert_eq!(row[x].reason, Reason::PoorFit, "rippled ({x}, {y})");
+            if scratch.fit_thickness()[x].is_nan() {
+                run += 1;
+                longest = longest.max(run);
+            } else {
+                searched += 1;
+                run = 0;
+            }
+        }
+    }
+    eprintln!("rippled: {searched} searched, longest run {longest}");
+    assert_eq!(longest, 16, "a reference settles at most 16 pixels");
+    // 50 pixels a row: a search, 16 settled, a search, …
+    assert!(
+        searched >= 3 * h && searched <= 8 * h,
+        "{searched} searched"
+    );
+}
+
 #[test]
 fn the_thickness_range_is_a_scene_setting() {
     let thick = r#"

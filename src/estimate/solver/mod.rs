@@ -58,6 +58,7 @@ mod level_fit;
 mod level_hedge;
 mod linalg;
 mod pixel;
+mod poor;
 mod profile_bias;
 mod refine;
 mod row;
@@ -175,10 +176,11 @@ pub struct Scratch {
     /// The previous pixel's valid fit (d, θ) within the current row, the
     /// fitted path's first start (see `Solver::try_warm`).
     warm: Option<(f64, f64)>,
-    /// A pixel of the current row that no thickness on a table fitted:
-    /// the table (angle bits) and a floor under its √χ² at every
-    /// thickness; its spectrum in `poor_y` (see `Solver::poor_as_before`).
-    poor: Option<(u64, f64)>,
+    /// A pixel of the current row that no fit of a full search explained:
+    /// the search (a table's angle bits, or `poor::FREE_ANGLE`) and a floor
+    /// under its √χ² at every fit; its spectrum in `poor_y` (see
+    /// `Solver::poor_as_before`).
+    poor: Option<poor::PoorRef>,
     poor_y: Vec<f64>,
     /// The previous pixel in the row was settled by `balanced`'s closed
     /// form (its neighbour then looks for one first, before its warm start).
@@ -227,6 +229,10 @@ impl Scratch {
     /// After a pixel of a row: its fit as the next pixel's warm start if
     /// valid, none otherwise.
     fn note_warm(&mut self, est: &PixelEstimate) {
+        if est.is_valid() {
+            // A valid pixel ends a run of poor ones (`poor`).
+            self.poor = None;
+        }
         self.warm = est
             .is_valid()
             .then(|| (est.thickness_nm, est.theta_deg.to_radians()));

@@ -6,6 +6,7 @@
 use super::alternatives::OrderMargin;
 use super::closed_form::angle_start;
 use super::fringes::AMBIGUITY_CHI2;
+use super::poor::{FREE_ANGLE, FREE_MARGIN, FREE_RUN};
 use super::refine::{free_angle_sigma, sse};
 use super::search::{Candidate, MAX_CANDIDATES};
 use super::{Effort, Fit, Job, Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
@@ -124,6 +125,17 @@ impl Solver {
             };
             if let Some((table, tt)) = found {
                 return self.solve_table(prep, table, tt, t, n_ok, noise, effort, lam_min, scratch);
+            }
+        }
+        // A run of pixels no fit explains: settled by the row's last full
+        // search where the bound holds (`poor`).
+        let free_poor = theta_known
+            .is_none()
+            .then(|| self.poor_noise(n_ok, noise, scratch))
+            .flatten();
+        if let Some(flat) = free_poor {
+            if let Some(out) = self.poor_as_before(FREE_ANGLE, flat, n_ok, n_par, scratch) {
+                return out;
             }
         }
         // The previous pixel's fit in the row, refined and finished where it
@@ -330,7 +342,7 @@ impl Solver {
                     .0;
             }
         }
-        self.finish(
+        let out = self.finish(
             &fits[..n_fits],
             n_ok,
             theta_known,
@@ -338,7 +350,14 @@ impl Solver {
             prep,
             lam_min,
             scratch,
-        )
+        );
+        // The full search found nothing that fits: the row's reference.
+        if out.0.reason == Reason::PoorFit && free_poor.is_some() {
+            if let Some(flat) = self.poor_noise(n_ok, noise, scratch) {
+                self.note_poor((FREE_ANGLE, FREE_MARGIN, FREE_RUN), flat, out.1, scratch);
+            }
+        }
+        out
     }
 
     /// [`Solver::try_warm`], finished where the warm fit stands: `Ok` with

@@ -7,6 +7,7 @@
 use super::{GridMin, Hint, ThicknessTable, ORDER_GAP_SAFE};
 use crate::estimate::noise::FlatNoise;
 use crate::estimate::solver::alternatives::{OrderMargin, WEAK_FRINGES};
+use crate::estimate::solver::poor::TABLE_MARGIN;
 use crate::estimate::solver::refine::sse;
 use crate::estimate::solver::{Effort, Fit, Prepared, Scratch, Solver};
 use crate::estimate::{PixelEstimate, Reason};
@@ -33,8 +34,10 @@ impl Solver {
     ) -> (PixelEstimate, f64) {
         let exact = table_theta.to_bits() == theta.to_bits();
         if exact {
-            if let Some(out) = self.poor_as_before(prep, theta, n_ok, noise, scratch) {
-                return out;
+            if let Some(flat) = self.table_poor_noise(prep, theta, n_ok, noise, scratch) {
+                if let Some(out) = self.poor_as_before(theta.to_bits(), flat, n_ok, 1, scratch) {
+                    return out;
+                }
             }
         }
         let key = theta.to_bits();
@@ -113,16 +116,24 @@ impl Solver {
                 .iter()
                 .map(|f| f.sse)
                 .fold(f64::INFINITY, f64::min);
-            self.note_poor(prep, theta, n_ok, noise, min_sse, scratch);
+            if let Some(flat) = self.table_poor_noise(prep, theta, n_ok, noise, scratch) {
+                self.note_poor(
+                    (theta.to_bits(), TABLE_MARGIN, u32::MAX),
+                    flat,
+                    min_sse,
+                    scratch,
+                );
+            }
         }
         out
     }
 
-    /// Whether the fringes at `theta` leave a pixel of `n_ok` bands no
+    /// Where a poor pixel's bound ([`super::super::poor`]) applies on the
+    /// table at `theta`: as everywhere (judged, one variance per band, a
+    /// complete spectrum), and the fringes there leave the pixel no
     /// competitor beyond the table (the alternative checks add no fit at a
-    /// known angle), the noise is one variance per band, and the spectrum
-    /// is complete: where a poor pixel's bound below applies.
-    fn poor_bound_applies(
+    /// known angle, so the scan's minima are every fit weighed).
+    fn table_poor_noise(
         &self,
         prep: &Prepared,
         theta: f64,
@@ -130,72 +141,9 @@ impl Solver {
         noise: Option<f64>,
         scratch: &Scratch,
     ) -> Option<&FlatNoise> {
-        let sigma = noise.filter(|_| self.judging())?;
-        let flat = self.flat_noise.as_ref().filter(|_| self.noise.is_some())?;
-        // Weights are 1 on the bands used and 0 elsewhere.
-        let complete = n_ok == scratch.weight.len();
-        (complete && self.fringe_signal(prep, theta, n_ok, sigma, scratch) >= WEAK_FRINGES)
-            .then_some(flat)
-    }
-
-    /// After the scan found no thickness on the table that fits (flagged
-    /// "poor fit"): the spectrum, and a floor under its √χ² at every
-    /// thickness of the table, `√(SSE_min · min 1/σ²)` (χ² weighs each band
-    /// by at least the smallest inverse variance; the scan's best minimum
-    /// is its least SSE, as every flag the scan gives assumes).
-    fn note_poor(
-        &self,
-        prep: &Prepared,
-        theta: f64,
-        n_ok: usize,
-        noise: Option<f64>,
-        min_sse: f64,
-        scratch: &mut Scratch,
-    ) {
-        let Some(flat) = self.poor_bound_applies(prep, theta, n_ok, noise, scratch) else {
-            return;
-        };
-        let floor = (min_sse * flat.min_inv_var()).sqrt();
-        if floor.is_finite() {
-            scratch.poor_y.clear();
-            scratch.poor_y.extend_from_slice(&scratch.spectrum);
-            scratch.poor = Some((theta.to_bits(), floor));
-        }
-    }
-
-    /// A pixel close to an earlier poor one of the row, flagged "poor fit"
-    /// without a scan where no thickness can fit it either: by the
-    /// triangle inequality in the χ² norm, `√χ²(d)` of this spectrum is at
-    /// least the earlier floor less the distance `√χ²` between the two
-    /// spectra, at every `d`. It stands only where that exceeds twice the
-    /// χ² test's `√threshold` (four times the threshold in χ²); the
-    /// earlier pixel stays the reference until a scan runs again or a pixel
-    /// comes out valid. (A run
-    /// of pixels past the resolved range, a defect, a coating
-    /// the model does not describe: the scan was a fifth of a thick film's
-    /// solve.)
-    fn poor_as_before(
-        &self,
-        prep: &Prepared,
-        theta: f64,
-        n_ok: usize,
-        noise: Option<f64>,
-        scratch: &mut Scratch,
-    ) -> Option<(PixelEstimate, f64)> {
-        let (key, floor) = scratch.poor?;
-        if key != theta.to_bits() || scratch.poor_y.len() != scratch.spectrum.len() {
-            return None;
-        }
-        let flat = self.poor_bound_applies(prep, theta, n_ok, noise, scratch)?;
-        // Every weight is 1 here: the χ² between the two spectra.
-        let (between, _) =
-            flat.chi2_and_mean_var(&scratch.spectrum, &scratch.weight, &scratch.poor_y);
-        let dist = between.sqrt();
-        let threshold = self.chi2.threshold(n_ok.saturating_sub(1).max(1));
-        (floor - dist > 2.0 * threshold.sqrt()).then(|| {
-            scratch.last_fit_d = f64::NAN;
-            (PixelEstimate::invalid(Reason::PoorFit), f64::NAN)
-        })
+        let flat = self.poor_noise(n_ok, noise, scratch)?;
+        let sigma = noise?;
+        (self.fringe_signal(prep, theta, n_ok, sigma, scratch) >= WEAK_FRINGES).then_some(flat)
     }
 
     /// `balanced` (and `accurate`) from grid interval `j0`, the one
