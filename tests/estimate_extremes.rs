@@ -295,7 +295,10 @@ seed = {seed}
 /// that reaches the floor reads it: every valid pixel within 0.1 nm (the
 /// convergence test stops at steps of 0.005 nm; a fit stalled on the
 /// valley's wall was 4–14 nm off), the angle within 0.2°, and the films the
-/// 5 nm bands resolve (d·n2 ≲ 6.5 µm) valid.
+/// 5 nm bands resolve (d·n2 ≲ 6.5 µm) valid. `fast` stops where a step
+/// would lower χ² by under 0.1 noise variance, within √0.1 = 0.32 of its σ
+/// of the floor along any direction: there each within 0.35 σ (and still
+/// within 0.1 nm or 0.2° where that is wider).
 #[test]
 fn a_thick_film_near_normal_incidence_reaches_the_valley_floor() {
     let s = ThickImage::default().scene();
@@ -317,9 +320,14 @@ fn a_thick_film_near_normal_incidence_reaches_the_valley_floor() {
             valid += 1;
             let (d, th) = (truth.thickness_nm[i], truth.theta_deg[i]);
             let (dh, thh) = (maps.thickness_nm[i], maps.theta_deg[i]);
+            let (sd, st) = (maps.sigma_thickness_nm[i], maps.sigma_theta_deg[i]);
+            let (tol_d, tol_th) = match mode {
+                Mode::Fast => ((0.35 * sd).max(0.1), (0.35 * st).max(0.2)),
+                _ => (0.1, 0.2),
+            };
             assert!(
-                (dh - d).abs() <= 0.1 && (thh - th).abs() <= 0.2,
-                "{mode:?}: {d} nm at {th}° read {dh} nm at {thh}°"
+                (dh - d).abs() <= tol_d && (thh - th).abs() <= tol_th,
+                "{mode:?}: {d} nm at {th}° read {dh} nm at {thh}° (σ {sd} nm, {st}°)"
             );
         }
         assert!(valid >= n * 9 / 10, "{mode:?}: {valid} of {n} valid");

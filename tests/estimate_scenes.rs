@@ -15,7 +15,9 @@ mod scene_common;
 use irid::estimate::{Mode, ParamMaps, Reason, Solver};
 use irid::scene::{AngleKnowledge, FilmKnowledge, Scene};
 use irid::synth::{compare, scene_bands, Accuracy, Renderer, TruthMaps};
-use scene_common::{assert_agree, assert_rows_trustworthy, valid_and_wrong, with_known_angle};
+use scene_common::{
+    assert_agree, assert_agree_within, assert_rows_trustworthy, valid_and_wrong, with_known_angle,
+};
 use std::path::Path;
 
 fn scene(text: &str) -> Scene {
@@ -703,8 +705,8 @@ fn fast_rows_agree_with_the_per_pixel_fast_path() {
     // The band-major row path must compute what the per-pixel path does.
     // Where its closed form is found wanting, the row path refines from
     // the previous pixel's fit first (a lone pixel has none and refines
-    // from the closed form): both converge to the same minimum, to the
-    // refinement's tolerance (5e-3 nm, under a fiftieth of σ here).
+    // from the closed form): both converge to the same minimum, to
+    // `fast`'s tolerance (each within 0.32 σ of it).
     let s = Scene::paper_cylinder();
     let bands = scene_bands(&s).unwrap();
     let cube = Renderer::new(&s).unwrap().render_cube(&bands).unwrap();
@@ -720,7 +722,7 @@ fn fast_rows_agree_with_the_per_pixel_fast_path() {
             cube.spectrum_into(x, y, &mut spec);
             let p = solver.solve_pixel(&spec, None, &mut scratch);
             total += 1;
-            if let Some(identical) = assert_agree(&format!("({x}, {y})"), r, &p) {
+            if let Some(identical) = assert_agree_within(&format!("({x}, {y})"), r, &p, 0.65) {
                 valid += 1;
                 same += usize::from(identical);
             }

@@ -71,6 +71,10 @@ impl Solver {
         let mut stalled = true;
         // The raw sums at (d, θ), while they are its.
         let mut final_sums = None;
+        // The last step lowered the residual as its quadratic model said
+        // (to 10 %): only then may the mode's looser rule stop the next.
+        let mut quadratic = false;
+        let near_zero = 0.1 * self.band_span().0;
         for _ in 0..iters {
             // With the angle free the steps are taken in (g, s): the
             // optical thickness g = d·n2·cos θ2 and s = sin²θ. The fringes
@@ -99,9 +103,9 @@ impl Solver {
                 } else {
                     (gd / (a * (1.0 + mu) + 1e-12), 0.0)
                 };
-                let (nd, nt) = valley.step(&jac, d, th, sd, st, max_dd, free_theta);
-                let nd = nd.clamp(d_lo, d_hi);
-                let nt = nt.clamp(lo, hi);
+                let (nd_free, nt_free) = valley.step(&jac, d, th, sd, st, max_dd, free_theta);
+                let nd = nd_free.clamp(d_lo, d_hi);
+                let nt = nt_free.clamp(lo, hi);
                 // An undamped step already below the convergence
                 // tolerance, or one that would lower χ² by a negligible
                 // amount (to first order, the Gauss–Newton step lowers
@@ -110,9 +114,15 @@ impl Solver {
                 // any direction): the fit stays where it is, sparing the
                 // evaluation that would only confirm it.
                 let predicted = sd * gd + st * gt;
+                // The mode's looser rule only where the quadratic model has
+                // just been borne out, the step is the model's own (not cut
+                // at a bound) and the film lies clear of d = 0, where R is
+                // even in d and no quadratic model holds.
+                let loose = quadratic && nd == nd_free && nt == nt_free && d >= near_zero;
+                let tolerance = if loose { self.step_chi2() } else { STEP_CHI2 };
                 if mu <= 1e-3
                     && (((nd - d).abs() < 5e-3 && (nt - th).abs() < 2e-5)
-                        || (self.min_noise_var > 0.0 && predicted < STEP_CHI2 * self.min_noise_var))
+                        || (self.min_noise_var > 0.0 && predicted < tolerance * self.min_noise_var))
                 {
                     break;
                 }
@@ -124,6 +134,7 @@ impl Solver {
                     // the residual no longer moves.
                     let small = ((nd - d).abs() < 5e-3 && (nt - th).abs() < 2e-5)
                         || cur_sse - new_sse <= 1e-8 * cur_sse;
+                    quadratic = mu <= 1e-3 && ((cur_sse - new_sse) / predicted - 1.0).abs() <= 0.1;
                     d = nd;
                     th = nt;
                     cur_sse = new_sse;
@@ -200,6 +211,25 @@ impl Solver {
 /// A refinement stops where its next step would lower χ² by less than
 /// this (in noise variances; see `Solver::min_noise_var`).
 pub(super) const STEP_CHI2: f64 = 1e-4;
+
+/// `fast`'s: a fit within √0.1 = 0.32 σ of its minimum along any
+/// direction.
+pub(super) const FAST_STEP_CHI2: f64 = 1e-1;
+
+/// `balanced`'s: within 0.1 σ (its variance at most 1 % above the
+/// minimum's).
+pub(super) const BALANCED_STEP_CHI2: f64 = 1e-2;
+
+impl Solver {
+    /// The refinement's stopping rule for this mode.
+    fn step_chi2(&self) -> f64 {
+        match self.mode {
+            crate::estimate::Mode::Fast => FAST_STEP_CHI2,
+            crate::estimate::Mode::Balanced => BALANCED_STEP_CHI2,
+            crate::estimate::Mode::Accurate => STEP_CHI2,
+        }
+    }
+}
 
 /// Where [`Scratch`]'s `cur` holds the model with its derivatives: left
 /// there by a refinement of `model` (its id) that ended at `at`.
