@@ -16,7 +16,7 @@ use irid::estimate::{Mode, ParamMaps, Reason, Solver};
 use irid::scene::{AngleKnowledge, FilmKnowledge, Scene};
 use irid::synth::{compare, scene_bands, Accuracy, Renderer, TruthMaps};
 use scene_common::{
-    assert_agree, assert_agree_within, assert_rows_trustworthy, valid_and_wrong, with_known_angle,
+    assert_agree_within, assert_rows_trustworthy, valid_and_wrong, with_known_angle,
 };
 use std::path::Path;
 
