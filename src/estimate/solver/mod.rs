@@ -173,6 +173,9 @@ pub struct Scratch {
     /// `balanced`: how far the previous pixel's neighbouring fringe order
     /// fell short of its fit, within the current row.
     order_margin: Option<alternatives::OrderMargin>,
+    /// The stopping rule of the solve in progress (its `Effort`'s; 0 until
+    /// a solve sets it, read as [`refine::STEP_CHI2`]).
+    step_chi2: f64,
     /// The previous pixel's valid fit (d, θ) within the current row, the
     /// fitted path's first start (see `Solver::try_warm`).
     warm: Option<(f64, f64)>,
@@ -224,6 +227,7 @@ impl Scratch {
         self.warm = None;
         self.closed_form_last = false;
         self.poor = None;
+        self.step_chi2 = 0.0;
     }
 
     /// After a pixel of a row: its fit as the next pixel's warm start if
@@ -333,6 +337,10 @@ struct Effort {
     /// Refine the best fit once more with the bands weighed by their
     /// noise, where it differs between them (`weigh.rs`).
     weigh: bool,
+    /// A refinement with the exact model stops where its next step would
+    /// lower χ² by under this many noise variances (where its quadratic
+    /// model has been borne out; [`refine::STEP_CHI2`] elsewhere).
+    step_chi2: f64,
 }
 
 impl Effort {
@@ -352,6 +360,7 @@ impl Effort {
                 // `fast` keeps its speed: weighed alike, its error under a
                 // camera's noise is 1.23× the efficient one.
                 weigh: false,
+                step_chi2: refine::FAST_STEP_CHI2,
             },
             Mode::Balanced => Effort {
                 closed_form: true,
@@ -362,6 +371,7 @@ impl Effort {
                 verify_order: false,
                 warm: true,
                 weigh: true,
+                step_chi2: refine::BALANCED_STEP_CHI2,
             },
             Mode::Accurate => Effort {
                 closed_form: true,
@@ -372,6 +382,7 @@ impl Effort {
                 verify_order: true,
                 warm: true,
                 weigh: true,
+                step_chi2: refine::STEP_CHI2,
             },
         }
     }
@@ -379,7 +390,9 @@ impl Effort {
     /// The global index search and the level fit: the full candidate
     /// search (no noise level is known yet to judge a closed-form start),
     /// three orders refined to convergence — a fit left short of its
-    /// minimum would pass its residual off as a calibration error.
+    /// minimum would pass its residual off as a calibration error (the
+    /// strict stopping rule in every mode: 400 pixels each 0.1 variance
+    /// short would move the level test's Δχ² by tens).
     const INDEX_SEARCH: Effort = Effort {
         closed_form: false,
         closed_form_only: false,
@@ -389,6 +402,7 @@ impl Effort {
         verify_order: false,
         warm: false,
         weigh: false,
+        step_chi2: refine::STEP_CHI2,
     };
 }
 

@@ -81,6 +81,7 @@ impl Solver {
         } = job;
         scratch.last_fit_d = f64::NAN;
         scratch.last_fit_theta = f64::NAN;
+        scratch.step_chi2 = effort.step_chi2;
         let nb = self.bands.len();
         if spectrum.len() != nb {
             return (PixelEstimate::invalid(Reason::MissingBands), f64::NAN);

@@ -119,7 +119,11 @@ impl Solver {
                 // at a bound) and the film lies clear of d = 0, where R is
                 // even in d and no quadratic model holds.
                 let loose = quadratic && nd == nd_free && nt == nt_free && d >= near_zero;
-                let tolerance = if loose { self.step_chi2() } else { STEP_CHI2 };
+                let tolerance = if loose {
+                    s.step_chi2.max(STEP_CHI2)
+                } else {
+                    STEP_CHI2
+                };
                 if mu <= 1e-3
                     && (((nd - d).abs() < 5e-3 && (nt - th).abs() < 2e-5)
                         || (self.min_noise_var > 0.0 && predicted < tolerance * self.min_noise_var))
@@ -219,17 +223,6 @@ pub(super) const FAST_STEP_CHI2: f64 = 1e-1;
 /// `balanced`'s: within 0.1 σ (its variance at most 1 % above the
 /// minimum's).
 pub(super) const BALANCED_STEP_CHI2: f64 = 1e-2;
-
-impl Solver {
-    /// The refinement's stopping rule for this mode.
-    fn step_chi2(&self) -> f64 {
-        match self.mode {
-            crate::estimate::Mode::Fast => FAST_STEP_CHI2,
-            crate::estimate::Mode::Balanced => BALANCED_STEP_CHI2,
-            crate::estimate::Mode::Accurate => STEP_CHI2,
-        }
-    }
-}
 
 /// Where [`Scratch`]'s `cur` holds the model with its derivatives: left
 /// there by a refinement of `model` (its id) that ended at `at`.
