@@ -898,14 +898,7 @@ fn angle_free_runs_past_the_range_are_flagged_as_a_search_flags_them() {
     let mut cube = Renderer::new(&s).unwrap().render_cube(&bands).unwrap();
     let (w, h) = (cube.width, cube.height);
     let rippled = 20..70;
-    for (k, plane) in cube.data.chunks_exact_mut(w * h).enumerate() {
-        let ripple = 0.03 * (std::f64::consts::TAU * k as f64 / 7.0).sin();
-        for y in 0..h {
-            for x in rippled.clone() {
-                plane[y * w + x] += ripple as f32;
-            }
-        }
-    }
+    scene_common::add_ripple(&mut cube, rippled.clone());
     let mut solver = Solver::new(&s, &bands, Mode::Balanced).unwrap();
     solver.estimate_film_index(&cube).unwrap();
     let mut scratch = irid::estimate::solver::Scratch::default();

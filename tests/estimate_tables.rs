@@ -185,14 +185,7 @@ fn poor_runs_in_a_row_are_flagged_as_the_scan_flags_them() {
     let bands = scene_bands(&s).unwrap();
     let mut cube = Renderer::new(&s).unwrap().render_cube(&bands).unwrap();
     let poor = 30..60;
-    for (k, plane) in cube.data.chunks_exact_mut(w * h).enumerate() {
-        let ripple = 0.03 * (std::f64::consts::TAU * k as f64 / 7.0).sin();
-        for y in 0..h {
-            for x in poor.clone() {
-                plane[y * w + x] += ripple as f32;
-            }
-        }
-    }
+    scene_common::add_ripple(&mut cube, poor.clone());
     for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
         let mut solver = Solver::new(&s, &bands, mode).unwrap();
         solver.estimate_film_index(&cube).unwrap();

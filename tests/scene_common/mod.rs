@@ -5,7 +5,7 @@
 #![allow(dead_code)] // each test crate uses some of these
 
 use irid::estimate::model::FilmModel;
-use irid::estimate::PixelEstimate;
+use irid::estimate::{Cube, PixelEstimate};
 use irid::optics::band::Band;
 use irid::scene::{AngleKnowledge, FilmKnowledge, Scene};
 
@@ -133,4 +133,18 @@ seed = {seed}
 "#
     );
     Scene::from_toml(&text, "<test>", std::path::Path::new(".")).expect("test scene parses")
+}
+
+/// A ripple no film makes (0.03·sin(2πk/7) on band k, 30× a σ of 0.001)
+/// added to columns `cols` of every row of `cube`.
+pub fn add_ripple(cube: &mut Cube, cols: std::ops::Range<usize>) {
+    let (w, h) = (cube.width, cube.height);
+    for (k, plane) in cube.data.chunks_exact_mut(w * h).enumerate() {
+        let ripple = 0.03 * (std::f64::consts::TAU * k as f64 / 7.0).sin();
+        for y in 0..h {
+            for x in cols.clone() {
+                plane[y * w + x] += ripple as f32;
+            }
+        }
+    }
 }

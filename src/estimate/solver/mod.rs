@@ -231,7 +231,7 @@ impl Scratch {
     }
 
     /// After a pixel of a row: its fit as the next pixel's warm start if
-    /// valid, none otherwise.
+    /// valid, none otherwise; a valid pixel also ends a run of poor ones.
     fn note_warm(&mut self, est: &PixelEstimate) {
         if est.is_valid() {
             // A valid pixel ends a run of poor ones (`poor`).

@@ -110,9 +110,10 @@ impl Solver {
                 // tolerance, or one that would lower χ² by a negligible
                 // amount (to first order, the Gauss–Newton step lowers
                 // the residual by the step times the gradient; a fit off
-                // its minimum by that is off by √STEP_CHI2 = 0.01 σ along
-                // any direction): the fit stays where it is, sparing the
-                // evaluation that would only confirm it.
+                // its minimum by `tolerance` variances is off by
+                // √tolerance σ along any direction: 0.01 σ by the strict
+                // rule): the fit stays where it is, sparing the evaluation
+                // that would only confirm it.
                 let predicted = sd * gd + st * gt;
                 // The mode's looser rule only where the quadratic model has
                 // just been borne out, the step is the model's own (not cut
@@ -213,7 +214,8 @@ impl Solver {
 }
 
 /// A refinement stops where its next step would lower χ² by less than
-/// this (in noise variances; see `Solver::min_noise_var`).
+/// this (in noise variances; see `Solver::min_noise_var`): `accurate`'s
+/// rule, and every mode's wherever its looser one does not apply.
 pub(super) const STEP_CHI2: f64 = 1e-4;
 
 /// `fast`'s: a fit within √0.1 = 0.32 σ of its minimum along any
