@@ -398,13 +398,7 @@ impl Solver {
             let cost = self.index_cost(sample);
             self.refine_index(near.n, (lo, hi), &cost)?
         };
-        let (_, n_obs, n_par, _) = self.profile_at(n, sample)?;
-        let dof = (n_obs - n_par - 1.0).max(1.0);
-        let noise_var = self
-            .noise
-            .as_ref()
-            .map_or(0.0, |m| m.typical_sigma(0.05).powi(2));
-        let var = (sse / dof).max(noise_var);
+        let var = self.index_var(n, sse, sample)?;
         let at_bound = n <= lo + 2e-3 || n >= hi - 2e-3;
         if at_bound {
             return self.index_for(sample);
@@ -481,16 +475,7 @@ impl Solver {
             }
         }
         refined.sort_by(|a, b| a.1.total_cmp(&b.1));
-        let (_, n_obs, n_par, _) = self.profile_at(refined[0].0, sample)?;
-        let dof = (n_obs - n_par - 1.0).max(1.0);
-        // The larger of the residual's variance and the noise model's: a
-        // misfit shared by the sample widens σ_n and the twin test, never
-        // narrows them.
-        let noise_var = self
-            .noise
-            .as_ref()
-            .map_or(0.0, |n| n.typical_sigma(0.05).powi(2));
-        let var = (refined[0].1 / dof).max(noise_var);
+        let var = self.index_var(refined[0].0, refined[0].1, sample)?;
         let noise_sigma = var.sqrt();
         let mut best = refined[0];
         let mut note = String::new();
@@ -554,6 +539,20 @@ impl Solver {
             sigma_in_level: false,
             scale_branches: None,
         })
+    }
+
+    /// The residual variance behind an index `n` whose profile left `sse`
+    /// over `sample`: the larger of the residual's per degree of freedom
+    /// and the noise model's (a misfit shared by the sample widens σ_n and
+    /// the twin test, never narrows them).
+    fn index_var(&self, n: f64, sse: f64, sample: &[SamplePixel]) -> Result<f64, EstimateError> {
+        let (_, n_obs, n_par, _) = self.profile_at(n, sample)?;
+        let dof = (n_obs - n_par - 1.0).max(1.0);
+        let noise_var = self
+            .noise
+            .as_ref()
+            .map_or(0.0, |m| m.typical_sigma(0.05).powi(2));
+        Ok((sse / dof).max(noise_var))
     }
 
     /// Fit `sse ≈ s0 + κ (n − n0)²` on a fine local grid around `n_start`;

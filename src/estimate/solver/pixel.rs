@@ -353,10 +353,8 @@ impl Solver {
             scratch,
         );
         // The full search found nothing that fits: the row's reference.
-        if out.0.reason == Reason::PoorFit && free_poor.is_some() {
-            if let Some(flat) = self.poor_noise(n_ok, noise, scratch) {
-                self.note_poor((FREE_ANGLE, FREE_MARGIN, FREE_RUN), flat, out.1, scratch);
-            }
+        if let (Reason::PoorFit, Some(flat)) = (out.0.reason, free_poor) {
+            self.note_poor((FREE_ANGLE, FREE_MARGIN, FREE_RUN), flat, out.1, scratch);
         }
         out
     }
