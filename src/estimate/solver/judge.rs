@@ -7,7 +7,11 @@
 use super::alternatives::WEAK_FRINGES;
 use super::refine::MIN_FREE_THETA;
 use super::{Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
+use crate::estimate::lanes::{load, used};
+use crate::estimate::noise::band_var4;
 use crate::estimate::{PixelEstimate, Reason};
+use multiversion::multiversion;
+use wide::f64x4;
 
 /// How close to a bound of its search an estimate may come before it is
 /// "pinned" there: a fraction of the searched span.
@@ -61,25 +65,17 @@ impl Solver {
         };
         let mut t = std::mem::take(&mut s.trial);
         prep.model.eval(d, th, &mut t, true);
-        let (mut chi2, mut a, mut b, mut c, mut gd, mut gt) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
-        let (mut var_sum, mut used) = (0.0, 0usize);
-        for k in 0..s.spectrum.len() {
-            if s.weight[k] == 0.0 {
-                continue;
-            }
-            let var = noise.var(k, t.r[k]);
-            var_sum += var;
-            used += 1;
-            let w = s.weight[k] / var;
-            let e = s.spectrum[k] - t.r[k];
-            let (jd, jt) = (t.dr_dd[k], if free { t.dr_dth[k] } else { 0.0 });
-            chi2 += w * e * e;
-            a += w * jd * jd;
-            b += w * jd * jt;
-            c += w * jt * jt;
-            gd += w * jd * e;
-            gt += w * jt * e;
-        }
+        let bands = JudgedBands {
+            y: &s.spectrum,
+            w: &s.weight,
+            r: &t.r,
+            jd: &t.dr_dd,
+            jt: &t.dr_dth,
+        };
+        let [chi2, a, b, c, gd, gt, var_sum, used] = match &self.flat_noise {
+            Some(flat) => judged_sums_flat(bands, flat.parts(), free),
+            None => judged_sums(bands, &noise.var0, &noise.shot, noise.rel2, free),
+        };
         s.trial = t;
         if !(self.fit_passes(chi2, n_ok, n_par)
             && self.bound_reason(prep, d, th, theta_known).is_none())
@@ -124,7 +120,7 @@ impl Solver {
         // closed form tested visibility at its own angle): tested again
         // at the fit's.
         if free {
-            let energy = self.fringe_energy(prep, nt, n_ok, var_sum / used.max(1) as f64);
+            let energy = self.fringe_energy(prep, nt, n_ok, var_sum / used.max(1.0));
             if energy < MIN_VISIBILITY {
                 return Ok(PixelEstimate::invalid(Reason::NoFringe));
             }
@@ -287,4 +283,125 @@ impl Solver {
         let margin = margin + 5.0 * sigma;
         mean > hi + margin || mean < lo - margin
     }
+}
+
+/// One evaluation's bands for [`judged_sums`]: the spectrum `y` and its
+/// weights `w` (0 drops a band), the model `r` and its slopes in d and θ.
+#[derive(Clone, Copy)]
+struct JudgedBands<'a> {
+    y: &'a [f64],
+    w: &'a [f64],
+    r: &'a [f64],
+    jd: &'a [f64],
+    jt: &'a [f64],
+}
+
+impl JudgedBands<'_> {
+    /// Bands every slice holds.
+    fn len(&self) -> usize {
+        self.y
+            .len()
+            .min(self.w.len())
+            .min(self.r.len())
+            .min(self.jd.len())
+            .min(self.jt.len())
+    }
+}
+
+/// The closed form's judgement summed four bands a step: each band
+/// weighted by its weight over its noise variance, `[χ², Σ jd², Σ jd jt,
+/// Σ jt², Σ jd e, Σ jt e, Σ var, bands used]` (`e = y − r`).
+struct JudgeLanes([f64x4; 8]);
+
+impl JudgeLanes {
+    /// Four bands: weights `w`, residuals `e`, slopes `jd` and `jt`, the
+    /// variances `var` and their inverses `inv`.
+    #[inline(always)]
+    fn add(&mut self, w: f64x4, e: f64x4, (jd, jt): (f64x4, f64x4), var: f64x4, inv: f64x4) {
+        let on = used(w);
+        let wi = w * inv;
+        let s = &mut self.0;
+        s[0] += wi * e * e;
+        s[1] += wi * jd * jd;
+        s[2] += wi * jd * jt;
+        s[3] += wi * jt * jt;
+        s[4] += wi * jd * e;
+        s[5] += wi * jt * e;
+        s[6] += on * var;
+        s[7] += on;
+    }
+
+    /// The lanes summed pairwise.
+    #[inline(always)]
+    fn totals(&self) -> [f64; 8] {
+        self.0.map(|v| {
+            let a = v.to_array();
+            (a[0] + a[1]) + (a[2] + a[3])
+        })
+    }
+}
+
+/// Four values of `v` from `k`, those past `n` padded with `pad`.
+#[inline(always)]
+fn quad(v: &[f64], k: usize, n: usize, pad: f64) -> f64x4 {
+    if k + 4 <= n {
+        return load(&v[k..]);
+    }
+    let mut q = [pad; 4];
+    for (l, x) in q.iter_mut().enumerate().take(n - k) {
+        *x = v[k + l];
+    }
+    f64x4::new(q)
+}
+
+/// Four bands of `b` from band `k` (`[w, e, jd, jt, r]`; past `n` weight
+/// 0, which adds nothing), with the angle's slope 0 unless `theta` (it
+/// may not be computed).
+#[inline(always)]
+fn judged_quad(b: &JudgedBands, k: usize, n: usize, theta: bool) -> [f64x4; 5] {
+    let r = quad(b.r, k, n, 0.0);
+    let jt = if theta {
+        quad(b.jt, k, n, 0.0)
+    } else {
+        f64x4::ZERO
+    };
+    [
+        quad(b.w, k, n, 0.0),
+        quad(b.y, k, n, 0.0) - r,
+        quad(b.jd, k, n, 0.0),
+        jt,
+        r,
+    ]
+}
+
+/// The sums of [`JudgeLanes`] over every band under a reflectance-dependent
+/// noise model (`var0`, `shot`, `rel2`, as [`band_var4`] forms a band's
+/// variance), four bands a step in `f64x4` lanes (the scalar band loop
+/// had waited on each division in turn).
+#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+fn judged_sums(b: JudgedBands, var0: &[f64], shot: &[f64], rel2: f64, theta: bool) -> [f64; 8] {
+    let n = b.len().min(var0.len()).min(shot.len());
+    let mut lanes = JudgeLanes([f64x4::ZERO; 8]);
+    let rel = f64x4::splat(rel2);
+    for k in (0..n).step_by(4) {
+        let [w, e, jd, jt, r] = judged_quad(&b, k, n, theta);
+        // Padding lanes: variance 1 (their weight 0 drops them).
+        let var = band_var4(quad(var0, k, n, 1.0), quad(shot, k, n, 0.0), rel, r);
+        lanes.add(w, e, (jd, jt), var, f64x4::ONE / var);
+    }
+    lanes.totals()
+}
+
+/// [`judged_sums`] where no variance depends on the reflectance: each
+/// band's variance and its inverse given, no division.
+#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+fn judged_sums_flat(b: JudgedBands, (var, inv): (&[f64], &[f64]), theta: bool) -> [f64; 8] {
+    let n = b.len().min(var.len()).min(inv.len());
+    let mut lanes = JudgeLanes([f64x4::ZERO; 8]);
+    for k in (0..n).step_by(4) {
+        let [w, e, jd, jt, _] = judged_quad(&b, k, n, theta);
+        let (v, i) = (quad(var, k, n, 1.0), quad(inv, k, n, 1.0));
+        lanes.add(w, e, (jd, jt), v, i);
+    }
+    lanes.totals()
 }
