@@ -232,6 +232,69 @@ fn poor_runs_in_a_row_are_flagged_as_the_scan_flags_them() {
     }
 }
 
+/// A thick film whose thickness ramps past what 61 bands at 5 nm resolve
+/// (an optical thickness of ~6.5 µm: ~3.2 µm of silicon nitride), angle
+/// known: a row flags the pixels past the range "fringes unresolved"
+/// exactly as lone pixels scanning the whole table do, and the valid ones
+/// alike, but after a scan finds one past the range the next pixels walk
+/// from its fit instead of scanning (at most 16 before a scan runs
+/// again): here fewer than a third of them scan, where each did.
+/// `accurate` weighs every pixel's order and scans each.
+#[test]
+fn unresolved_runs_in_a_row_are_flagged_as_the_scan_flags_them() {
+    let path =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/scenes/thick-hardcoat.toml");
+    let mut s = Scene::load(&path).expect("the bundled scene loads");
+    s.angle = AngleKnowledge::Uniform(8f64.to_radians());
+    // 2 950 → 3 300 nm over a row: valid up to ~3.17 µm, then unresolved
+    // to the end (the table reaches ~3.33 µm; past it every fit is poor).
+    let t = s.truth.as_mut().unwrap();
+    t.width = 80;
+    t.height = 3;
+    t.angle_deg = Field::Constant(8.0);
+    t.thickness_nm = Field::LinearX([2950.0, 3300.0]);
+    let bands = scene_bands(&s).unwrap();
+    let cube = Renderer::new(&s).unwrap().render_cube(&bands).unwrap();
+    let (w, h) = (cube.width, cube.height);
+    for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
+        let mut solver = Solver::new(&s, &bands, mode).unwrap();
+        solver.estimate_film_index(&cube).unwrap();
+        let mut scratch = irid::estimate::solver::Scratch::default();
+        let mut row =
+            vec![irid::estimate::PixelEstimate::invalid(irid::estimate::Reason::Masked); w];
+        let mut spec = vec![0.0; bands.len()];
+        let (mut unresolved, mut valid) = (0, 0);
+        for y in 0..h {
+            solver.solve_row(&cube, y, &mut row, &mut scratch);
+            for (x, r) in row.iter().enumerate() {
+                cube.spectrum_into(x, y, &mut spec);
+                let mut lone = irid::estimate::solver::Scratch::default();
+                let p = solver.solve_pixel(&spec, solver.scene_angle().known_at(x, y), &mut lone);
+                let at = format!("{} ({x}, {y})", mode.name());
+                valid += usize::from(scene_common::assert_agree(&at, r, &p).is_some());
+                unresolved += usize::from(r.reason == irid::estimate::Reason::Unresolved);
+            }
+        }
+        // Scans of the pixels past the range: every scan but the valid
+        // pixels' own (each row's first, and those after an order jump).
+        let scans = scratch.table_scans();
+        eprintln!(
+            "{}: {valid} valid, {unresolved} unresolved, {scans} scans",
+            mode.name()
+        );
+        assert!(
+            valid >= w * h / 3 && unresolved >= w * h / 4,
+            "{}",
+            mode.name()
+        );
+        if mode == Mode::Accurate {
+            assert!(scans >= unresolved, "accurate: {scans} scans");
+        } else {
+            assert!(3 * scans < unresolved, "{}: {scans} scans", mode.name());
+        }
+    }
+}
+
 /// Noise ten times the coating's (σ_R = 0.01, fringes a few σ deep on the
 /// thinnest films): a row solved from the previous pixel's basin must
 /// weigh the neighbouring fringe order as the scan does, and call the

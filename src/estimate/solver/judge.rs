@@ -6,6 +6,7 @@
 
 use super::alternatives::WEAK_FRINGES;
 use super::refine::MIN_FREE_THETA;
+use super::table::ThicknessTable;
 use super::{Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
 use crate::estimate::lanes::{load, used};
 use crate::estimate::noise::band_var4;
@@ -143,6 +144,38 @@ impl Solver {
         fe.sigma_thickness_nm = sig_d;
         fe.sigma_theta_deg = sig_t;
         Ok(fe)
+    }
+
+    /// χ² and the bands' mean noise variance of a fit on `table` (at its
+    /// own angle) at `d`, whose residual on the interpolant is `sse`, with
+    /// `n_ok` bands used and `n_par` parameters; `None` without a noise
+    /// model. The fit
+    /// left its residual on the very interpolant χ² would evaluate again:
+    /// with one variance for every band χ² is that residual over it; with
+    /// a variance per band their spread settles the test for most pixels
+    /// of a complete spectrum; otherwise one pass over the bands.
+    pub(super) fn tabled_chi2(
+        &self,
+        table: &ThicknessTable,
+        d: f64,
+        sse: f64,
+        (n_ok, n_par): (usize, usize),
+        s: &Scratch,
+    ) -> Option<(f64, f64)> {
+        let noise = self.noise.as_ref()?;
+        let Some(flat) = &self.flat_noise else {
+            // Values and χ² under the reflectance-dependent noise in one
+            // pass.
+            return Some(table.chi2_model(d, &s.spectrum, &s.weight, noise));
+        };
+        if let Some((v, inv)) = flat.uniform() {
+            return Some((sse * inv, v));
+        }
+        let complete = n_ok == s.weight.len();
+        let threshold = self.chi2.threshold(n_ok.saturating_sub(n_par).max(1));
+        flat.settle_complete(sse, threshold)
+            .filter(|_| complete)
+            .or_else(|| Some(table.chi2_flat(d, &s.spectrum, &s.weight, flat)))
     }
 
     /// Whether a fit with `chi2` over `n_ok` bands and `n_par` fitted

@@ -185,6 +185,11 @@ pub struct Scratch {
     /// `Solver::poor_as_before`).
     poor: Option<poor::PoorRef>,
     poor_y: Vec<f64>,
+    /// The row's last pixel a table's scan found beyond the resolved
+    /// range (see `Solver::unresolved_as_before`).
+    unresolved: Option<table::UnresolvedRun>,
+    /// Full scans of a thickness table made with this scratch.
+    table_scans: usize,
     /// The previous pixel in the row was settled by `balanced`'s closed
     /// form (its neighbour then looks for one first, before its warm start).
     closed_form_last: bool,
@@ -215,8 +220,14 @@ impl Scratch {
         &self.fits
     }
 
+    /// Full scans of a thickness table made with this scratch so far (a
+    /// pixel a row settles from its neighbour's walk makes none).
+    pub fn table_scans(&self) -> usize {
+        self.table_scans
+    }
+
     /// Forget the previous pixel (its table walk, fringe-order margin,
-    /// warm start, poor fit, closed form and the model evaluation its
+    /// warm start, poor or unresolved fit, closed form and the model evaluation its
     /// refinement left, which a start within rounding of it would take):
     /// what follows is solved as if first, whichever thread solved what
     /// before it.
@@ -227,6 +238,7 @@ impl Scratch {
         self.warm = None;
         self.closed_form_last = false;
         self.poor = None;
+        self.unresolved = None;
         self.step_chi2 = 0.0;
     }
 

@@ -11,7 +11,6 @@ use super::refine::{free_angle_sigma, sse};
 use super::search::{Candidate, MAX_CANDIDATES};
 use super::{Effort, Fit, Job, Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
 use crate::estimate::model::FilmModel;
-use crate::estimate::noise::FlatNoise;
 use crate::estimate::{PixelEstimate, Reason};
 use multiversion::multiversion;
 use std::f64::consts::PI;
@@ -615,41 +614,16 @@ impl Solver {
         } else {
             None
         };
-        // A fit on a table at its own angle left its residual on the very
-        // interpolant χ² would evaluate again; with one variance for every
-        // band, χ² is that residual over it.
-        let uniform = self
-            .flat_noise
-            .as_ref()
-            .and_then(FlatNoise::uniform)
-            .filter(|_| tabled.is_some());
-        // `chi2_and_noise_var`'s flat branch.
-        let flat = self.flat_noise.as_ref().filter(|_| self.noise.is_some());
         let (chi2, noise_var) = if let Some(c) = weighed.and_then(|w| w.0.chi2) {
             c
-        } else if let (true, Some((v, inv))) = (judging, uniform) {
-            (best.sse * inv, v)
+        } else if let Some(c) = tabled
+            .filter(|_| judging)
+            .and_then(|t| self.tabled_chi2(t, best.d, best.sse, (n_ok, n_par), scratch))
+        {
+            c
         } else if let (true, Some(c)) = (judging, best.chi2) {
             // Left by the refinement at this very fit.
             c
-        } else if let (true, Some(t), Some(flat)) = (judging, tabled, flat) {
-            // On the interpolant, whose residual the fit left: the bands'
-            // spread of variance settles the test for most pixels.
-            let complete = n_ok == scratch.weight.len();
-            let threshold = self.chi2.threshold(n_ok.saturating_sub(n_par).max(1));
-            match flat
-                .settle_complete(best.sse, threshold)
-                .filter(|_| complete)
-            {
-                Some(out) => out,
-                None => t.chi2_flat(best.d, &scratch.spectrum, &scratch.weight, flat),
-            }
-        } else if let (true, Some(t), None, Some(noise)) =
-            (judging, tabled, &self.flat_noise, &self.noise)
-        {
-            // The interpolant's values and χ² under the reflectance-
-            // dependent noise in one pass.
-            t.chi2_model(best.d, &scratch.spectrum, &scratch.weight, noise)
         } else if judging {
             let mut trial = std::mem::take(&mut scratch.trial);
             match tabled {
