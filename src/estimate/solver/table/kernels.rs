@@ -353,38 +353,96 @@ fn hermite_at(
 /// `Σy² − 2 y·R + ΣR²`, eight grid points per vector: the table's scanned
 /// rows are transposed in blocks of eight ([`ThicknessTable::coarse`]),
 /// so each band is one broadcast multiply–add into eight sums and no sum
-/// is reduced across lanes; four partial sums per block keep the adds
-/// independent. f32 keeps 1e-7 of `Σy²`, far below a residual of `nb σ²`
-/// at any usable noise level.
+/// is reduced across lanes; four blocks a pass share each band's
+/// broadcast and keep four independent chains of fused multiply–adds
+/// (one block with separate multiplies and adds, as before, scanned the
+/// thick hard coat's 731-point table in ~1 µs; fused and grouped, its
+/// angle-known `fast` runs 1.1–1.2× faster). f32 keeps 1e-7 of `Σy²`, far
+/// below a residual of `nb σ²` at any usable noise level.
 #[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
 pub(super) fn scan_blocked(coarse: &[f32], rr: &[f32], y: &[f32], yy: f32, sse: &mut [f32]) {
+    // A fused multiply–add where the vector unit has one (Rust never
+    // contracts `a * b + c` itself; without FMA `mul_add` would be a
+    // library call).
+    if multiversion::target::target_cfg_f!(target_feature = "fma") {
+        scan_blocks::<true>(coarse, rr, y, yy, sse);
+    } else {
+        scan_blocks::<false>(coarse, rr, y, yy, sse);
+    }
+}
+
+/// `a · b + c`, fused where `FMA`.
+#[inline(always)]
+fn madd<const FMA: bool>(a: f32, b: f32, c: f32) -> f32 {
+    if FMA {
+        a.mul_add(b, c)
+    } else {
+        a * b + c
+    }
+}
+
+/// Blocks scanned together: each band's `y` is loaded once for all of
+/// them, and their sums are independent chains (the multiply–adds of one
+/// block's sum wait on each other).
+const SCAN_GROUP: usize = 4;
+
+/// [`scan_blocked`]'s loops (inlined into each of its vector units):
+/// [`SCAN_GROUP`] blocks a pass over the bands, then the rest one by one
+/// with four partial sums.
+#[allow(clippy::needless_range_loop)] // eight lanes, indexed alike
+#[inline(always)]
+fn scan_blocks<const FMA: bool>(coarse: &[f32], rr: &[f32], y: &[f32], yy: f32, sse: &mut [f32]) {
     let nb = y.len();
+    let blocks = (sse.len() / 8)
+        .min(rr.len() / 8)
+        .min(coarse.len() / (nb * 8).max(1));
+    let finish = |dot: [f32; 8], rr: &[f32], out: &mut [f32]| {
+        for l in 0..8 {
+            out[l] = yy - 2.0 * dot[l] + rr[l];
+        }
+    };
+    let mut b = 0;
+    while b + SCAN_GROUP <= blocks {
+        let group = &coarse[b * nb * 8..(b + SCAN_GROUP) * nb * 8];
+        let mut acc = [[0f32; 8]; SCAN_GROUP];
+        for (k, &yk) in y.iter().enumerate() {
+            for (i, a) in acc.iter_mut().enumerate() {
+                let row = &group[(i * nb + k) * 8..(i * nb + k) * 8 + 8];
+                for l in 0..8 {
+                    a[l] = madd::<FMA>(yk, row[l], a[l]);
+                }
+            }
+        }
+        for (i, a) in acc.iter().enumerate() {
+            let at = (b + i) * 8;
+            finish(*a, &rr[at..at + 8], &mut sse[at..at + 8]);
+        }
+        b += SCAN_GROUP;
+    }
     let whole = nb - nb % 4;
-    for ((blk, rr), out) in coarse
-        .chunks_exact(nb * 8)
-        .zip(rr.chunks_exact(8))
-        .zip(sse.chunks_exact_mut(8))
-    {
+    for b in b..blocks {
+        let blk = &coarse[b * nb * 8..(b + 1) * nb * 8];
         let mut acc = [[0f32; 8]; 4];
         for k0 in (0..whole).step_by(4) {
             for (p, a) in acc.iter_mut().enumerate() {
                 let k = k0 + p;
                 let row = &blk[k * 8..k * 8 + 8];
                 for l in 0..8 {
-                    a[l] += y[k] * row[l];
+                    a[l] = madd::<FMA>(y[k], row[l], a[l]);
                 }
             }
         }
         for k in whole..nb {
             let row = &blk[k * 8..k * 8 + 8];
             for l in 0..8 {
-                acc[0][l] += y[k] * row[l];
+                acc[0][l] = madd::<FMA>(y[k], row[l], acc[0][l]);
             }
         }
+        let mut dot = [0f32; 8];
         for l in 0..8 {
-            let dot = (acc[0][l] + acc[1][l]) + (acc[2][l] + acc[3][l]);
-            out[l] = yy - 2.0 * dot + rr[l];
+            dot[l] = (acc[0][l] + acc[1][l]) + (acc[2][l] + acc[3][l]);
         }
+        finish(dot, &rr[b * 8..b * 8 + 8], &mut sse[b * 8..b * 8 + 8]);
     }
 }
 
