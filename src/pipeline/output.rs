@@ -61,31 +61,69 @@ pub struct SweepSummary {
     pub level: String,
 }
 
+/// Over the valid pixels of `maps`: how many have a finite thickness, its
+/// sum and sum of squares, its least and greatest value, and the least and
+/// greatest finite angle. One pass in four independent lanes, every test a
+/// select (a full camera frame's 1.3 M pixels took ~7 ms band by band on
+/// the live runner's critical path, a branch and a dependent sum each).
+fn map_stats(maps: &ParamMaps) -> (usize, f64, f64, (f64, f64), (f64, f64)) {
+    let n = maps
+        .valid
+        .len()
+        .min(maps.thickness_nm.len())
+        .min(maps.theta_deg.len());
+    let (valid, d, t) = (
+        &maps.valid[..n],
+        &maps.thickness_nm[..n],
+        &maps.theta_deg[..n],
+    );
+    let (inf, ninf) = (f64::INFINITY, f64::NEG_INFINITY);
+    let mut cnt = [0f64; 4];
+    let (mut sum, mut sum2) = ([0f64; 4], [0f64; 4]);
+    let (mut lo, mut hi, mut tlo, mut thi) = ([inf; 4], [ninf; 4], [inf; 4], [ninf; 4]);
+    let mut lane = |l: usize, v: f32, d: f32, t: f32| {
+        let ok = v >= 0.5;
+        let d = f64::from(d);
+        let t = f64::from(t);
+        let (dk, tk) = (ok && d.is_finite(), ok && t.is_finite());
+        cnt[l] += if dk { 1.0 } else { 0.0 };
+        let dv = if dk { d } else { 0.0 };
+        sum[l] += dv;
+        sum2[l] += dv * dv;
+        lo[l] = lo[l].min(if dk { d } else { inf });
+        hi[l] = hi[l].max(if dk { d } else { ninf });
+        tlo[l] = tlo[l].min(if tk { t } else { inf });
+        thi[l] = thi[l].max(if tk { t } else { ninf });
+    };
+    let quads = valid
+        .chunks_exact(4)
+        .zip(d.chunks_exact(4))
+        .zip(t.chunks_exact(4));
+    for ((v, d), t) in quads {
+        for l in 0..4 {
+            lane(l, v[l], d[l], t[l]);
+        }
+    }
+    for i in n - n % 4..n {
+        lane(0, valid[i], d[i], t[i]);
+    }
+    let total = |a: [f64; 4]| (a[0] + a[1]) + (a[2] + a[3]);
+    let least = |a: [f64; 4]| a.iter().copied().fold(inf, f64::min);
+    let most = |a: [f64; 4]| a.iter().copied().fold(ninf, f64::max);
+    (
+        total(cnt) as usize,
+        total(sum),
+        total(sum2),
+        (least(lo), most(hi)),
+        (least(tlo), most(thi)),
+    )
+}
+
 impl SweepSummary {
     /// Statistics of `maps`.
     pub fn from_maps(sweep: u64, maps: &ParamMaps) -> SweepSummary {
         let n = maps.valid.len().max(1);
-        let (mut cnt, mut sum, mut sum2) = (0usize, 0.0f64, 0.0f64);
-        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-        let (mut tlo, mut thi) = (f64::INFINITY, f64::NEG_INFINITY);
-        for i in 0..maps.valid.len() {
-            if maps.valid[i] < 0.5 {
-                continue;
-            }
-            let d = f64::from(maps.thickness_nm[i]);
-            if d.is_finite() {
-                cnt += 1;
-                sum += d;
-                sum2 += d * d;
-                lo = lo.min(d);
-                hi = hi.max(d);
-            }
-            let t = f64::from(maps.theta_deg[i]);
-            if t.is_finite() {
-                tlo = tlo.min(t);
-                thi = thi.max(t);
-            }
-        }
+        let (cnt, sum, sum2, (lo, hi), (tlo, thi)) = map_stats(maps);
         let nan_if = |ok: bool, v: f64| if ok { v } else { f64::NAN };
         let quality = |key: &str| {
             maps.meta
@@ -186,4 +224,67 @@ pub fn write_map(path: &Path, maps: &ParamMaps) -> Result<(), OutputError> {
         path: path.to_path_buf(),
         message: e.to_string(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The four-lane pass against the definition pixel by pixel: valid
+    /// pixels only, non-finite thicknesses and angles skipped, on a map
+    /// whose length is no multiple of four.
+    #[test]
+    fn the_summary_counts_the_valid_finite_pixels_as_defined() {
+        let (w, h) = (7, 5);
+        let mut maps = ParamMaps::new(w, h);
+        for i in 0..w * h {
+            maps.valid[i] = if i % 3 == 0 { 0.0 } else { 1.0 };
+            maps.thickness_nm[i] = if i % 5 == 1 {
+                f32::NAN
+            } else {
+                100.0 + (i * 37 % 23) as f32
+            };
+            maps.theta_deg[i] = if i % 7 == 2 {
+                f32::INFINITY
+            } else {
+                10.0 + (i * 11 % 17) as f32
+            };
+        }
+        let s = SweepSummary::from_maps(3, &maps);
+        let ok = |i: &usize| maps.valid[*i] > 0.5;
+        let d: Vec<f64> = (0..w * h)
+            .filter(ok)
+            .map(|i| f64::from(maps.thickness_nm[i]))
+            .filter(|v| v.is_finite())
+            .collect();
+        let t: Vec<f64> = (0..w * h)
+            .filter(ok)
+            .map(|i| f64::from(maps.theta_deg[i]))
+            .filter(|v| v.is_finite())
+            .collect();
+        let mean = d.iter().sum::<f64>() / d.len() as f64;
+        let var = d.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / d.len() as f64;
+        let valid = (0..w * h).filter(ok).count() as f64 / (w * h) as f64;
+        assert_eq!(s.valid_fraction, valid);
+        assert!((s.thickness_mean_nm - mean).abs() < 1e-9, "{s:?}");
+        assert!(
+            (s.thickness_std_nm - var.sqrt()).abs() < 1e-6,
+            "{s:?} {}",
+            var.sqrt()
+        );
+        let (lo, hi) = d.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |a, &v| {
+            (a.0.min(v), a.1.max(v))
+        });
+        let (tlo, thi) = t.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |a, &v| {
+            (a.0.min(v), a.1.max(v))
+        });
+        assert_eq!((s.thickness_min_nm, s.thickness_max_nm), (lo, hi));
+        assert_eq!((s.theta_min_deg, s.theta_max_deg), (tlo, thi));
+        // Nothing valid: NaN statistics, not zeros.
+        maps.valid.iter_mut().for_each(|v| *v = 0.0);
+        let s = SweepSummary::from_maps(4, &maps);
+        assert!(
+            s.thickness_mean_nm.is_nan() && s.theta_min_deg.is_nan() && s.valid_fraction == 0.0
+        );
+    }
 }
