@@ -149,11 +149,12 @@ impl Solver {
     /// χ² and the bands' mean noise variance of a fit on `table` (at its
     /// own angle) at `d`, whose residual on the interpolant is `sse`, with
     /// `n_ok` bands used and `n_par` parameters; `None` without a noise
-    /// model. The fit
-    /// left its residual on the very interpolant χ² would evaluate again:
-    /// with one variance for every band χ² is that residual over it; with
-    /// a variance per band their spread settles the test for most pixels
-    /// of a complete spectrum; otherwise one pass over the bands.
+    /// model. The fit left its residual on the very interpolant χ² would
+    /// evaluate again: with one variance for every band χ² is that
+    /// residual over it; with a variance per band their spread settles the
+    /// test for most pixels of a complete spectrum; otherwise one pass
+    /// over the bands (with a reflectance-dependent variance, the
+    /// interpolant's values and χ² in one).
     pub(super) fn tabled_chi2(
         &self,
         table: &ThicknessTable,

@@ -227,8 +227,9 @@ impl Scratch {
     }
 
     /// Forget the previous pixel (its table walk, fringe-order margin,
-    /// warm start, poor or unresolved fit, closed form and the model evaluation its
-    /// refinement left, which a start within rounding of it would take):
+    /// warm start, poor or unresolved fit, closed form and the model
+    /// evaluation its refinement left, which a start within rounding of it
+    /// would take):
     /// what follows is solved as if first, whichever thread solved what
     /// before it.
     fn start_afresh(&mut self) {
