@@ -776,43 +776,36 @@ fn balanced_rows_with_the_angle_free_agree_with_lone_pixels() {
         let truth = r.truth_maps(&bands);
         let mut solver = Solver::new(&s, &bands, Mode::Balanced).unwrap();
         solver.estimate_film_index(&cube).unwrap();
-        let mut scratch = irid::estimate::solver::Scratch::default();
-        let mut row = vec![irid::estimate::PixelEstimate::invalid(Reason::Masked); cube.width];
-        let mut spec = vec![0.0; bands.len()];
+        // Every scene here has the angle free: the lone pixel searches.
+        assert!(solver.scene_angle().known_at(0, 0).is_none(), "{label}");
         let (mut valid, mut total, mut wrong, mut differ) = (0, 0, 0, 0);
-        for y in 0..cube.height {
-            solver.solve_row(&cube, y, &mut row, &mut scratch);
-            for (x, r) in row.iter().enumerate() {
-                cube.spectrum_into(x, y, &mut spec);
-                let mut lone = irid::estimate::solver::Scratch::default();
-                let p = solver.solve_pixel(&spec, None, &mut lone);
-                total += 1;
-                let at = format!("{label} ({x}, {y})");
-                if r.reason != p.reason {
-                    // A lone pixel's search can miss the basin its row's
-                    // start finds (flagging it), and the reverse: counted.
-                    differ += 1;
-                } else if r.reason == Reason::AngleNotIdentifiable {
-                    // Along a valley the data cannot resolve, two starts
-                    // stop at different points of it; each σ spans it.
-                    let dd = (r.thickness_nm - p.thickness_nm).abs();
-                    let span = r.sigma_thickness_nm.max(p.sigma_thickness_nm);
-                    assert!(dd < 2.0 * span, "{at}: {r:?} vs {p:?}");
-                } else if r.is_valid() {
-                    // Two converged fits of one minimum: within 0.05 σ, or
-                    // the refinement's stopping step (5e-3 nm) twice.
-                    let dd = (r.thickness_nm - p.thickness_nm).abs();
-                    assert!(
-                        dd < (0.05 * r.sigma_thickness_nm).max(0.01),
-                        "{at}: {r:?} vs {p:?}"
-                    );
-                    let ds = (r.sigma_thickness_nm - p.sigma_thickness_nm).abs();
-                    assert!(ds < 0.05 * r.sigma_thickness_nm, "{at}: {r:?} vs {p:?}");
-                }
-                valid += usize::from(r.is_valid());
-                wrong += usize::from(valid_and_wrong(r, truth.thickness_nm[y * cube.width + x]));
+        scene_common::rows_against_lone(&solver, &cube, |x, y, r, p, _| {
+            total += 1;
+            let at = format!("{label} ({x}, {y})");
+            if r.reason != p.reason {
+                // A lone pixel's search can miss the basin its row's
+                // start finds (flagging it), and the reverse: counted.
+                differ += 1;
+            } else if r.reason == Reason::AngleNotIdentifiable {
+                // Along a valley the data cannot resolve, two starts
+                // stop at different points of it; each σ spans it.
+                let dd = (r.thickness_nm - p.thickness_nm).abs();
+                let span = r.sigma_thickness_nm.max(p.sigma_thickness_nm);
+                assert!(dd < 2.0 * span, "{at}: {r:?} vs {p:?}");
+            } else if r.is_valid() {
+                // Two converged fits of one minimum: within 0.05 σ, or
+                // the refinement's stopping step (5e-3 nm) twice.
+                let dd = (r.thickness_nm - p.thickness_nm).abs();
+                assert!(
+                    dd < (0.05 * r.sigma_thickness_nm).max(0.01),
+                    "{at}: {r:?} vs {p:?}"
+                );
+                let ds = (r.sigma_thickness_nm - p.sigma_thickness_nm).abs();
+                assert!(ds < 0.05 * r.sigma_thickness_nm, "{at}: {r:?} vs {p:?}");
             }
-        }
+            valid += usize::from(r.is_valid());
+            wrong += usize::from(valid_and_wrong(r, truth.thickness_nm[y * cube.width + x]));
+        });
         eprintln!("{label}: {valid} of {total} valid, {wrong} valid and wrong, {differ} judged otherwise alone");
         assert_rows_trustworthy(label, valid, total, wrong);
         assert!(

@@ -140,29 +140,15 @@ fn balanced_rows_from_the_previous_pixel_agree_with_the_scan() {
         let truth = r.truth_maps(&bands);
         let mut solver = Solver::new(&s, &bands, mode).unwrap();
         solver.estimate_film_index(&cube).unwrap();
-        let mut scratch = irid::estimate::solver::Scratch::default();
-        let mut row = vec![
-            irid::estimate::PixelEstimate::invalid(irid::estimate::Reason::Masked);
-            cube.width
-        ];
-        let mut spec = vec![0.0; bands.len()];
         let (mut same, mut valid, mut total, mut wrong) = (0, 0, 0, 0);
-        for y in 0..cube.height {
-            solver.solve_row(&cube, y, &mut row, &mut scratch);
-            for (x, r) in row.iter().enumerate() {
-                cube.spectrum_into(x, y, &mut spec);
-                // A fresh scratch: no previous pixel, the whole scan.
-                let mut lone = irid::estimate::solver::Scratch::default();
-                let p = solver.solve_pixel(&spec, solver.scene_angle().known_at(x, y), &mut lone);
-                total += 1;
-                let Some(identical) = assert_agree(&format!("{label} ({x}, {y})"), r, &p) else {
-                    continue;
-                };
+        scene_common::rows_against_lone(&solver, &cube, |x, y, r, p, _| {
+            total += 1;
+            if let Some(identical) = assert_agree(&format!("{label} ({x}, {y})"), r, p) {
                 valid += 1;
                 same += usize::from(identical);
                 wrong += usize::from(valid_and_wrong(r, truth.thickness_nm[y * cube.width + x]));
             }
-        }
+        });
         eprintln!("{label}: {same} of {valid} valid pixels identical, {total} pixels, {wrong} valid and wrong");
         assert_rows_trustworthy(&label, valid, total, wrong);
     }
@@ -189,27 +175,16 @@ fn poor_runs_in_a_row_are_flagged_as_the_scan_flags_them() {
     for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
         let mut solver = Solver::new(&s, &bands, mode).unwrap();
         solver.estimate_film_index(&cube).unwrap();
-        let mut scratch = irid::estimate::solver::Scratch::default();
-        let mut row =
-            vec![irid::estimate::PixelEstimate::invalid(irid::estimate::Reason::Masked); w];
-        let mut spec = vec![0.0; bands.len()];
         let (mut flagged, mut skipped, mut valid_outside) = (0, 0, 0);
-        for y in 0..h {
-            solver.solve_row(&cube, y, &mut row, &mut scratch);
-            for (x, r) in row.iter().enumerate() {
-                cube.spectrum_into(x, y, &mut spec);
-                let mut lone = irid::estimate::solver::Scratch::default();
-                let p = solver.solve_pixel(&spec, solver.scene_angle().known_at(x, y), &mut lone);
-                let at = format!("{} ({x}, {y})", mode.name());
-                let agreed = assert_agree(&at, r, &p);
-                if poor.contains(&x) {
-                    flagged += usize::from(r.reason == irid::estimate::Reason::PoorFit);
-                    skipped += usize::from(scratch.fit_thickness()[x].is_nan());
-                } else {
-                    valid_outside += usize::from(agreed.is_some());
-                }
+        scene_common::rows_against_lone(&solver, &cube, |x, y, r, p, scratch| {
+            let agreed = assert_agree(&format!("{} ({x}, {y})", mode.name()), r, p);
+            if poor.contains(&x) {
+                flagged += usize::from(r.reason == irid::estimate::Reason::PoorFit);
+                skipped += usize::from(scratch.fit_thickness()[x].is_nan());
+            } else {
+                valid_outside += usize::from(agreed.is_some());
             }
-        }
+        });
         let n_poor = poor.len() * h;
         eprintln!(
             "{}: {flagged} of {n_poor} flagged, {skipped} without a scan, {valid_outside} valid outside",
@@ -259,22 +234,12 @@ fn unresolved_runs_in_a_row_are_flagged_as_the_scan_flags_them() {
     for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
         let mut solver = Solver::new(&s, &bands, mode).unwrap();
         solver.estimate_film_index(&cube).unwrap();
-        let mut scratch = irid::estimate::solver::Scratch::default();
-        let mut row =
-            vec![irid::estimate::PixelEstimate::invalid(irid::estimate::Reason::Masked); w];
-        let mut spec = vec![0.0; bands.len()];
         let (mut unresolved, mut valid) = (0, 0);
-        for y in 0..h {
-            solver.solve_row(&cube, y, &mut row, &mut scratch);
-            for (x, r) in row.iter().enumerate() {
-                cube.spectrum_into(x, y, &mut spec);
-                let mut lone = irid::estimate::solver::Scratch::default();
-                let p = solver.solve_pixel(&spec, solver.scene_angle().known_at(x, y), &mut lone);
-                let at = format!("{} ({x}, {y})", mode.name());
-                valid += usize::from(scene_common::assert_agree(&at, r, &p).is_some());
-                unresolved += usize::from(r.reason == irid::estimate::Reason::Unresolved);
-            }
-        }
+        let scratch = scene_common::rows_against_lone(&solver, &cube, |x, y, r, p, _| {
+            let at = format!("{} ({x}, {y})", mode.name());
+            valid += usize::from(scene_common::assert_agree(&at, r, p).is_some());
+            unresolved += usize::from(r.reason == irid::estimate::Reason::Unresolved);
+        });
         // Scans of the pixels past the range: every scan but the valid
         // pixels' own (each row's first, and those after an order jump).
         let scans = scratch.table_scans();

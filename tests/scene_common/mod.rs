@@ -5,7 +5,8 @@
 #![allow(dead_code)] // each test crate uses some of these
 
 use irid::estimate::model::FilmModel;
-use irid::estimate::{Cube, PixelEstimate};
+use irid::estimate::solver::Scratch;
+use irid::estimate::{Cube, PixelEstimate, Reason, Solver};
 use irid::optics::band::Band;
 use irid::scene::{AngleKnowledge, FilmKnowledge, Scene};
 
@@ -147,4 +148,29 @@ pub fn add_ripple(cube: &mut Cube, cols: std::ops::Range<usize>) {
             }
         }
     }
+}
+
+/// Every row of `cube` solved as a row solver does (one scratch through
+/// the rows, each row starting afresh) and every pixel alone (a fresh
+/// scratch: no previous pixel, the whole search), both handed to
+/// `each(x, y, row, lone, scratch)` with the rows' scratch as its row
+/// left it; returns that scratch (its counters).
+pub fn rows_against_lone(
+    solver: &Solver,
+    cube: &Cube,
+    mut each: impl FnMut(usize, usize, &PixelEstimate, &PixelEstimate, &Scratch),
+) -> Scratch {
+    let mut scratch = Scratch::default();
+    let mut row = vec![PixelEstimate::invalid(Reason::Masked); cube.width];
+    let mut spec = vec![0.0; cube.bands.len()];
+    for y in 0..cube.height {
+        solver.solve_row(cube, y, &mut row, &mut scratch);
+        for (x, r) in row.iter().enumerate() {
+            cube.spectrum_into(x, y, &mut spec);
+            let mut lone = Scratch::default();
+            let p = solver.solve_pixel(&spec, solver.scene_angle().known_at(x, y), &mut lone);
+            each(x, y, r, &p, &scratch);
+        }
+    }
+    scratch
 }
