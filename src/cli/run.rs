@@ -193,33 +193,49 @@ pub(crate) struct CliSink {
     pub png: bool,
     /// The live page, fed the latest finished map.
     pub live: Option<super::serve::LiveView>,
-    /// Sweeps finished, and when the second and the last of them did.
+    /// Sweeps finished, and when the first and the last of them had their
+    /// last band frame (the finish less the sweep's latency).
     pub pace: (u64, Option<(std::time::Instant, std::time::Instant)>),
 }
 
 impl CliSink {
-    /// The mean wall time between finished sweeps from the second on (the
-    /// first also estimates the film index, the noise and the level, and
-    /// finishes late), if three or more finished: the pace the whole
-    /// pipeline kept, which a saturated machine stretches beyond the
-    /// filter's own.
+    /// The mean wall time between the mapped sweeps' last band frames, if
+    /// two or more were mapped: the pace the rig and the pipeline kept
+    /// together, which a saturated machine stretches beyond the filter's
+    /// own (a starved capture, or a sweep dropped in between). Taken at
+    /// the frames, not at the finished maps: the first sweep also
+    /// estimates the film index, the noise and the level, and the sweeps
+    /// queued behind it then finish in a burst (the 3-sweep demo read "a
+    /// sweep every 4 ms"). A pipeline falling behind shows in the latency.
     pub fn sweep_period(&self) -> Option<std::time::Duration> {
-        let (n, Some((second, last))) = self.pace else {
+        let (n, Some((first, last))) = self.pace else {
             return None;
         };
-        (n >= 3).then(|| (last - second) / (n - 2) as u32)
+        (n >= 2).then(|| (last - first) / (n - 1) as u32)
     }
+
+    /// One more sweep mapped, its last band frame `at`.
+    fn note_pace(&mut self, at: std::time::Instant) {
+        let (n, times) = self.pace;
+        self.pace = match times {
+            None => (n + 1, Some((at, at))),
+            Some((first, _)) => (n + 1, Some((first, at))),
+        };
+    }
+}
+
+/// When a sweep that finished `now`, `latency_ms` after its last band
+/// frame, had that frame (`now` where the latency is not a duration).
+fn last_frame_at(now: std::time::Instant, latency_ms: f64) -> std::time::Instant {
+    std::time::Duration::try_from_secs_f64(latency_ms / 1e3)
+        .ok()
+        .and_then(|d| now.checked_sub(d))
+        .unwrap_or(now)
 }
 
 impl SweepSink for CliSink {
     fn on_sweep(&mut self, s: &SweepSummary, maps: &ParamMaps) -> Result<(), String> {
-        let now = std::time::Instant::now();
-        let (n, times) = self.pace;
-        self.pace = match (n, times) {
-            (0, _) => (1, None),
-            (_, None) => (n + 1, Some((now, now))),
-            (_, Some((second, _))) => (n + 1, Some((second, now))),
-        };
+        self.note_pace(last_frame_at(std::time::Instant::now(), s.latency_ms));
         let mut s = s.clone();
         if let Some(dir) = &self.out {
             let p = sweep_path(dir, s.sweep);
@@ -464,5 +480,36 @@ mod tests {
         let fast = demo(&["--unpaced", "--time-scale", "2"]);
         assert!(!fast.paced);
         assert_eq!(fast.time_scale, 2.0);
+    }
+
+    /// The pace is taken at the sweeps' last band frames: three sweeps
+    /// acquired 450 ms apart whose maps finish in a burst (the first
+    /// estimating the index, the others queued behind it) read 450 ms,
+    /// not the burst's few; a latency that is no duration counts as none.
+    #[test]
+    fn the_pace_is_kept_at_the_frames_not_at_the_finished_maps() {
+        use std::time::{Duration, Instant};
+        let t0 = Instant::now();
+        let finish = |ms: u64| t0 + Duration::from_millis(ms);
+        let mut sink = CliSink {
+            out: None,
+            json: false,
+            png: false,
+            live: None,
+            pace: (0, None),
+        };
+        assert_eq!(sink.sweep_period(), None);
+        // Acquired at 0, 450 and 900 ms; finished at 1 100, 1 104, 1 108.
+        for (done, latency) in [(1100, 1100.0), (1104, 654.0), (1108, 208.0)] {
+            sink.note_pace(last_frame_at(finish(done), latency));
+        }
+        let p = sink.sweep_period().expect("three sweeps");
+        assert!(
+            p.abs_diff(Duration::from_millis(450)) < Duration::from_millis(1),
+            "{p:?}"
+        );
+        for odd in [f64::NAN, -5.0, f64::INFINITY] {
+            assert_eq!(last_frame_at(finish(10), odd), finish(10), "{odd}");
+        }
     }
 }
