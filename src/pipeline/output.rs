@@ -61,12 +61,13 @@ pub struct SweepSummary {
     pub level: String,
 }
 
-/// Over the valid pixels of `maps`: how many have a finite thickness, its
-/// sum and sum of squares, its least and greatest value, and the least and
+/// Over `maps`: how many pixels are valid (as [`ParamMaps::valid_count`]
+/// counts them), and over those how many have a finite thickness, its sum
+/// and sum of squares, its least and greatest value, and the least and
 /// greatest finite angle. One pass in four independent lanes, every test a
 /// select (a full camera frame's 1.3 M pixels took ~7 ms band by band on
 /// the live runner's critical path, a branch and a dependent sum each).
-fn map_stats(maps: &ParamMaps) -> (usize, f64, f64, (f64, f64), (f64, f64)) {
+fn map_stats(maps: &ParamMaps) -> (usize, usize, f64, f64, (f64, f64), (f64, f64)) {
     let n = maps
         .valid
         .len()
@@ -78,10 +79,11 @@ fn map_stats(maps: &ParamMaps) -> (usize, f64, f64, (f64, f64), (f64, f64)) {
         &maps.theta_deg[..n],
     );
     let (inf, ninf) = (f64::INFINITY, f64::NEG_INFINITY);
-    let mut cnt = [0f64; 4];
+    let (mut valid_n, mut cnt) = ([0f64; 4], [0f64; 4]);
     let (mut sum, mut sum2) = ([0f64; 4], [0f64; 4]);
     let (mut lo, mut hi, mut tlo, mut thi) = ([inf; 4], [ninf; 4], [inf; 4], [ninf; 4]);
     let mut lane = |l: usize, v: f32, d: f32, t: f32| {
+        valid_n[l] += if v > 0.5 { 1.0 } else { 0.0 };
         let ok = v >= 0.5;
         let d = f64::from(d);
         let t = f64::from(t);
@@ -111,6 +113,7 @@ fn map_stats(maps: &ParamMaps) -> (usize, f64, f64, (f64, f64), (f64, f64)) {
     let least = |a: [f64; 4]| a.iter().copied().fold(inf, f64::min);
     let most = |a: [f64; 4]| a.iter().copied().fold(ninf, f64::max);
     (
+        total(valid_n) as usize,
         total(cnt) as usize,
         total(sum),
         total(sum2),
@@ -123,7 +126,7 @@ impl SweepSummary {
     /// Statistics of `maps`.
     pub fn from_maps(sweep: u64, maps: &ParamMaps) -> SweepSummary {
         let n = maps.valid.len().max(1);
-        let (cnt, sum, sum2, (lo, hi), (tlo, thi)) = map_stats(maps);
+        let (valid, cnt, sum, sum2, (lo, hi), (tlo, thi)) = map_stats(maps);
         let nan_if = |ok: bool, v: f64| if ok { v } else { f64::NAN };
         let quality = |key: &str| {
             maps.meta
@@ -135,7 +138,7 @@ impl SweepSummary {
         let mean = sum / cnt.max(1) as f64;
         SweepSummary {
             sweep,
-            valid_fraction: maps.valid_count() as f64 / n as f64,
+            valid_fraction: valid as f64 / n as f64,
             thickness_mean_nm: nan_if(cnt > 0, mean),
             thickness_std_nm: nan_if(
                 cnt > 0,

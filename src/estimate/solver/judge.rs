@@ -8,7 +8,7 @@ use super::alternatives::WEAK_FRINGES;
 use super::refine::MIN_FREE_THETA;
 use super::table::ThicknessTable;
 use super::{Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
-use crate::estimate::lanes::{load, used};
+use crate::estimate::lanes::{load, Chi2Lanes};
 use crate::estimate::noise::band_var4;
 use crate::estimate::{PixelEstimate, Reason};
 use multiversion::multiversion;
@@ -73,7 +73,7 @@ impl Solver {
             jd: &t.dr_dd,
             jt: &t.dr_dth,
         };
-        let [chi2, a, b, c, gd, gt, var_sum, used] = match &self.flat_noise {
+        let ([a, b, c, gd, gt], (chi2, mean_var)) = match &self.flat_noise {
             Some(flat) => judged_sums_flat(bands, flat.parts(), free),
             None => judged_sums(bands, &noise.var0, &noise.shot, noise.rel2, free),
         };
@@ -121,7 +121,7 @@ impl Solver {
         // closed form tested visibility at its own angle): tested again
         // at the fit's.
         if free {
-            let energy = self.fringe_energy(prep, nt, n_ok, var_sum / used.max(1.0));
+            let energy = self.fringe_energy(prep, nt, n_ok, mean_var);
             if energy < MIN_VISIBILITY {
                 return Ok(PixelEstimate::invalid(Reason::NoFringe));
             }
@@ -342,36 +342,49 @@ impl JudgedBands<'_> {
     }
 }
 
-/// The closed form's judgement summed four bands a step: each band
-/// weighted by its weight over its noise variance, `[χ², Σ jd², Σ jd jt,
-/// Σ jt², Σ jd e, Σ jt e, Σ var, bands used]` (`e = y − r`).
-struct JudgeLanes([f64x4; 8]);
+/// The closed form's judgement summed four bands a step: χ², the noise
+/// variances and the bands used as every χ² kernel sums them
+/// ([`Chi2Lanes`]), and the Gauss–Newton sums, each band weighted by its
+/// weight over its variance: `[Σ jd², Σ jd jt, Σ jt², Σ jd e, Σ jt e]`
+/// (`e = y − r`).
+struct JudgeLanes {
+    chi2: Chi2Lanes,
+    normal: [f64x4; 5],
+}
 
 impl JudgeLanes {
+    /// Nothing summed yet.
+    #[inline(always)]
+    fn new() -> JudgeLanes {
+        JudgeLanes {
+            chi2: Chi2Lanes::new(),
+            normal: [f64x4::ZERO; 5],
+        }
+    }
+
     /// Four bands: weights `w`, residuals `e`, slopes `jd` and `jt`, the
     /// variances `var` and their inverses `inv`.
     #[inline(always)]
     fn add(&mut self, w: f64x4, e: f64x4, (jd, jt): (f64x4, f64x4), var: f64x4, inv: f64x4) {
-        let on = used(w);
+        self.chi2.add(w, e, var, inv);
         let wi = w * inv;
-        let s = &mut self.0;
-        s[0] += wi * e * e;
-        s[1] += wi * jd * jd;
-        s[2] += wi * jd * jt;
-        s[3] += wi * jt * jt;
-        s[4] += wi * jd * e;
-        s[5] += wi * jt * e;
-        s[6] += on * var;
-        s[7] += on;
+        let s = &mut self.normal;
+        s[0] += wi * jd * jd;
+        s[1] += wi * jd * jt;
+        s[2] += wi * jt * jt;
+        s[3] += wi * jd * e;
+        s[4] += wi * jt * e;
     }
 
-    /// The lanes summed pairwise.
+    /// The Gauss–Newton sums, each summed pairwise over its lanes, and χ²
+    /// with the mean variance of the bands used.
     #[inline(always)]
-    fn totals(&self) -> [f64; 8] {
-        self.0.map(|v| {
+    fn totals(self) -> ([f64; 5], (f64, f64)) {
+        let normal = self.normal.map(|v| {
             let a = v.to_array();
             (a[0] + a[1]) + (a[2] + a[3])
-        })
+        });
+        (normal, self.chi2.sums().totals())
     }
 }
 
@@ -413,9 +426,15 @@ fn judged_quad(b: &JudgedBands, k: usize, n: usize, theta: bool) -> [f64x4; 5] {
 /// variance), four bands a step in `f64x4` lanes (the scalar band loop
 /// had waited on each division in turn).
 #[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
-fn judged_sums(b: JudgedBands, var0: &[f64], shot: &[f64], rel2: f64, theta: bool) -> [f64; 8] {
+fn judged_sums(
+    b: JudgedBands,
+    var0: &[f64],
+    shot: &[f64],
+    rel2: f64,
+    theta: bool,
+) -> ([f64; 5], (f64, f64)) {
     let n = b.len().min(var0.len()).min(shot.len());
-    let mut lanes = JudgeLanes([f64x4::ZERO; 8]);
+    let mut lanes = JudgeLanes::new();
     let rel = f64x4::splat(rel2);
     for k in (0..n).step_by(4) {
         let [w, e, jd, jt, r] = judged_quad(&b, k, n, theta);
@@ -429,9 +448,13 @@ fn judged_sums(b: JudgedBands, var0: &[f64], shot: &[f64], rel2: f64, theta: boo
 /// [`judged_sums`] where no variance depends on the reflectance: each
 /// band's variance and its inverse given, no division.
 #[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
-fn judged_sums_flat(b: JudgedBands, (var, inv): (&[f64], &[f64]), theta: bool) -> [f64; 8] {
+fn judged_sums_flat(
+    b: JudgedBands,
+    (var, inv): (&[f64], &[f64]),
+    theta: bool,
+) -> ([f64; 5], (f64, f64)) {
     let n = b.len().min(var.len()).min(inv.len());
-    let mut lanes = JudgeLanes([f64x4::ZERO; 8]);
+    let mut lanes = JudgeLanes::new();
     for k in (0..n).step_by(4) {
         let [w, e, jd, jt, _] = judged_quad(&b, k, n, theta);
         let (v, i) = (quad(var, k, n, 1.0), quad(inv, k, n, 1.0));
