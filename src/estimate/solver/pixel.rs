@@ -581,8 +581,10 @@ impl Solver {
         // sorting it stalled on the copy: a tenth of this function's time).
         let all = || own.iter().chain(&alt[..n_alt]);
         let by_sse = |a: &&Fit, b: &&Fit| a.sse.total_cmp(&b.sse);
-        // The first of the lowest, as a stable sort's head.
-        let Some(best) = all().min_by(by_sse).copied() else {
+        // The first of the lowest, as a stable sort's head, read in place
+        // (a copy, its halves stored and a field loaded across them, stalled
+        // on the store: a third of this function's time on a live pixel).
+        let Some(best) = all().min_by(by_sse) else {
             return (PixelEstimate::invalid(Reason::PoorFit), f64::NAN);
         };
         scratch.last_fit_d = best.d;
@@ -610,7 +612,7 @@ impl Solver {
         // reported; the order checks below keep the fits as weighed alike.
         let weighed = if judging && self.weigh_bands && Effort::of(self.mode).weigh {
             let (free, basin) = (theta_known.is_none(), basin(scratch));
-            self.weighed_fit(model, tabled, &best, free, basin, scratch)
+            self.weighed_fit(model, tabled, best, free, basin, scratch)
         } else {
             None
         };
@@ -640,7 +642,7 @@ impl Solver {
         // σ of the fit reported: the weighed one's in its own units.
         let (at, at_var) = match weighed {
             Some((w, mean_var)) => (w, (w.sse / dof).max(mean_var).max(1e-14)),
-            None => (best, var),
+            None => (*best, var),
         };
         let (sig_d, sig_th) = if theta_known.is_some() {
             ((at_var / at.jtj[0].max(1e-300)).sqrt(), 0.0)
@@ -651,7 +653,7 @@ impl Solver {
         // the linearised σ is meaningless: take the one-sided profile bound
         // instead, the d at which the residual grows by one variance.
         let sig_d = if best.d < 0.1 * lam_min && (sig_d.is_nan() || sig_d >= 0.05 * lam_min) {
-            self.profile_sigma_d(model, best, var, scratch)
+            self.profile_sigma_d(model, *best, var, scratch)
         } else {
             sig_d
         };

@@ -128,6 +128,9 @@ pub const TABLE_BUDGET_BYTES: usize = 256 << 20;
 pub struct ThicknessTable {
     d0: f64,
     h: f64,
+    /// `1 / h`: a pixel's position on the grid is a product, not a
+    /// division its χ² and order checks wait on.
+    inv_h: f64,
     m: usize,
     nb: usize,
     /// `nb` rounded up to whole vectors of 8 (the padding is zero).
@@ -342,6 +345,7 @@ impl ThicknessTable {
         ThicknessTable {
             d0: d_lo,
             h,
+            inv_h: 1.0 / h,
             m,
             nb,
             nbp,
@@ -363,7 +367,7 @@ impl ThicknessTable {
     /// points either side of it (the gap swings by up to a third from one
     /// point to the next).
     pub fn order_gap(&self, d: f64) -> f64 {
-        let x = (d - self.d0) / self.h;
+        let x = (d - self.d0) * self.inv_h;
         let j = if x >= 0.0 {
             (x as usize).min(self.m - 1)
         } else {
@@ -593,7 +597,7 @@ impl ThicknessTable {
     /// Grid interval `j` (points `j`, `j + 1`) holding `d`, clamped to the
     /// grid, and `d`'s position `t ∈ [0, 1]` in it.
     fn interval_of(&self, d: f64) -> (usize, f64) {
-        let x = ((d - self.d0) / self.h).clamp(0.0, (self.m - 1) as f64);
+        let x = ((d - self.d0) * self.inv_h).clamp(0.0, (self.m - 1) as f64);
         // Truncation is `floor` here (x ≥ 0; NaN gives 0).
         let j = (x as usize).min(self.m - 2);
         (j, x - j as f64)
@@ -776,6 +780,10 @@ impl ThicknessTable {
     /// past the first; also says whether the minimum is a stationary
     /// point (not an interval end the residual still falls beyond, where
     /// the walk stopped short: the minimum lies elsewhere).
+    ///
+    /// Inlined: returned through memory, its tuple was read back across
+    /// the halves it was stored in, a stalled load on every live pixel.
+    #[inline(always)]
     fn walk_complete(&self, y: &[f64], j: usize, max_walk: usize) -> ((f64, f64, f64), bool) {
         let last = self.m - 2;
         // The interval right of `j` where the residual falls into it,
@@ -818,6 +826,7 @@ impl ThicknessTable {
     /// Returns `(d, Σ e², Σ (dR/dd)²)` as [`Self::fit`]; complete spectra
     /// only (`n_ok`, the bands used, is every band: weights are 1 on the
     /// bands used), `None` otherwise.
+    #[inline(always)]
     pub fn fit_near(&self, y: &[f64], n_ok: usize, j0: usize) -> Option<(f64, f64, f64)> {
         if n_ok != self.nb || j0 >= self.m {
             return None;

@@ -267,11 +267,13 @@ impl Solver {
         // its fit and this fit moved little, it is not weighed again.
         let carried = OrderMargin::carried(scratch.order_margin, key, d, dd).filter(|_| !verify);
         // Nor where the noise-free orders lie far apart at this thickness.
+        // (Compared as a product: the branch does not wait on a division.)
         let gap = self
             .max_noise_var_at(prep, table, theta, scratch)
-            .map_or(0.0, |v| table.order_gap(d) / v);
-        let (n, margin) = if !verify && gap >= ORDER_GAP_SAFE {
-            (1, gap)
+            .map(|v| (table.order_gap(d), v))
+            .filter(|&(g, v)| g >= ORDER_GAP_SAFE * v);
+        let (n, margin) = if let Some((g, v)) = gap.filter(|_| !verify) {
+            (1, g / v)
         } else if let Some(m) = carried {
             (1, m)
         } else {
