@@ -57,7 +57,13 @@ impl Solver {
         // pixel's spectrum is then gathered from this (a few cache-resident
         // kilobytes per band) rather than from band planes megabytes apart,
         // one cache line per band per pixel that no prefetcher follows.
+        // Each band's row starts one cache line past a multiple of 16
+        // floats: at a stride of the row's own width (1280 or 2560 floats,
+        // 5 or 10 KiB) a pixel's 31 lines fell into 4 (or 2) of the L1
+        // cache's 64 sets, more than their ways hold, and every pixel's
+        // gather missed.
         let (w, nb) = (cube.width, cube.bands.len());
+        let ws = w.next_multiple_of(16) + 16;
         let mut rows = std::mem::take(&mut scratch.row);
         if done < w {
             rows.clear();
@@ -65,14 +71,15 @@ impl Solver {
             if y < cube.height && cube.data.len() >= n * nb {
                 for plane in cube.data.chunks_exact(n.max(1)).take(nb) {
                     rows.extend_from_slice(&plane[y * w..(y + 1) * w]);
+                    rows.resize(rows.len() + ws - w, f32::NAN);
                 }
             }
             // A row outside the cube (or a short cube) reads as missing.
-            rows.resize(nb * w, f32::NAN);
+            rows.resize(nb * ws, f32::NAN);
         }
         for (x, o) in out.iter_mut().enumerate().take(cube.width).skip(done) {
             for (k, v) in pixel.iter_mut().enumerate() {
-                *v = f64::from(rows[k * w + x]);
+                *v = f64::from(rows[k * ws + x]);
             }
             scratch.last_fit_d = f64::NAN;
             *o = self.solve_pixel(&pixel, self.scene.angle.known_at(x, y), scratch);

@@ -604,7 +604,9 @@ impl ThicknessTable {
     }
 
     /// Values `[A, B]` and slopes `[P, Q]` of every band at the two ends of
-    /// grid interval `j`.
+    /// grid interval `j`. (Inlined: returned through memory, its slices
+    /// were read back across the halves they were stored in.)
+    #[inline(always)]
     fn ends(&self, j: usize) -> ([&[f32]; 2], [&[f32]; 2]) {
         let (nb, nbp) = (self.nb, self.nbp);
         (
