@@ -179,6 +179,12 @@ pub struct Scratch {
     /// The previous pixel's valid fit (d, θ) within the current row, the
     /// fitted path's first start (see `Solver::try_warm`).
     warm: Option<(f64, f64)>,
+    /// The valid fit before `warm`, where the two were neighbours in the
+    /// row: with it the warm start follows the row's ramp.
+    warm_before: Option<(f64, f64)>,
+    /// σ of `warm`'s thickness and angle (radians): a step between
+    /// neighbours within a few σ is noise, not a ramp to follow.
+    warm_sigma: (f64, f64),
     /// A pixel of the current row that no fit of a full search explained:
     /// the search (a table's angle bits, or `poor::FREE_ANGLE`) and a floor
     /// under its √χ² at every fit; its spectrum in `poor_y` (see
@@ -237,6 +243,7 @@ impl Scratch {
         self.hint = None;
         self.order_margin = None;
         self.warm = None;
+        self.warm_before = None;
         self.closed_form_last = false;
         self.poor = None;
         self.unresolved = None;
@@ -250,9 +257,35 @@ impl Scratch {
             // A valid pixel ends a run of poor ones (`poor`).
             self.poor = None;
         }
-        self.warm = est
+        let fit = est
             .is_valid()
             .then(|| (est.thickness_nm, est.theta_deg.to_radians()));
+        self.warm_before = fit.and(self.warm);
+        self.warm = fit;
+        self.warm_sigma = (est.sigma_thickness_nm, est.sigma_theta_deg.to_radians());
+    }
+
+    /// The warm start (`warm`), on the row's ramp: each coordinate on
+    /// the line through the last two fits where they lie apart by more
+    /// than three of its σ (a smaller step is the fits' noise:
+    /// extrapolated, it would double it) and close enough to be a slope,
+    /// not an edge or an order change (2 nm, 0.6°).
+    #[inline(never)]
+    fn warm_start(&self) -> Option<(f64, f64)> {
+        let (d, th) = self.warm?;
+        let Some((db, tb)) = self.warm_before else {
+            return Some((d, th));
+        };
+        let (sd, st) = self.warm_sigma;
+        let ramp = |x: f64, before: f64, sigma: f64, most: f64| {
+            let step = x - before;
+            if step.abs() > 3.0 * sigma && step.abs() <= most {
+                x + step
+            } else {
+                x
+            }
+        };
+        Some((ramp(d, db, sd, 2.0).max(0.0), ramp(th, tb, st, 0.01)))
     }
 
     fn ensure(&mut self, n: usize) {

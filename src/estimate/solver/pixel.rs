@@ -400,7 +400,7 @@ impl Solver {
             ..
         } = job;
         let judging = noise.is_some() && self.judging();
-        let Some((d0, th0)) = scratch.warm.filter(|_| judging) else {
+        let Some((d0, th0)) = scratch.warm_start().filter(|_| judging) else {
             return Err(None);
         };
         let th0 = theta_known.unwrap_or(th0);
