@@ -1177,3 +1177,62 @@ fn film_dispersion_ratios(film: &FilmKnowledge, bands: &[Band]) -> Vec<f64> {
         .collect::<Option<Vec<f64>>>()
         .unwrap_or_default()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::Scratch;
+    use crate::estimate::{PixelEstimate, Reason};
+
+    fn fit(d: f64, theta_deg: f64, sigma_d: f64, sigma_theta_deg: f64) -> PixelEstimate {
+        PixelEstimate {
+            thickness_nm: d,
+            n_film: 1.46,
+            theta_deg,
+            sigma_thickness_nm: sigma_d,
+            sigma_theta_deg,
+            residual_rms: 1e-3,
+            reason: Reason::Ok,
+        }
+    }
+
+    /// The warm start follows the row's ramp only where the last two fits
+    /// moved by more than three σ and less than an edge's jump, each
+    /// coordinate on its own; an invalid pixel breaks the ramp.
+    #[test]
+    fn the_warm_start_follows_a_ramp_not_noise_nor_an_edge() {
+        let mut s = Scratch::default();
+        assert_eq!(s.warm_start(), None);
+        s.note_warm(&fit(100.0, 30.0, 0.02, 0.01));
+        // One fit: no slope yet.
+        assert_eq!(s.warm_start(), Some((100.0, 30f64.to_radians())));
+        // d moved 0.5 nm (25 σ): extrapolated; θ moved 0.005° (half a σ):
+        // noise, kept.
+        s.note_warm(&fit(100.5, 30.005, 0.02, 0.01));
+        let (d, th) = s.warm_start().unwrap();
+        assert!((d - 101.0).abs() < 1e-12, "{d}");
+        assert_eq!(th, 30.005f64.to_radians());
+        // θ moved 0.1° (10 σ, under 0.6°): extrapolated too.
+        s.note_warm(&fit(101.0, 30.105, 0.02, 0.01));
+        let (d, th) = s.warm_start().unwrap();
+        assert!((d - 101.5).abs() < 1e-12, "{d}");
+        assert!((th - 30.205f64.to_radians()).abs() < 1e-12, "{th}");
+        // A step within 3σ of the thickness: noise, not followed.
+        s.note_warm(&fit(101.04, 30.105, 0.02, 0.01));
+        assert_eq!(s.warm_start().unwrap().0, 101.04);
+        // A jump of 5 nm: an edge or an order change, not followed.
+        s.note_warm(&fit(106.04, 30.105, 0.02, 0.01));
+        assert_eq!(s.warm_start().unwrap().0, 106.04);
+        // An invalid pixel ends the row's warm start and its ramp; the
+        // next valid fit starts a new one.
+        s.note_warm(&PixelEstimate::invalid(Reason::PoorFit));
+        assert_eq!(s.warm_start(), None);
+        s.note_warm(&fit(107.0, 30.105, 0.02, 0.01));
+        assert_eq!(s.warm_start().unwrap().0, 107.0);
+        // A new row starts afresh; a ramp never starts below zero.
+        s.start_afresh();
+        assert_eq!(s.warm_start(), None);
+        s.note_warm(&fit(1.5, 30.0, 0.02, 0.01));
+        s.note_warm(&fit(0.3, 30.0, 0.02, 0.01));
+        assert_eq!(s.warm_start().unwrap().0, 0.0);
+    }
+}
