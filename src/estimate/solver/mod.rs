@@ -216,6 +216,21 @@ pub struct Scratch {
     share: ShareScratch,
 }
 
+/// The next pixel's value of a coordinate along a row: on the line
+/// through the last two fits `before` and `x` where their step is more
+/// than `least` and at most `most` (a smaller step is noise, a larger one
+/// an edge or an order change), else `x` (also where `before` is NaN).
+/// Shared by the tables' walk ([`table::Hint`]) and the fitted path's warm
+/// start ([`Scratch::warm_start`]).
+fn on_ramp(x: f64, before: f64, least: f64, most: f64) -> f64 {
+    let step = x - before;
+    if step.abs() > least && step.abs() <= most {
+        x + step
+    } else {
+        x
+    }
+}
+
 impl Scratch {
     /// After [`Solver::solve_row`]: each pixel's best-fit thickness, nm,
     /// whether the fit passed its checks or was flagged (a poor fit still
@@ -265,11 +280,14 @@ impl Scratch {
         self.warm_sigma = (est.sigma_thickness_nm, est.sigma_theta_deg.to_radians());
     }
 
-    /// The warm start (`warm`), on the row's ramp: each coordinate on
-    /// the line through the last two fits where they lie apart by more
-    /// than three of its σ (a smaller step is the fits' noise:
-    /// extrapolated, it would double it) and close enough to be a slope,
-    /// not an edge or an order change (2 nm, 0.6°).
+    /// The warm start (`warm`), on the row's ramp ([`on_ramp`]): each
+    /// coordinate on the line through the last two fits where they lie
+    /// apart by more than three of its σ (a smaller step is the fits'
+    /// noise: extrapolated, it would double it) and close enough to be a
+    /// slope, not an edge or an order change (2 nm, 0.6°). Kept out of
+    /// line: written into `try_warm`, it cost the thin coating's
+    /// angle-free solve 13 % with the ramp disabled (measured), a
+    /// code-generation effect.
     #[inline(never)]
     fn warm_start(&self) -> Option<(f64, f64)> {
         let (d, th) = self.warm?;
@@ -277,15 +295,10 @@ impl Scratch {
             return Some((d, th));
         };
         let (sd, st) = self.warm_sigma;
-        let ramp = |x: f64, before: f64, sigma: f64, most: f64| {
-            let step = x - before;
-            if step.abs() > 3.0 * sigma && step.abs() <= most {
-                x + step
-            } else {
-                x
-            }
-        };
-        Some((ramp(d, db, sd, 2.0).max(0.0), ramp(th, tb, st, 0.01)))
+        Some((
+            on_ramp(d, db, 3.0 * sd, 2.0).max(0.0),
+            on_ramp(th, tb, 3.0 * st, 0.01),
+        ))
     }
 
     fn ensure(&mut self, n: usize) {

@@ -90,12 +90,7 @@ impl Hint {
     /// larger jump is an edge or an order change, not a slope to follow),
     /// else the last fit.
     pub fn predicted(&self, h: f64) -> f64 {
-        let slope = self.d - self.before;
-        if slope.abs() <= 4.0 * h {
-            self.d + slope
-        } else {
-            self.d
-        }
+        super::on_ramp(self.d, self.before, f64::NEG_INFINITY, 4.0 * h)
     }
 }
 
