@@ -403,10 +403,7 @@ impl Solver {
         let Some((d0, th0)) = scratch.warm_start().filter(|_| judging) else {
             return Err(None);
         };
-        // (A start on the ramp may lie past the angle's range: the last
-        // fit's did not.)
-        let (lo, hi) = self.theta_range;
-        let th0 = theta_known.unwrap_or(th0.max(lo).min(hi));
+        let th0 = theta_known.unwrap_or(th0);
         let free = theta_known.is_none();
         let fit = self.refine(&prep.model, d0, th0, free, effort.iters, scratch);
         if effort.warm && alone {
