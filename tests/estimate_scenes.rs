@@ -816,9 +816,12 @@ fn balanced_rows_with_the_angle_free_agree_with_lone_pixels() {
 }
 
 /// Films past what the bands resolve, the angle free (the bundled thick
-/// hard coat: 1–4 µm of Si3N4 at 61 bands, resolved to ~3.2 µm): a row
-/// flags the run past the range "poor fit" as lone pixels searching
-/// afresh do, but after a search it skips the next ones where the χ²
+/// hard coat: 1–4 µm of Si3N4 at 61 bands, resolved to ~3.2 µm, searched
+/// to ~3.8 µm): a row flags every pixel past the range, "fringes
+/// unresolved" where its fit from its neighbour's passes there
+/// (`unresolved_runs_with_the_angle_free_follow_the_row`, in
+/// `estimate_tables.rs`), "poor fit" past the search's range as lone
+/// pixels searching afresh do; but after a search it skips the next poor ones where the χ²
 /// distance to that pixel proves no fit can pass (their best-fit thickness
 /// then reads NaN) — only far from every fit, and never more than 16 in a
 /// row before a search runs again (the angle-free search is not
@@ -839,7 +842,7 @@ fn angle_free_runs_past_the_range_are_flagged_as_a_search_flags_them() {
         let mut scratch = irid::estimate::solver::Scratch::default();
         let mut row = vec![irid::estimate::PixelEstimate::invalid(Reason::Masked); cube.width];
         let mut spec = vec![0.0; bands.len()];
-        let (mut poor, mut skipped, mut longest) = (0, 0, 0);
+        let (mut poor, mut unresolved, mut skipped, mut longest) = (0, 0, 0, 0);
         for y in 0..cube.height {
             solver.solve_row(&cube, y, &mut row, &mut scratch);
             let mut run = 0;
@@ -848,6 +851,9 @@ fn angle_free_runs_past_the_range_are_flagged_as_a_search_flags_them() {
                 let skip = scratch.fit_thickness()[x].is_nan();
                 if r.reason == Reason::PoorFit {
                     poor += 1;
+                }
+                if r.reason == Reason::Unresolved {
+                    unresolved += 1;
                 }
                 if skip {
                     assert_eq!(r.reason, Reason::PoorFit, "{at}: skipped but {r:?}");
@@ -864,17 +870,21 @@ fn angle_free_runs_past_the_range_are_flagged_as_a_search_flags_them() {
             }
         }
         eprintln!(
-            "{}: {poor} poor fits, {skipped} without a search, longest run {longest}",
+            "{}: {unresolved} unresolved, {poor} poor fits, {skipped} without a search, \
+             longest run {longest}",
             mode.name()
         );
-        // ~28 % of the ramp lies past the range, nearly all of it poor;
-        // its spectra move fast (10 nm a pixel), so a reference settles
-        // about every other pixel (measured: 640 of 1 320 in `balanced`).
+        // ~28 % of the ramp lies past the range, every pixel flagged; ~7 %
+        // past the search's range, poor; their spectra move fast (10 nm a
+        // pixel), so a reference settles about every other one (measured:
+        // 247 of 527 in `balanced`).
+        let n = cube.width * cube.height;
         assert!(
-            poor >= cube.width * cube.height / 5,
-            "{}: {poor}",
+            poor + unresolved >= n / 4,
+            "{}: {poor} + {unresolved}",
             mode.name()
         );
+        assert!(poor >= n / 20, "{}: {poor}", mode.name());
         assert!(skipped >= poor / 3, "{}: {skipped} skipped", mode.name());
         assert!(longest <= 16, "{}: a run of {longest}", mode.name());
     }

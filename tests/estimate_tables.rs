@@ -260,6 +260,69 @@ fn unresolved_runs_in_a_row_are_flagged_as_the_scan_flags_them() {
     }
 }
 
+/// The same ramp past the resolved range with the angle free (searched
+/// over 0–80°, no table): once the full search (or the last valid
+/// pixel's fit) finds a film past the range, the next pixels of the row
+/// refine from its fit instead of searching, and one the search finds no
+/// fit for refines from it too. Valid pixels agree with lone pixels'; the
+/// row never calls valid a pixel a lone search flags, and none valid lies
+/// past the range. The row flags more pixels "fringes unresolved" than
+/// lone searches do (the rest "poor fit": a lone search seldom reaches the
+/// aliased basin, which the row follows from its neighbour), and searches
+/// for fewer than a third of them.
+#[test]
+fn unresolved_runs_with_the_angle_free_follow_the_row() {
+    let path =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/scenes/thick-hardcoat.toml");
+    let mut s = Scene::load(&path).expect("the bundled scene loads");
+    let t = s.truth.as_mut().unwrap();
+    t.width = 80;
+    t.height = 3;
+    t.angle_deg = Field::Constant(8.0);
+    t.thickness_nm = Field::LinearX([2950.0, 3500.0]);
+    let bands = scene_bands(&s).unwrap();
+    let cube = Renderer::new(&s).unwrap().render_cube(&bands).unwrap();
+    let truth = Renderer::new(&s).unwrap().truth_maps(&bands);
+    let (w, h) = (cube.width, cube.height);
+    for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
+        let mut solver = Solver::new(&s, &bands, mode).unwrap();
+        solver.estimate_film_index(&cube).unwrap();
+        let g_max = solver.thickness_range().2;
+        let (mut valid, mut row_unresolved, mut lone_unresolved, mut past) = (0, 0, 0, 0);
+        let scratch = scene_common::rows_against_lone(&solver, &cube, |x, y, r, p, _| {
+            let at = format!("{} ({x}, {y}): {r:?} vs {p:?}", mode.name());
+            use irid::estimate::Reason::Unresolved;
+            if p.is_valid() {
+                scene_common::assert_agree_within(&at, r, p, 0.7);
+                valid += 1;
+            } else {
+                assert!(!r.is_valid(), "{at}");
+            }
+            let d = f64::from(truth.thickness_nm[y * w + x]);
+            if d * 2.0 > g_max {
+                past += 1;
+                assert!(!r.is_valid(), "{at}: valid past the range");
+            }
+            row_unresolved += usize::from(r.reason == Unresolved);
+            lone_unresolved += usize::from(p.reason == Unresolved);
+        });
+        let searches = scratch.fringe_searches();
+        eprintln!(
+            "{}: {valid} valid, {row_unresolved} unresolved in the row ({lone_unresolved} \
+             alone), {past} past the range, {searches} searches",
+            mode.name()
+        );
+        assert!(valid >= w * h / 3, "{}: {valid} valid", mode.name());
+        assert!(row_unresolved > lone_unresolved, "{}", mode.name());
+        assert!(row_unresolved >= w * h / 4, "{}", mode.name());
+        assert!(
+            3 * searches < row_unresolved,
+            "{}: {searches} searches",
+            mode.name()
+        );
+    }
+}
+
 /// Noise ten times the coating's (σ_R = 0.01, fringes a few σ deep on the
 /// thinnest films): a row solved from the previous pixel's basin must
 /// weigh the neighbouring fringe order as the scan does, and call the

@@ -65,6 +65,7 @@ mod row;
 mod search;
 mod share;
 mod table;
+mod unresolved;
 mod weigh;
 
 use super::level::{Level, LevelMode};
@@ -193,9 +194,13 @@ pub struct Scratch {
     poor_y: Vec<f64>,
     /// The row's last pixel a table's scan found beyond the resolved
     /// range (see `Solver::unresolved_as_before`).
-    unresolved: Option<table::UnresolvedRun>,
+    unresolved: Option<unresolved::UnresolvedRun>,
+    /// The pixel just solved was settled by the angle-free run above.
+    unresolved_settled: bool,
     /// Full scans of a thickness table made with this scratch.
     table_scans: usize,
+    /// Fringe searches made (see [`Scratch::fringe_searches`]).
+    fringe_searches: usize,
     /// The previous pixel in the row was settled by `balanced`'s closed
     /// form (its neighbour then looks for one first, before its warm start).
     closed_form_last: bool,
@@ -247,6 +252,13 @@ impl Scratch {
         self.table_scans
     }
 
+    /// Fringe searches (stage 1, the angle-free path's full search) made
+    /// with this scratch so far (a pixel a row settles from its
+    /// neighbour's fit makes none).
+    pub fn fringe_searches(&self) -> usize {
+        self.fringe_searches
+    }
+
     /// Forget the previous pixel (its table walk, fringe-order margin,
     /// warm start, poor or unresolved fit, closed form and the model
     /// evaluation its refinement left, which a start within rounding of it
@@ -262,6 +274,7 @@ impl Scratch {
         self.closed_form_last = false;
         self.poor = None;
         self.unresolved = None;
+        self.unresolved_settled = false;
         self.step_chi2 = 0.0;
     }
 
@@ -1035,6 +1048,9 @@ impl Solver {
             },
             scratch,
         );
+        if theta_known.is_none() {
+            scratch.note_unresolved(est.reason);
+        }
         self.with_level(prep, spectrum, theta_known.is_none(), &mut est, scratch);
         Self::with_index(prep, index, &mut est, scratch);
         est

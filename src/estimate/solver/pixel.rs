@@ -138,6 +138,15 @@ impl Solver {
                 return out;
             }
         }
+        // A run of films past the resolved range: settled from the row's
+        // last unresolved fit where this pixel's own fit ends there too
+        // (`unresolved`).
+        if theta_known.is_none() && judging && scratch.unresolved.is_some() {
+            if let Some(out) = self.unresolved_free(prep, n_ok, effort.iters, false, scratch) {
+                scratch.unresolved_settled = true;
+                return out;
+            }
+        }
         // The previous pixel's fit in the row, refined and finished where it
         // stands (`warm_solve`); the margin of its neighbouring order is
         // kept only by a pixel that stands there too.
@@ -265,7 +274,10 @@ impl Solver {
                 cands = px.cands[k];
                 px.n_cands[k]
             }
-            None => self.fringe_search(scratch, prep.sign, n_ok == nb, &mut cands),
+            None => {
+                scratch.fringe_searches += 1;
+                self.fringe_search(scratch, prep.sign, n_ok == nb, &mut cands)
+            }
         };
 
         // Angle start.
@@ -351,7 +363,16 @@ impl Solver {
             lam_min,
             scratch,
         );
-        // The full search found nothing that fits: the row's reference.
+        // The full search found nothing that fits: a film past the
+        // resolved range, where the row's last unresolved fit leads to one
+        // that does (`unresolved`; the run starts afresh from this
+        // search), else the row's reference for the poor pixels after it.
+        if out.0.reason == Reason::PoorFit && theta_known.is_none() && judging {
+            if let Some(out) = self.unresolved_free(prep, n_ok, iters, true, scratch) {
+                scratch.unresolved_settled = true;
+                return out;
+            }
+        }
         if let (Reason::PoorFit, Some(flat)) = (out.0.reason, free_poor) {
             self.note_poor((FREE_ANGLE, FREE_MARGIN, FREE_RUN), flat, out.1, scratch);
         }

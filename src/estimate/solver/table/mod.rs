@@ -28,8 +28,6 @@ mod kernels;
 mod poly;
 mod solve;
 
-pub(in crate::estimate::solver) use solve::UnresolvedRun;
-
 use kernels::{
     interp_chi2, interp_model_chi2, interp_values, interval_dots, minimum_keys, scan_blocked,
     scan_weighted,

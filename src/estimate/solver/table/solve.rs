@@ -9,22 +9,9 @@ use crate::estimate::noise::FlatNoise;
 use crate::estimate::solver::alternatives::{OrderMargin, WEAK_FRINGES};
 use crate::estimate::solver::poor::TABLE_MARGIN;
 use crate::estimate::solver::refine::sse;
+use crate::estimate::solver::unresolved::UnresolvedRun;
 use crate::estimate::solver::{Effort, Fit, Prepared, Scratch, Solver};
 use crate::estimate::{PixelEstimate, Reason};
-
-/// Pixels one scan beyond the resolved range may settle
-/// ([`Solver::unresolved_as_before`]) before a scan runs again.
-const UNRESOLVED_RUN: u32 = 16;
-
-/// The row's last pixel a scan found beyond the resolved range: its
-/// table (angle bits), its fit's thickness, and how many pixels may still
-/// follow it without a scan.
-#[derive(Clone, Copy, Debug)]
-pub(in crate::estimate::solver) struct UnresolvedRun {
-    key: u64,
-    d: f64,
-    left: u32,
-}
 
 impl Solver {
     /// One pixel against a table: the best grid minima (two in `balanced`,
@@ -132,12 +119,8 @@ impl Solver {
         if out.0.is_valid() {
             scratch.poor = None;
         }
-        scratch.unresolved =
-            (exact && out.0.reason == Reason::Unresolved).then_some(UnresolvedRun {
-                key,
-                d: scratch.last_fit_d,
-                left: UNRESOLVED_RUN,
-            });
+        scratch.unresolved = (exact && out.0.reason == Reason::Unresolved)
+            .then(|| UnresolvedRun::new(key, scratch.last_fit_d, theta));
         if exact && out.0.reason == Reason::PoorFit {
             let min_sse = fits[..n]
                 .iter()
@@ -164,10 +147,10 @@ impl Solver {
     /// as well flags it ambiguous; one that fits clearly better would be
     /// an alias the bands cannot tell from it (a film's thickness moves
     /// little from one pixel to the next, so the walk stays in its
-    /// basin). At most [`UNRESOLVED_RUN`] pixels follow one scan (the
-    /// thick hard coat's 5 % of such pixels each took a scan: ~2.3 µs
-    /// against ~0.5 µs for a valid pixel). `fast` and `balanced` only
-    /// (`accurate` weighs every pixel's order).
+    /// basin; see [`crate::estimate::solver::unresolved`]). The thick
+    /// hard coat's 5 % of such pixels each took a scan: ~2.3 µs against
+    /// ~0.5 µs for a valid pixel. `fast` and `balanced` only (`accurate`
+    /// weighs every pixel's order).
     fn unresolved_as_before(
         &self,
         prep: &Prepared,
@@ -187,11 +170,7 @@ impl Solver {
         if !self.fit_passes(chi2, n_ok, 1) {
             return None;
         }
-        scratch.unresolved = Some(UnresolvedRun {
-            d,
-            left: run.left - 1,
-            ..run
-        });
+        scratch.unresolved = Some(run.then(d, theta));
         scratch.last_fit_d = d;
         scratch.last_fit_theta = theta;
         Some((PixelEstimate::invalid(Reason::Unresolved), sse))
