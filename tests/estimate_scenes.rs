@@ -816,12 +816,12 @@ fn balanced_rows_with_the_angle_free_agree_with_lone_pixels() {
 }
 
 /// Films past what the bands resolve, the angle free (the bundled thick
-/// hard coat: 1–4 µm of Si3N4 at 61 bands, resolved to ~3.2 µm, searched
-/// to ~3.8 µm): a row flags every pixel past the range, "fringes
-/// unresolved" where its fit from its neighbour's passes there
-/// (`unresolved_runs_with_the_angle_free_follow_the_row`, in
-/// `estimate_tables.rs`), "poor fit" past the search's range as lone
-/// pixels searching afresh do; but after a search it skips the next poor ones where the χ²
+/// hard coat: 1–4 µm of Si3N4 at 61 bands, resolved to ~3.2 µm): a row
+/// flags every pixel past the range, most "fringes unresolved" (its fit
+/// from its neighbour's passes there:
+/// `unresolved_runs_with_the_angle_free_follow_the_row`, in
+/// `estimate_tables.rs`; lone pixels searching afresh read most of them
+/// "poor fit"); after a search that finds no fit it skips the next ones where the χ²
 /// distance to that pixel proves no fit can pass (their best-fit thickness
 /// then reads NaN) — only far from every fit, and never more than 16 in a
 /// row before a search runs again (the angle-free search is not
@@ -874,17 +874,18 @@ fn angle_free_runs_past_the_range_are_flagged_as_a_search_flags_them() {
              longest run {longest}",
             mode.name()
         );
-        // ~28 % of the ramp lies past the range, every pixel flagged; ~7 %
-        // past the search's range, poor; their spectra move fast (10 nm a
-        // pixel), so a reference settles about every other one (measured:
-        // 247 of 527 in `balanced`).
+        // ~28 % of the ramp lies past the range, every pixel flagged, at
+        // least three in four followed from the row's unresolved fits
+        // (measured: 1 430 of 1 692 in `balanced`); the poor ones' spectra
+        // move fast (10 nm a pixel), so a reference settles about every
+        // other one (120 of 262).
         let n = cube.width * cube.height;
         assert!(
             poor + unresolved >= n / 4,
             "{}: {poor} + {unresolved}",
             mode.name()
         );
-        assert!(poor >= n / 20, "{}: {poor}", mode.name());
+        assert!(unresolved >= 3 * poor, "{}: {poor} poor", mode.name());
         assert!(skipped >= poor / 3, "{}: {skipped} skipped", mode.name());
         assert!(longest <= 16, "{}: a run of {longest}", mode.name());
     }

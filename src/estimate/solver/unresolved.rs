@@ -100,7 +100,18 @@ impl Solver {
         let run = scratch
             .unresolved
             .filter(|u| u.key == FREE_ANGLE && (searched || u.left > 0))?;
-        let fit = self.refine(&prep.model, run.d, run.theta, true, iters, scratch);
+        // Past the search's range too (to twice the resolved one, as the
+        // check for a film past the range looks), unless the range is the
+        // user's: a film there is flagged all the same, and the row's
+        // run follows it instead of a search per pixel.
+        let d_hi = if self.d_max_given {
+            self.d_max
+        } else {
+            self.d_max
+                .max(2.0 * self.g_max.0 / prep.model.q2_mid(run.theta))
+        };
+        let range = (self.d_min, d_hi);
+        let fit = self.refine_within(&prep.model, run.d, run.theta, true, iters, range, scratch);
         if fit.stalled || !(fit.sse.is_finite() && fit.d.is_finite() && fit.theta.is_finite()) {
             return None;
         }
