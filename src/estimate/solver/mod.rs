@@ -192,8 +192,9 @@ pub struct Scratch {
     /// `Solver::poor_as_before`).
     poor: Option<poor::PoorRef>,
     poor_y: Vec<f64>,
-    /// The row's last pixel a table's scan found beyond the resolved
-    /// range (see `Solver::unresolved_as_before`).
+    /// The row's last pixel a search (a table's scan, or the angle-free
+    /// fringe search) found beyond the resolved range, and how many may
+    /// still follow it (`unresolved`).
     unresolved: Option<unresolved::UnresolvedRun>,
     /// The pixel just solved was settled by the angle-free run above.
     unresolved_settled: bool,

@@ -311,6 +311,7 @@ impl Solver {
     /// thickness shows in the level (a film below its first fringe). Two
     /// more fits per valid pixel: spectrum tables (few spectra) take it by
     /// default, cubes only when given an ε.
+    #[inline(never)]
     fn widen_for_scale(
         &self,
         cube: &Cube,
@@ -337,6 +338,9 @@ impl Solver {
             for (d, f) in ds.iter_mut().zip([1.0 + eps, 1.0 - eps]) {
                 scaled.iter_mut().zip(&pixel).for_each(|(s, v)| *s = v * f);
                 scratch.last_fit_d = f64::NAN;
+                // A run past the resolved range left by the row (or by the
+                // previous refit) is no start for this valid pixel's fit.
+                scratch.end_unresolved_run();
                 let e = self.solve_pixel(&scaled, theta, scratch);
                 // A scaled spectrum may fail the test; its best fit still
                 // says where that scale puts the thickness.
