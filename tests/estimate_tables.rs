@@ -207,6 +207,29 @@ fn poor_runs_in_a_row_are_flagged_as_the_scan_flags_them() {
     }
 }
 
+/// The bundled thick hard coat (Si3N4 at 8°, 61 bands at 5 nm) as an
+/// 80 × 3 ramp from 2 950 nm to `stop_nm`, the angle `known` or searched
+/// (0–80°): its scene, bands and noise-free cube.
+fn thick_ramp(
+    stop_nm: f64,
+    known: bool,
+) -> (Scene, Vec<irid::optics::band::Band>, irid::estimate::Cube) {
+    let path =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/scenes/thick-hardcoat.toml");
+    let mut s = Scene::load(&path).expect("the bundled scene loads");
+    if known {
+        s.angle = AngleKnowledge::Uniform(8f64.to_radians());
+    }
+    let t = s.truth.as_mut().unwrap();
+    t.width = 80;
+    t.height = 3;
+    t.angle_deg = Field::Constant(8.0);
+    t.thickness_nm = Field::LinearX([2950.0, stop_nm]);
+    let bands = scene_bands(&s).unwrap();
+    let cube = Renderer::new(&s).unwrap().render_cube(&bands).unwrap();
+    (s, bands, cube)
+}
+
 /// A thick film whose thickness ramps past what 61 bands at 5 nm resolve
 /// (an optical thickness of ~6.5 µm: ~3.2 µm of silicon nitride), angle
 /// known: a row flags the pixels past the range "fringes unresolved"
@@ -217,19 +240,9 @@ fn poor_runs_in_a_row_are_flagged_as_the_scan_flags_them() {
 /// `accurate` weighs every pixel's order and scans each.
 #[test]
 fn unresolved_runs_in_a_row_are_flagged_as_the_scan_flags_them() {
-    let path =
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/scenes/thick-hardcoat.toml");
-    let mut s = Scene::load(&path).expect("the bundled scene loads");
-    s.angle = AngleKnowledge::Uniform(8f64.to_radians());
     // 2 950 → 3 300 nm over a row: valid up to ~3.17 µm, then unresolved
     // to the end (the table reaches ~3.33 µm; past it every fit is poor).
-    let t = s.truth.as_mut().unwrap();
-    t.width = 80;
-    t.height = 3;
-    t.angle_deg = Field::Constant(8.0);
-    t.thickness_nm = Field::LinearX([2950.0, 3300.0]);
-    let bands = scene_bands(&s).unwrap();
-    let cube = Renderer::new(&s).unwrap().render_cube(&bands).unwrap();
+    let (s, bands, cube) = thick_ramp(3300.0, true);
     let (w, h) = (cube.width, cube.height);
     for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
         let mut solver = Solver::new(&s, &bands, mode).unwrap();
@@ -272,16 +285,7 @@ fn unresolved_runs_in_a_row_are_flagged_as_the_scan_flags_them() {
 /// for fewer than a third of them.
 #[test]
 fn unresolved_runs_with_the_angle_free_follow_the_row() {
-    let path =
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/scenes/thick-hardcoat.toml");
-    let mut s = Scene::load(&path).expect("the bundled scene loads");
-    let t = s.truth.as_mut().unwrap();
-    t.width = 80;
-    t.height = 3;
-    t.angle_deg = Field::Constant(8.0);
-    t.thickness_nm = Field::LinearX([2950.0, 3500.0]);
-    let bands = scene_bands(&s).unwrap();
-    let cube = Renderer::new(&s).unwrap().render_cube(&bands).unwrap();
+    let (s, bands, cube) = thick_ramp(3500.0, false);
     let truth = Renderer::new(&s).unwrap().truth_maps(&bands);
     let (w, h) = (cube.width, cube.height);
     for mode in [Mode::Fast, Mode::Balanced, Mode::Accurate] {
