@@ -143,7 +143,6 @@ impl Solver {
         // (`unresolved`).
         if theta_known.is_none() && judging && scratch.unresolved.is_some() {
             if let Some(out) = self.unresolved_free(prep, n_ok, effort.iters, false, scratch) {
-                scratch.unresolved_settled = true;
                 return out;
             }
         }
@@ -369,7 +368,6 @@ impl Solver {
         // search), else the row's reference for the poor pixels after it.
         if out.0.reason == Reason::PoorFit && theta_known.is_none() && judging {
             if let Some(out) = self.unresolved_free(prep, n_ok, iters, true, scratch) {
-                scratch.unresolved_settled = true;
                 return out;
             }
         }

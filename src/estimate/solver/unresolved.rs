@@ -97,6 +97,8 @@ impl Solver {
     /// settle pixels; after a search that found nothing passing
     /// (`searched`), also from a run that may not: the fit is then one
     /// more weighed beside the search's, and the only one that passes.
+    /// A pixel settled here marks itself so (`unresolved_settled`), for
+    /// [`Scratch::note_unresolved`] to keep the run as this left it.
     /// (Where the run may still settle pixels, the same refinement failed
     /// before the search; skipping its repeat gained nothing measurable.)
     #[inline(never)]
@@ -138,6 +140,7 @@ impl Solver {
         } else {
             run.then(fit.d, fit.theta)
         });
+        scratch.unresolved_settled = true;
         scratch.last_fit_d = fit.d;
         scratch.last_fit_theta = fit.theta;
         Some((PixelEstimate::invalid(Reason::Unresolved), fit.sse))
