@@ -931,11 +931,22 @@ impl Solver {
         if self.scene.level == LevelMode::Free {
             return table::Tables::default();
         }
-        // The thicknesses a table covers at angle t: what the search covers.
+        // The thicknesses a table scans at angle t: what the search covers;
+        // its walks reach twice the resolved range where the range is the
+        // physics' (as the angle-free refinement past it does,
+        // [`unresolved`]), not one the user set.
         let g_hi = 1.05 * self.g_max.0;
         let range = |t: f64| {
-            let d_hi = self.d_max.min(g_hi / model.q2_mid(t).max(1e-6));
-            (self.d_min, d_hi.max(self.d_min))
+            let q = model.q2_mid(t).max(1e-6);
+            let d_hi = self.d_max.min(g_hi / q).max(self.d_min);
+            let reach = if self.d_max_given {
+                d_hi
+            } else {
+                (2.0 * self.g_max.0 / q)
+                    .min(crate::scene::MAX_THICKNESS_LIMIT_NM)
+                    .max(d_hi)
+            };
+            (self.d_min, d_hi, reach)
         };
         let angles: Vec<f64> = match &self.scene.angle {
             AngleKnowledge::Uniform(t) => vec![*t],

@@ -125,6 +125,11 @@ pub struct ThicknessTable {
     /// division its χ² and order checks wait on.
     inv_h: f64,
     m: usize,
+    /// Grid points the scan covers (`≤ m`): the thicknesses a fit may
+    /// report. The grid beyond reaches past the resolved range for the
+    /// walks alone, so a film past it is fitted there and flagged
+    /// "fringes unresolved" (see [`ThicknessTable::new_reaching`]).
+    m_scan: usize,
     nb: usize,
     /// `nb` rounded up to whole vectors of 8 (the padding is zero).
     nbp: usize,
@@ -163,7 +168,7 @@ pub struct ThicknessTable {
     gap: Vec<AtomicU32>,
     /// One fringe at the band range's centre, grid steps.
     fringe: f64,
-    /// The largest reflectance of any band on the grid.
+    /// The largest reflectance of any band on the scanned grid.
     r_max: f64,
 }
 
@@ -232,15 +237,36 @@ impl ThicknessTable {
     /// at the midpoints between grid points: the step is halved (at most
     /// three times) where the fringes are far from sinusoidal (high finesse,
     /// e.g. near grazing incidence).
+    #[cfg(test)]
     pub fn new(model: &FilmModel, theta: f64, d_lo: f64, d_hi: f64) -> ThicknessTable {
+        Self::new_reaching(model, theta, d_lo, d_hi, d_hi)
+    }
+
+    /// As [`ThicknessTable::new`], the grid continued to `d_reach`
+    /// (`≥ d_hi`) for the walks from a previous pixel's fit, while the
+    /// scan and everything it sets (each band's centre, the largest
+    /// reflectance, the step's accuracy check) keep to `[d_lo, d_hi]`. A
+    /// row's film that leaves the resolved range is then followed past
+    /// it by the walks, and flagged "fringes unresolved" pixel by pixel
+    /// at a walk's cost, where a scan over `[d_lo, d_hi]` finds nothing
+    /// that fits and costs four times as much (the thick hard coat with
+    /// its angle known: 28 % of its pixels past the range).
+    pub fn new_reaching(
+        model: &FilmModel,
+        theta: f64,
+        d_lo: f64,
+        d_hi: f64,
+        d_reach: f64,
+    ) -> ThicknessTable {
         let (_, mut h) = Self::size(model, theta, d_lo, d_hi);
-        let mut t = Self::with_step(model, theta, d_lo, d_hi, h);
+        let reach = d_reach.max(d_hi);
+        let mut t = Self::with_step(model, theta, (d_lo, d_hi, reach), h);
         for _ in 0..3 {
             if t.midpoint_error(model, theta) <= INTERP_TOL {
                 break;
             }
             h *= 0.5;
-            t = Self::with_step(model, theta, d_lo, d_hi, h);
+            t = Self::with_step(model, theta, (d_lo, d_hi, reach), h);
         }
         t
     }
@@ -251,9 +277,9 @@ impl ThicknessTable {
         let nb = self.nb;
         let mut out = ModelOut::new(nb);
         let (mut r, mut dr) = (vec![0.0; nb], vec![0.0; nb]);
-        let stride = (self.m / 97).max(1);
+        let stride = (self.m_scan / 97).max(1);
         let mut worst: f64 = 0.0;
-        for j in (0..self.m.saturating_sub(1)).step_by(stride) {
+        for j in (0..self.m_scan.saturating_sub(1)).step_by(stride) {
             let d = self.d_at(j) + 0.5 * self.h;
             model.eval(d, theta, &mut out, false);
             self.interp(d, &mut r, &mut dr);
@@ -264,9 +290,17 @@ impl ThicknessTable {
         worst
     }
 
-    /// Tabulate `model` at `theta` over `[d_lo, d_hi]` with step `h`.
-    fn with_step(model: &FilmModel, theta: f64, d_lo: f64, d_hi: f64, h: f64) -> ThicknessTable {
-        let m = (((d_hi - d_lo).max(0.0) / h).ceil() as usize + 1).max(2);
+    /// Tabulate `model` at `theta` over `[d_lo, d_reach]` with step `h`,
+    /// scanned over `[d_lo, d_hi]`.
+    fn with_step(
+        model: &FilmModel,
+        theta: f64,
+        (d_lo, d_hi, d_reach): (f64, f64, f64),
+        h: f64,
+    ) -> ThicknessTable {
+        let points = |d: f64| (((d - d_lo).max(0.0) / h).ceil() as usize + 1).max(2);
+        let m = points(d_reach);
+        let m_scan = points(d_hi).min(m);
         let nb = model.n_bands();
         let nbp = nb.div_ceil(8) * 8;
         let mut out = ModelOut::new(nb);
@@ -276,13 +310,15 @@ impl ThicknessTable {
         for j in 0..m {
             model.eval(d_lo + j as f64 * h, theta, &mut out, true);
             full[j * nb..(j + 1) * nb].copy_from_slice(&out.r[..nb]);
-            for (c, &v) in centre.iter_mut().zip(&out.r[..nb]) {
-                *c += v;
+            if j < m_scan {
+                for (c, &v) in centre.iter_mut().zip(&out.r[..nb]) {
+                    *c += v;
+                }
             }
             dr.extend(out.dr_dd[..nb].iter().map(|&v| v as f32));
         }
         for c in &mut centre {
-            *c /= m as f64;
+            *c /= m_scan as f64;
             if !c.is_finite() {
                 *c = 0.0;
             }
@@ -296,7 +332,7 @@ impl ThicknessTable {
             }
             rr.push(row.iter().map(|v| v * v).sum());
         }
-        let mc = m.div_ceil(SCAN_STRIDE);
+        let mc = m_scan.div_ceil(SCAN_STRIDE);
         let blocks = mc.div_ceil(8);
         let mut coarse = vec![0f32; blocks * nb * 8];
         let mut coarse_rr = vec![f32::INFINITY; blocks * 8];
@@ -331,7 +367,7 @@ impl ThicknessTable {
             .collect();
         let gap = (0..m).map(|_| AtomicU32::new(f32::NAN.to_bits())).collect();
         let fringe = fringe_steps(model, theta, h);
-        let r_max = (0..m)
+        let r_max = (0..m_scan)
             .flat_map(|j| (0..nb).map(move |k| (j, k)))
             .map(|(j, k)| centre[k] + f64::from(r[j * nbp + k]))
             .fold(0.0, f64::max);
@@ -340,6 +376,7 @@ impl ThicknessTable {
             h,
             inv_h: 1.0 / h,
             m,
+            m_scan,
             nb,
             nbp,
             r,
@@ -382,7 +419,7 @@ impl ThicknessTable {
         g
     }
 
-    /// The largest reflectance of any band on the grid.
+    /// The largest reflectance of any band on the scanned grid.
     pub fn r_max(&self) -> f64 {
         self.r_max
     }
@@ -511,7 +548,7 @@ impl ThicknessTable {
         out: &mut [GridMin],
     ) -> usize {
         let complete = self.load(y, w, buf);
-        let mc = self.m.div_ceil(SCAN_STRIDE);
+        let mc = self.m_scan.div_ceil(SCAN_STRIDE);
         if complete {
             buf.sse.resize(self.coarse_rr.len(), 0.0);
             scan_blocked(
@@ -916,25 +953,31 @@ struct Bins {
 
 impl Tables {
     /// Tabulate `model` at each of `angles` over the thicknesses the angle
-    /// allows (`range(θ)`), unless the tables would exceed
-    /// [`TABLE_BUDGET_BYTES`] (then none: pixels take the search).
+    /// allows (`range(θ)`: scanned `[lo, hi]`, walked to `reach`; the
+    /// reach is dropped where it would break the budget), unless the
+    /// tables would exceed [`TABLE_BUDGET_BYTES`] (then none: pixels take
+    /// the search).
     pub fn build(
         model: &FilmModel,
         angles: &[f64],
-        range: impl Fn(f64) -> (f64, f64) + Sync,
+        range: impl Fn(f64) -> (f64, f64, f64) + Sync,
     ) -> Tables {
         use rayon::prelude::*;
         let nb = model.n_bands();
-        let bytes: usize = angles
-            .iter()
-            .map(|&t| {
-                let (lo, hi) = range(t);
-                ThicknessTable::size(model, t, lo, hi).0 * bytes_per_point(nb)
-            })
-            .sum();
-        if angles.is_empty() || bytes > TABLE_BUDGET_BYTES {
+        let bytes = |reach: bool| -> usize {
+            angles
+                .iter()
+                .map(|&t| {
+                    let (lo, hi, far) = range(t);
+                    let hi = if reach { far.max(hi) } else { hi };
+                    ThicknessTable::size(model, t, lo, hi).0 * bytes_per_point(nb)
+                })
+                .sum()
+        };
+        if angles.is_empty() || bytes(false) > TABLE_BUDGET_BYTES {
             return Tables::default();
         }
+        let reach = bytes(true) <= TABLE_BUDGET_BYTES;
         let mut keys: Vec<u64> = angles.iter().map(|t| t.to_bits()).collect();
         keys.sort_unstable();
         keys.dedup();
@@ -942,8 +985,12 @@ impl Tables {
             .par_iter()
             .map(|&k| {
                 let t = f64::from_bits(k);
-                let (lo, hi) = range(t);
-                (k, Arc::new(ThicknessTable::new(model, t, lo, hi)))
+                let (lo, hi, far) = range(t);
+                let far = if reach { far } else { hi };
+                (
+                    k,
+                    Arc::new(ThicknessTable::new_reaching(model, t, lo, hi, far)),
+                )
             })
             .collect();
         Tables {
@@ -954,25 +1001,29 @@ impl Tables {
 
     /// Tables on a grid of angles covering `[lo, hi]` at `step` (widened
     /// until they fit [`TABLE_BUDGET_BYTES`], up to `max_step`; beyond
-    /// that, none).
+    /// that, none), each over `range(θ)` as in [`Tables::build`] (the
+    /// reach dropped first, before the step is widened).
     pub fn binned(
         model: &FilmModel,
         (lo, hi): (f64, f64),
         step: f64,
         max_step: f64,
-        range: impl Fn(f64) -> (f64, f64) + Sync,
+        range: impl Fn(f64) -> (f64, f64, f64) + Sync,
     ) -> Tables {
         use rayon::prelude::*;
         let nb = model.n_bands();
-        let bytes_at = |t: f64| {
-            let (a, b) = range(t);
+        let bytes_at = |t: f64, reach: bool| {
+            let (a, b, far) = range(t);
+            let b = if reach { far.max(b) } else { b };
             ThicknessTable::size(model, t, a, b).0 * bytes_per_point(nb)
         };
         // The largest table of the span (the most oblique angle has the
         // shortest optical path but the widest range; take both ends).
-        let per = bytes_at(lo).max(bytes_at(hi)).max(1);
-        let mut step = step;
+        let per = |reach: bool| bytes_at(lo, reach).max(bytes_at(hi, reach)).max(1);
         let count = |s: f64| ((hi - lo) / s).ceil() as usize + 1;
+        let reach = count(step) * per(true) <= TABLE_BUDGET_BYTES;
+        let per = per(reach);
+        let mut step = step;
         while count(step) * per > TABLE_BUDGET_BYTES && step <= max_step {
             step *= 1.5;
         }
@@ -983,8 +1034,9 @@ impl Tables {
             .into_par_iter()
             .map(|i| {
                 let t = lo + i as f64 * step;
-                let (a, b) = range(t);
-                Arc::new(ThicknessTable::new(model, t, a, b))
+                let (a, b, far) = range(t);
+                let far = if reach { far } else { b };
+                Arc::new(ThicknessTable::new_reaching(model, t, a, b, far))
             })
             .collect();
         Tables {
@@ -1490,6 +1542,49 @@ mod tests {
             }
             // A spectrum missing a band (30 of 31 used) is not walked.
             assert!(t.fit_near(&out.r, 30, j).is_none());
+        }
+    }
+
+    /// A table whose grid reaches past its scanned range scans exactly as
+    /// the plain table over that range (the same minima and residuals,
+    /// the same band centres and largest reflectance), while a walk from
+    /// near a film past the range ends at that film's thickness, which
+    /// the plain table cannot reach.
+    #[test]
+    fn a_table_reaching_past_its_scan_scans_as_before_and_walks_beyond() {
+        let m = model();
+        let th = 0.3;
+        let plain = ThicknessTable::new(&m, th, 0.0, 2000.0);
+        let far = ThicknessTable::new_reaching(&m, th, 0.0, 2000.0, 4000.0);
+        assert_eq!(plain.d_range(), (0.0, plain.d_at(plain.m - 1)));
+        assert!(far.d_range().1 >= 4000.0 && far.m > 3 * plain.m / 2);
+        assert_eq!(far.m_scan, plain.m);
+        assert_eq!(far.centre, plain.centre);
+        assert_eq!(far.r_max(), plain.r_max());
+        let mut out = ModelOut::new(31);
+        let mut buf = GridScratch::default();
+        let w = [1.0; 31];
+        for d_true in [187.3, 1499.9, 1990.0] {
+            m.eval(d_true, th, &mut out, false);
+            let mut a = [GridMin { j: 0, sse: 0.0 }; 3];
+            let mut b = a;
+            let na = plain.minima(&out.r, &w, &mut buf, &mut a);
+            let nb = far.minima(&out.r, &w, &mut buf, &mut b);
+            assert_eq!(na, nb, "{d_true}");
+            for (x, y) in a[..na].iter().zip(&b[..nb]) {
+                assert_eq!((x.j, x.sse.to_bits()), (y.j, y.sse.to_bits()), "{d_true}");
+            }
+        }
+        for d_true in [2600.0, 3500.0] {
+            m.eval(d_true, th, &mut out, false);
+            let j0 = far.interval_index(d_true - 2.0 * far.step());
+            let (d, e2, _) = far.fit_near(&out.r, 31, j0).expect("walks past the scan");
+            assert!((d - d_true).abs() < 0.05, "{d_true}: {d}");
+            assert!(e2 < 1e-8, "{d_true}: residual {e2}");
+            let end = plain.interval_index(d_true);
+            assert!(plain
+                .fit_near(&out.r, 31, end)
+                .is_none_or(|(d, _, _)| (d - d_true).abs() > 500.0));
         }
     }
 }

@@ -42,8 +42,8 @@ impl Solver {
             }
         }
         let key = theta.to_bits();
-        if exact && effort.warm && !effort.verify_order {
-            if let Some(out) = self.unresolved_as_before(prep, table, theta, n_ok, scratch) {
+        if exact && effort.warm {
+            if let Some(out) = self.unresolved_as_before(prep, table, theta, n_ok, false, scratch) {
                 return out;
             }
         }
@@ -112,6 +112,14 @@ impl Solver {
             }
         }
         let out = self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch);
+        // A scan that found nothing passing after the row's last pixel
+        // past the range (its run spent): the walk from there, once more.
+        if exact && effort.warm && out.0.reason == Reason::PoorFit {
+            if let Some(out) = self.unresolved_as_before(prep, table, theta, n_ok, true, scratch) {
+                scratch.poor = None;
+                return out;
+            }
+        }
         scratch.hint = (exact && out.0.is_valid()).then(|| {
             let hint = scratch.hint.filter(|h| h.key == key);
             hint.unwrap_or(Hint::start(key)).then(out.0.thickness_nm)
@@ -147,21 +155,29 @@ impl Solver {
     /// as well flags it ambiguous; one that fits clearly better would be
     /// an alias the bands cannot tell from it (a film's thickness moves
     /// little from one pixel to the next, so the walk stays in its
-    /// basin; see [`crate::estimate::solver::unresolved`]). The thick
-    /// hard coat's 5 % of such pixels each took a scan: ~2.3 µs against
-    /// ~0.5 µs for a valid pixel. `fast` and `balanced` only (`accurate`
-    /// weighs every pixel's order).
+    /// basin; see [`crate::estimate::solver::unresolved`]). The table's
+    /// grid reaches twice the resolved range for these walks
+    /// ([`ThicknessTable::new_reaching`]); the scan keeps to the range.
+    /// The thick hard coat's 28 % of such pixels each took a scan (or the
+    /// poor reference's test beside it): ~2.3 µs against ~0.5 µs for a
+    /// valid pixel. Every mode: `accurate` weighs every pixel's order,
+    /// but only to judge a fit it may call valid, and these it flags
+    /// whatever the order (as with the angle free). `renew`: after a scan
+    /// that found nothing passing, the spent run's last fit is walked
+    /// from once more and, where that settles the pixel, starts a run
+    /// afresh.
     fn unresolved_as_before(
         &self,
         prep: &Prepared,
         table: &ThicknessTable,
         theta: f64,
         n_ok: usize,
+        renew: bool,
         scratch: &mut Scratch,
     ) -> Option<(PixelEstimate, f64)> {
         let run = scratch
             .unresolved
-            .filter(|u| u.key == theta.to_bits() && u.left > 0)?;
+            .filter(|u| u.key == theta.to_bits() && (renew || u.left > 0))?;
         let (d, sse, _) = table.fit_near(&scratch.spectrum, n_ok, table.interval_index(run.d))?;
         if self.bound_reason(prep, d, theta, Some(theta)) != Some(Reason::Unresolved) {
             return None;
@@ -170,7 +186,12 @@ impl Solver {
         if !self.fit_passes(chi2, n_ok, 1) {
             return None;
         }
-        scratch.unresolved = Some(run.then(d, theta));
+        let run = if renew {
+            UnresolvedRun::new(run.key, d, theta)
+        } else {
+            run.then(d, theta)
+        };
+        scratch.unresolved = Some(run);
         scratch.last_fit_d = d;
         scratch.last_fit_theta = theta;
         Some((PixelEstimate::invalid(Reason::Unresolved), sse))
