@@ -298,19 +298,19 @@ impl Scratch {
     /// coordinate on the line through the last two fits where they lie
     /// apart by more than three of its σ (a smaller step is the fits'
     /// noise: extrapolated, it would double it) and close enough to be a
-    /// slope, not an edge or an order change (2 nm, 0.6°). Kept out of
-    /// line: written into `try_warm`, it cost the thin coating's
-    /// angle-free solve 13 % with the ramp disabled (measured), a
-    /// code-generation effect.
+    /// slope, not an edge or an order change (`most_d` in thickness,
+    /// [`Solver::ramp_limit`]; 0.6° in angle). Kept out of line: written
+    /// into `try_warm`, it cost the thin coating's angle-free solve 13 %
+    /// with the ramp disabled (measured), a code-generation effect.
     #[inline(never)]
-    fn warm_start(&self) -> Option<(f64, f64)> {
+    fn warm_start(&self, most_d: f64) -> Option<(f64, f64)> {
         let (d, th) = self.warm?;
         let Some((db, tb)) = self.warm_before else {
             return Some((d, th));
         };
         let (sd, st) = self.warm_sigma;
         Some((
-            on_ramp(d, db, 3.0 * sd, 2.0).max(0.0),
+            on_ramp(d, db, 3.0 * sd, most_d).max(0.0),
             on_ramp(th, tb, 3.0 * st, 0.01),
         ))
     }
@@ -1242,38 +1242,45 @@ mod tests {
     #[test]
     fn the_warm_start_follows_a_ramp_not_noise_nor_an_edge() {
         let mut s = Scratch::default();
-        assert_eq!(s.warm_start(), None);
+        assert_eq!(s.warm_start(2.0), None);
         s.note_warm(&fit(100.0, 30.0, 0.02, 0.01));
         // One fit: no slope yet.
-        assert_eq!(s.warm_start(), Some((100.0, 30f64.to_radians())));
+        assert_eq!(s.warm_start(2.0), Some((100.0, 30f64.to_radians())));
         // d moved 0.5 nm (25 σ): extrapolated; θ moved 0.005° (half a σ):
         // noise, kept.
         s.note_warm(&fit(100.5, 30.005, 0.02, 0.01));
-        let (d, th) = s.warm_start().unwrap();
+        let (d, th) = s.warm_start(2.0).unwrap();
         assert!((d - 101.0).abs() < 1e-12, "{d}");
         assert_eq!(th, 30.005f64.to_radians());
         // θ moved 0.1° (10 σ, under 0.6°): extrapolated too.
         s.note_warm(&fit(101.0, 30.105, 0.02, 0.01));
-        let (d, th) = s.warm_start().unwrap();
+        let (d, th) = s.warm_start(2.0).unwrap();
         assert!((d - 101.5).abs() < 1e-12, "{d}");
         assert!((th - 30.205f64.to_radians()).abs() < 1e-12, "{th}");
         // A step within 3σ of the thickness: noise, not followed.
         s.note_warm(&fit(101.04, 30.105, 0.02, 0.01));
-        assert_eq!(s.warm_start().unwrap().0, 101.04);
+        assert_eq!(s.warm_start(2.0).unwrap().0, 101.04);
         // A jump of 5 nm: an edge or an order change, not followed.
         s.note_warm(&fit(106.04, 30.105, 0.02, 0.01));
-        assert_eq!(s.warm_start().unwrap().0, 106.04);
+        assert_eq!(s.warm_start(2.0).unwrap().0, 106.04);
         // An invalid pixel ends the row's warm start and its ramp; the
         // next valid fit starts a new one.
         s.note_warm(&PixelEstimate::invalid(Reason::PoorFit));
-        assert_eq!(s.warm_start(), None);
+        assert_eq!(s.warm_start(2.0), None);
         s.note_warm(&fit(107.0, 30.105, 0.02, 0.01));
-        assert_eq!(s.warm_start().unwrap().0, 107.0);
+        assert_eq!(s.warm_start(2.0).unwrap().0, 107.0);
         // A new row starts afresh; a ramp never starts below zero.
         s.start_afresh();
-        assert_eq!(s.warm_start(), None);
+        assert_eq!(s.warm_start(2.0), None);
         s.note_warm(&fit(1.5, 30.0, 0.02, 0.01));
         s.note_warm(&fit(0.3, 30.0, 0.02, 0.01));
-        assert_eq!(s.warm_start().unwrap().0, 0.0);
+        assert_eq!(s.warm_start(2.0).unwrap().0, 0.0);
+        // A thick film's ramp (10 nm a pixel) is followed up to the limit
+        // given (a quarter fringe there), not past it.
+        s.start_afresh();
+        s.note_warm(&fit(3000.0, 8.0, 0.03, 0.05));
+        s.note_warm(&fit(3010.0, 8.0, 0.03, 0.05));
+        assert_eq!(s.warm_start(30.0).unwrap().0, 3020.0);
+        assert_eq!(s.warm_start(8.0).unwrap().0, 3010.0);
     }
 }

@@ -399,6 +399,16 @@ impl Solver {
         ))
     }
 
+    /// The largest step in thickness from one pixel to the next that the
+    /// row's ramp follows (the warm start, a run past the range): a
+    /// quarter fringe at the band range's centre at normal incidence (the
+    /// least it is at any angle), ~30 nm for silicon nitride in the
+    /// visible. An order change jumps a whole fringe; a smooth ramp, even
+    /// the thick hard coat's 10 nm a pixel, stays below it.
+    pub(super) fn ramp_limit(&self, prep: &Prepared) -> f64 {
+        0.125 / (self.table.sigma_center * prep.model.n2_mid())
+    }
+
     /// The previous pixel's fit in the row (`scratch.warm`), refined:
     /// `Ok` with the fits to finish where it stands on its own
     /// ([`Solver::warm_accept`], only if `alone` and the effort allows),
@@ -419,7 +429,10 @@ impl Solver {
             ..
         } = job;
         let judging = noise.is_some() && self.judging();
-        let Some((d0, th0)) = scratch.warm_start().filter(|_| judging) else {
+        let Some((d0, th0)) = scratch
+            .warm_start(self.ramp_limit(prep))
+            .filter(|_| judging)
+        else {
             return Err(None);
         };
         let th0 = theta_known.unwrap_or(th0);

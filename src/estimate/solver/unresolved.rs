@@ -31,11 +31,13 @@ pub(super) const UNRESOLVED_RUN: u32 = 16;
 
 /// The row's last pixel a search found beyond the resolved range: the
 /// search (a table's angle bits, or [`FREE_ANGLE`]), its fit's thickness
-/// and angle, and how many pixels may still follow it without a search.
+/// and angle (and the thickness of the run's pixel before it, NaN at its
+/// start), and how many pixels may still follow it without a search.
 #[derive(Clone, Copy, Debug)]
 pub(super) struct UnresolvedRun {
     pub(super) key: u64,
     pub(super) d: f64,
+    pub(super) before: f64,
     pub(super) theta: f64,
     pub(super) left: u32,
 }
@@ -47,8 +49,27 @@ impl UnresolvedRun {
         UnresolvedRun {
             key,
             d,
+            before: f64::NAN,
             theta,
             left: UNRESOLVED_RUN,
+        }
+    }
+
+    /// The next pixel's likely thickness: on the line through the run's
+    /// last two fits where they lie at most `most` apart, else the last
+    /// ([`super::on_ramp`]). A film past the range still moves along its
+    /// ramp: on the thick hard coat two grid steps a pixel, which a walk
+    /// from the last fit crossed interval by interval.
+    pub(super) fn predicted(&self, most: f64) -> f64 {
+        super::on_ramp(self.d, self.before, f64::NEG_INFINITY, most)
+    }
+
+    /// The run free to settle [`UNRESOLVED_RUN`] pixels again (after a
+    /// search found nothing passing and it settled the pixel instead).
+    pub(super) fn renewed(self) -> UnresolvedRun {
+        UnresolvedRun {
+            left: UNRESOLVED_RUN,
+            ..self
         }
     }
 
@@ -56,6 +77,7 @@ impl UnresolvedRun {
     pub(super) fn then(self, d: f64, theta: f64) -> UnresolvedRun {
         UnresolvedRun {
             d,
+            before: self.d,
             theta,
             left: self.left.saturating_sub(1),
             ..self
@@ -124,7 +146,8 @@ impl Solver {
                 .max(2.0 * self.g_max.0 / prep.model.q2_mid(run.theta))
         };
         let range = (self.d_min, d_hi);
-        let fit = self.refine_within(&prep.model, run.d, run.theta, true, iters, range, scratch);
+        let d0 = run.predicted(self.ramp_limit(prep));
+        let fit = self.refine_within(&prep.model, d0, run.theta, true, iters, range, scratch);
         if fit.stalled || !(fit.sse.is_finite() && fit.d.is_finite() && fit.theta.is_finite()) {
             return None;
         }

@@ -178,7 +178,8 @@ impl Solver {
         let run = scratch
             .unresolved
             .filter(|u| u.key == theta.to_bits() && (renew || u.left > 0))?;
-        let (d, sse, _) = table.fit_near(&scratch.spectrum, n_ok, table.interval_index(run.d))?;
+        let j0 = table.interval_index(run.predicted(4.0 * table.step()));
+        let (d, sse, _) = table.fit_near(&scratch.spectrum, n_ok, j0)?;
         if self.bound_reason(prep, d, theta, Some(theta)) != Some(Reason::Unresolved) {
             return None;
         }
@@ -187,7 +188,7 @@ impl Solver {
             return None;
         }
         let run = if renew {
-            UnresolvedRun::new(run.key, d, theta)
+            run.then(d, theta).renewed()
         } else {
             run.then(d, theta)
         };
