@@ -235,7 +235,7 @@ fn thick_ramp(
 /// known: a row flags the pixels past the range "fringes unresolved"
 /// exactly as lone pixels scanning the whole table do, and the valid ones
 /// alike, but after a scan finds one past the range the next pixels walk
-/// from its fit instead of scanning (at most 16 before a scan runs
+/// from its fit instead of scanning (at most 64 before a scan runs
 /// again): here fewer than a third of them scan, where each did, in
 /// every mode (`accurate` weighs every pixel's order, but only to judge a
 /// fit it may call valid).

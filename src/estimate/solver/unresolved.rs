@@ -26,8 +26,13 @@ use super::{Prepared, Scratch, Solver};
 use crate::estimate::{PixelEstimate, Reason};
 
 /// Pixels one search beyond the resolved range may settle before a
-/// search runs again.
-pub(super) const UNRESOLVED_RUN: u32 = 16;
+/// search runs again. Every pixel a run settles is flagged, so the bound
+/// limits only how long flags go unconfirmed by a search (a film that
+/// returns into range ends the run at once: its walk no longer ends past
+/// the range). 16 until 2026-12-06; at 64 the thick hard coat with its
+/// angle known, `fast`, one thread, ran 8–18 % faster (a scan ~2.2 µs, a
+/// run's pixel ~0.3 µs), reason codes identical.
+pub(super) const UNRESOLVED_RUN: u32 = 64;
 
 /// The row's last pixel a search found beyond the resolved range: the
 /// search (a table's angle bits, or [`FREE_ANGLE`]), its fit's thickness
