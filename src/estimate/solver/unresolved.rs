@@ -31,7 +31,7 @@ use crate::estimate::{PixelEstimate, Reason};
 /// returns into range ends the run at once: its walk no longer ends past
 /// the range). 16 until 2026-12-06; at 64 the thick hard coat with its
 /// angle known, `fast`, one thread, ran 8–18 % faster (a scan ~2.2 µs, a
-/// run's pixel ~0.3 µs), reason codes identical.
+/// run's pixel one walk on the interpolant), reason codes identical.
 pub(super) const UNRESOLVED_RUN: u32 = 64;
 
 /// The row's last pixel a search found beyond the resolved range: the
