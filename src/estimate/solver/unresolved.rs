@@ -163,11 +163,9 @@ impl Solver {
         if !self.fit_passes(chi2, n_ok, 2) {
             return None;
         }
-        scratch.unresolved = Some(if searched {
-            UnresolvedRun::new(FREE_ANGLE, fit.d, fit.theta)
-        } else {
-            run.then(fit.d, fit.theta)
-        });
+        // After a search the run starts afresh, on its ramp still.
+        let next = run.then(fit.d, fit.theta);
+        scratch.unresolved = Some(if searched { next.renewed() } else { next });
         scratch.unresolved_settled = true;
         scratch.last_fit_d = fit.d;
         scratch.last_fit_theta = fit.theta;
