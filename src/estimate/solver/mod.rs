@@ -939,13 +939,9 @@ impl Solver {
         let range = |t: f64| {
             let q = model.q2_mid(t).max(1e-6);
             let d_hi = self.d_max.min(g_hi / q).max(self.d_min);
-            let reach = if self.d_max_given {
-                d_hi
-            } else {
-                (2.0 * self.g_max.0 / q)
-                    .min(crate::scene::MAX_THICKNESS_LIMIT_NM)
-                    .max(d_hi)
-            };
+            let reach = self.run_reach(q).map_or(d_hi, |r| {
+                r.min(crate::scene::MAX_THICKNESS_LIMIT_NM).max(d_hi)
+            });
             (self.d_min, d_hi, reach)
         };
         let angles: Vec<f64> = match &self.scene.angle {

@@ -69,17 +69,24 @@ impl UnresolvedRun {
         super::on_ramp(self.d, self.before, f64::NEG_INFINITY, most)
     }
 
-    /// The run free to settle [`UNRESOLVED_RUN`] pixels again (after a
-    /// search found nothing passing and it settled the pixel instead).
-    pub(super) fn renewed(self) -> UnresolvedRun {
-        UnresolvedRun {
-            left: UNRESOLVED_RUN,
-            ..self
+    /// The run after one more pixel settled at (`d`, `theta`), free to
+    /// settle [`UNRESOLVED_RUN`] pixels again where `renewed` (a search
+    /// found nothing passing and the run settled the pixel instead): on
+    /// its ramp still.
+    pub(super) fn after(self, d: f64, theta: f64, renewed: bool) -> UnresolvedRun {
+        let next = self.then(d, theta);
+        if renewed {
+            UnresolvedRun {
+                left: UNRESOLVED_RUN,
+                ..next
+            }
+        } else {
+            next
         }
     }
 
     /// The run after one more pixel settled at (`d`, `theta`).
-    pub(super) fn then(self, d: f64, theta: f64) -> UnresolvedRun {
+    fn then(self, d: f64, theta: f64) -> UnresolvedRun {
         UnresolvedRun {
             d,
             before: self.d,
@@ -116,6 +123,16 @@ impl Scratch {
 }
 
 impl Solver {
+    /// How far a run past the resolved range may follow a film whose
+    /// normal wave vector at the band centre is `q` (`n2 cos θ2`): twice
+    /// the resolved range, as the check for a film past the range looks,
+    /// where the range is the physics'; `None` where the user set it (a
+    /// film past it is "at search bound" instead). The angle-free
+    /// refinement's bound and the tables' reach.
+    pub(super) fn run_reach(&self, q: f64) -> Option<f64> {
+        (!self.d_max_given).then(|| 2.0 * self.g_max.0 / q)
+    }
+
     /// With the angle free: the pixel in `scratch` refined from the row's
     /// last unresolved fit, and flagged "fringes unresolved" where that
     /// fit converged beyond the resolved range and passes the χ² test
@@ -144,12 +161,9 @@ impl Solver {
         // check for a film past the range looks), unless the range is the
         // user's: a film there is flagged all the same, and the row's
         // run follows it instead of a search per pixel.
-        let d_hi = if self.d_max_given {
-            self.d_max
-        } else {
-            self.d_max
-                .max(2.0 * self.g_max.0 / prep.model.q2_mid(run.theta))
-        };
+        let d_hi = self
+            .run_reach(prep.model.q2_mid(run.theta))
+            .map_or(self.d_max, |r| self.d_max.max(r));
         let range = (self.d_min, d_hi);
         let d0 = run.predicted(self.ramp_limit(prep));
         let fit = self.refine_within(&prep.model, d0, run.theta, true, iters, range, scratch);
@@ -164,8 +178,7 @@ impl Solver {
             return None;
         }
         // After a search the run starts afresh, on its ramp still.
-        let next = run.then(fit.d, fit.theta);
-        scratch.unresolved = Some(if searched { next.renewed() } else { next });
+        scratch.unresolved = Some(run.after(fit.d, fit.theta, searched));
         scratch.unresolved_settled = true;
         scratch.last_fit_d = fit.d;
         scratch.last_fit_theta = fit.theta;

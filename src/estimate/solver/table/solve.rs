@@ -187,12 +187,7 @@ impl Solver {
         if !self.fit_passes(chi2, n_ok, 1) {
             return None;
         }
-        let run = if renew {
-            run.then(d, theta).renewed()
-        } else {
-            run.then(d, theta)
-        };
-        scratch.unresolved = Some(run);
+        scratch.unresolved = Some(run.after(d, theta, renew));
         scratch.last_fit_d = d;
         scratch.last_fit_theta = theta;
         Some((PixelEstimate::invalid(Reason::Unresolved), sse))
