@@ -151,6 +151,8 @@ pub struct Scratch {
     pixel: Vec<f64>,
     /// The row being solved, band by band (`row[k·width + x]`).
     row: Vec<f32>,
+    /// [`row::GATHER`] pixels' spectra, pixel-major, gathered from `row`.
+    batch: Vec<f64>,
     /// That spectrum scaled by 1 ± ε (the scale accuracy's refits).
     scaled: Vec<f64>,
     sorted_y: Vec<f64>,

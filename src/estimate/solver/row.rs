@@ -9,6 +9,10 @@ use crate::scene::AngleKnowledge;
 use rayon::prelude::*;
 use std::f64::consts::PI;
 
+/// Pixels whose spectra are gathered from the row's band lines at once: a
+/// cache line of `f32`s.
+pub(super) const GATHER: usize = 16;
+
 impl Solver {
     /// Solve row `y` of the cube into `out` (length `cube.width`).
     pub fn solve_row(
@@ -77,19 +81,36 @@ impl Solver {
             // A row outside the cube (or a short cube) reads as missing.
             rows.resize(nb * ws, f32::NAN);
         }
-        for (x, o) in out.iter_mut().enumerate().take(cube.width).skip(done) {
-            for (k, v) in pixel.iter_mut().enumerate() {
-                *v = f64::from(rows[k * ws + x]);
+        // Gathered GATHER pixels at a time, band by band: each band's
+        // cache line (16 floats) is loaded once for the batch, in a burst
+        // of independent loads, instead of once per pixel between solves
+        // that have evicted it.
+        let mut batch = std::mem::take(&mut scratch.batch);
+        batch.resize(GATHER * nb, 0.0);
+        let mut x0 = done;
+        while x0 < w.min(out.len()) {
+            let m = GATHER.min(w.min(out.len()) - x0);
+            for k in 0..nb {
+                let src = &rows[k * ws + x0..k * ws + x0 + m];
+                for (i, &v) in src.iter().enumerate() {
+                    batch[i * nb + k] = f64::from(v);
+                }
             }
-            scratch.last_fit_d = f64::NAN;
-            *o = self.solve_pixel(&pixel, self.scene.angle.known_at(x, y), scratch);
-            scratch.note_warm(o);
-            fits.push(if o.is_valid() {
-                o.thickness_nm
-            } else {
-                scratch.last_fit_d
-            });
+            for i in 0..m {
+                let (x, pixel) = (x0 + i, &batch[i * nb..(i + 1) * nb]);
+                scratch.last_fit_d = f64::NAN;
+                let o = self.solve_pixel(pixel, self.scene.angle.known_at(x, y), scratch);
+                scratch.note_warm(&o);
+                fits.push(if o.is_valid() {
+                    o.thickness_nm
+                } else {
+                    scratch.last_fit_d
+                });
+                out[x] = o;
+            }
+            x0 += m;
         }
+        scratch.batch = batch;
         scratch.fits = fits;
         scratch.row = rows;
         // A pixel lost to unusable bands says why, where the calibration
