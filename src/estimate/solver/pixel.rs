@@ -31,31 +31,46 @@ struct WarmJob {
 /// A pixel's spectrum into `y` and its weights into `w` (finite values
 /// weighted 1, the rest 0 and weighted 0): the bands used, whether any
 /// lies beyond a reflectance, and their sum. Compiled for the best vector
-/// unit, in passes that each vectorise (the sum in four partial sums: one
-/// running sum is a chain of dependent additions).
+/// unit, in one pass of four lanes (the sum in four partial sums, band k
+/// into lane k mod 4, the bands past the last four summed in turn: one
+/// running sum is a chain of dependent additions), the tail band by band.
 #[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
 fn load_spectrum(spectrum: &[f64], y: &mut [f64], w: &mut [f64]) -> (usize, bool, f64) {
     let n = spectrum.len().min(y.len()).min(w.len());
     let (spectrum, y, w) = (&spectrum[..n], &mut y[..n], &mut w[..n]);
-    let mut n_ok = 0usize;
-    let mut beyond = 0u64;
-    for ((&v, y), w) in spectrum.iter().zip(y.iter_mut()).zip(w.iter_mut()) {
-        let ok = v.is_finite();
-        beyond |= u64::from(ok & !(-0.2..=1.2).contains(&v));
-        *y = if ok { v } else { 0.0 };
-        *w = if ok { 1.0 } else { 0.0 };
-        n_ok += usize::from(ok);
-    }
     let mut acc = [0.0f64; 4];
-    let chunks = y.chunks_exact(4);
-    let tail: f64 = chunks.remainder().iter().sum();
-    for c in chunks {
-        for (a, x) in acc.iter_mut().zip(c) {
-            *a += x;
+    let mut n_ok = [0u64; 4];
+    let mut beyond = [0u64; 4];
+    let quads = spectrum
+        .chunks_exact(4)
+        .zip(y.chunks_exact_mut(4).zip(w.chunks_exact_mut(4)));
+    for (s, (y, w)) in quads {
+        // Branch-free: a finite value's mask is all ones, the rest zero.
+        let s: [f64; 4] = [s[0], s[1], s[2], s[3]];
+        let mask = s.map(|v| u64::from(v.is_finite()).wrapping_neg());
+        let v = [0, 1, 2, 3].map(|l| f64::from_bits(s[l].to_bits() & mask[l]));
+        for l in 0..4 {
+            beyond[l] |= mask[l] & u64::from(!(-0.2..=1.2).contains(&v[l]));
+            y[l] = v[l];
+            w[l] = f64::from_bits(1f64.to_bits() & mask[l]);
+            n_ok[l] += mask[l] & 1;
+            acc[l] += v[l];
         }
     }
+    let (mut ok_tail, mut beyond_tail) = (0u64, 0u64);
+    for k in n - n % 4..n {
+        let v = spectrum[k];
+        let ok = v.is_finite();
+        beyond_tail |= u64::from(ok & !(-0.2..=1.2).contains(&v));
+        y[k] = if ok { v } else { 0.0 };
+        w[k] = if ok { 1.0 } else { 0.0 };
+        ok_tail += u64::from(ok);
+    }
+    let tail: f64 = y[n - n % 4..].iter().sum();
+    let n_ok = n_ok.iter().sum::<u64>() + ok_tail;
+    let beyond = beyond.iter().fold(beyond_tail, |a, b| a | b);
     (
-        n_ok,
+        n_ok as usize,
         beyond != 0,
         (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail,
     )
