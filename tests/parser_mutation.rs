@@ -289,9 +289,17 @@ fn spectrum_tables() {
     let seeds = vec![TABLE.into(), TEXT_TABLE.into()];
     fuzz("spectrum table", seeds, |b| {
         if let Ok(t) = irid::io::spectrum_table::parse_table(b, Path::new("t.csv")) {
+            // A table that parses is one: a name per spectrum, its rows in
+            // increasing finite wavelength, every row kept by its own range.
             let (lo, hi) = t.wavelength_range();
-            let _ = t.select_range(lo, hi);
-            let _ = t.resample(&[400.0, 410.0, 420.0], 10.0);
+            assert!(t.rows() > 0 && lo.is_finite() && lo <= hi, "{lo}–{hi} nm");
+            assert_eq!(t.names.len(), t.cube.width);
+            let bands = &t.cube.bands;
+            assert!(bands.windows(2).all(|p| p[0].center_nm < p[1].center_nm));
+            assert_eq!(t.select_range(lo, hi).rows(), t.rows());
+            if let Ok(r) = t.resample(&[400.0, 410.0, 420.0], 10.0) {
+                assert_eq!((r.rows(), r.cube.width), (3, t.cube.width));
+            }
         }
     });
 }
