@@ -254,7 +254,12 @@ fn envi_headers() {
         |b| {
             let text = String::from_utf8_lossy(b);
             if let Ok(h) = irid::io::envi::parse_header(&text, Path::new("x.hdr")) {
-                let _ = irid::io::envi::header_bands(&h, Path::new("x.hdr"));
+                // A header that parses describes a whole image, and its
+                // bands (where it names them) are one per band.
+                assert!(h.samples > 0 && h.lines > 0 && h.bands > 0);
+                if let Ok(b) = irid::io::envi::header_bands(&h, Path::new("x.hdr")) {
+                    assert_eq!(b.len(), h.bands);
+                }
             }
         },
     );
@@ -274,7 +279,15 @@ fn envi_header_and_data_from_disk() {
             let n = b.iter().map(|&x| x as usize).sum::<usize>() % 4096;
             std::fs::write(dir.path().join("c.img"), vec![0x41u8; n]).unwrap();
             if let Ok(img) = irid::io::envi::read_image(&hdr) {
-                let _ = irid::io::envi::image_to_cube(img);
+                // Every value read came from the file (at least a byte
+                // each), and the cube holds them all.
+                let h = &img.header;
+                let values = h.samples * h.lines * h.bands;
+                assert_eq!(img.data.len(), values);
+                assert!(values <= n, "{values} values from {n} bytes");
+                if let Ok(cube) = irid::io::envi::image_to_cube(img) {
+                    assert_eq!(cube.data.len(), values);
+                }
             }
         },
     );
@@ -407,7 +420,9 @@ fn refractiveindex_yaml() {
             let text = String::from_utf8_lossy(b);
             if let Ok(m) = irid::optics::material::Material::from_yaml_str("m", &text) {
                 for nm in [250.0, 400.0, 550.0, 1000.0, 1e5] {
-                    let _ = m.index_at(nm);
+                    if let Ok(i) = m.index_at(nm) {
+                        assert!(i.re.is_finite() && i.re > 0.0 && i.im.is_finite() && i.im >= 0.0);
+                    }
                 }
             }
         },
