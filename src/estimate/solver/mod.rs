@@ -147,7 +147,9 @@ pub const ANGLE_SIGMA_LIMIT_DEG: f64 = 0.25;
 /// Reusable per-thread working memory of the solver.
 #[derive(Clone, Debug, Default)]
 pub struct Scratch {
-    /// The caller's gathered spectrum (solve_row).
+    /// One spectrum read from the cube (`fast`'s band-major pass, the
+    /// scale accuracy's refits); the row's own pixels are read from
+    /// `batch`.
     pixel: Vec<f64>,
     /// The row being solved, band by band (`row[k·width + x]`).
     row: Vec<f32>,
