@@ -88,9 +88,9 @@ impl Solver {
         // that have evicted it.
         let mut batch = std::mem::take(&mut scratch.batch);
         batch.resize(GATHER * nb, 0.0);
-        let mut x0 = done;
-        while x0 < w.min(out.len()) {
-            let m = GATHER.min(w.min(out.len()) - x0);
+        let (mut x0, end) = (done, w.min(out.len()));
+        while x0 < end {
+            let m = GATHER.min(end - x0);
             gather(&rows, ws, x0, m, nb, &mut batch);
             for i in 0..m {
                 let (x, pixel) = (x0 + i, &batch[i * nb..(i + 1) * nb]);

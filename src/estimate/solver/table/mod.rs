@@ -84,13 +84,17 @@ impl Hint {
     }
 
     /// The next pixel's likely thickness: the line through the last two
-    /// fits where they lie within four grid steps `h` of each other (a
-    /// larger jump is an edge or an order change, not a slope to follow),
-    /// else the last fit.
+    /// fits where they lie within [`RAMP_STEPS`] grid steps `h` of each
+    /// other (a larger jump is an edge or an order change, not a slope to
+    /// follow), else the last fit.
     pub fn predicted(&self, h: f64) -> f64 {
-        super::on_ramp(self.d, self.before, f64::NEG_INFINITY, 4.0 * h)
+        super::on_ramp(self.d, self.before, f64::NEG_INFINITY, RAMP_STEPS * h)
     }
 }
+
+/// Grid steps from one pixel to the next that a walk on a table follows
+/// as the row's ramp ([`Hint::predicted`], a run past the range).
+pub(in crate::estimate::solver) const RAMP_STEPS: f64 = 4.0;
 
 /// Grid intervals `fast` may walk from the previous pixel's fringe order
 /// (±1.8 rad of the fastest band's phase) before it scans instead.

@@ -4,7 +4,7 @@
 //! angles), judged as every fit is; runs of poor fits settled without a
 //! scan.
 
-use super::{GridMin, Hint, ThicknessTable, ORDER_GAP_SAFE};
+use super::{GridMin, Hint, ThicknessTable, ORDER_GAP_SAFE, RAMP_STEPS};
 use crate::estimate::noise::FlatNoise;
 use crate::estimate::solver::alternatives::{OrderMargin, WEAK_FRINGES};
 use crate::estimate::solver::poor::TABLE_MARGIN;
@@ -178,7 +178,7 @@ impl Solver {
         let run = scratch
             .unresolved
             .filter(|u| u.key == theta.to_bits() && (renew || u.left > 0))?;
-        let j0 = table.interval_index(run.predicted(4.0 * table.step()));
+        let j0 = table.interval_index(run.predicted(RAMP_STEPS * table.step()));
         let (d, sse, _) = table.fit_near(&scratch.spectrum, n_ok, j0)?;
         if self.bound_reason(prep, d, theta, Some(theta)) != Some(Reason::Unresolved) {
             return None;
