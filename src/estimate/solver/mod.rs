@@ -57,6 +57,7 @@ mod judge;
 mod level_fit;
 mod level_hedge;
 mod linalg;
+mod order_gaps;
 mod pixel;
 mod poor;
 mod profile_bias;
@@ -224,6 +225,11 @@ pub struct Scratch {
     table_hint: Cell<usize>,
     /// The level's share of σ (`Solver::with_level`).
     share: ShareScratch,
+    /// A grid point's spectrum, weights and model evaluations while its
+    /// neighbouring orders' gap is computed (`order_gaps`).
+    gap_y: Vec<f64>,
+    gap_w: Vec<f64>,
+    gap_cur: ModelOut,
 }
 
 /// The next pixel's value of a coordinate along a row: on the line
@@ -550,6 +556,9 @@ struct Prepared {
     fringe_amplitude: f64,
     /// The model over thickness at each known angle (`fast`, `balanced`).
     tables: table::Tables,
+    /// `balanced` with the angle free: the neighbouring fringe orders' gap
+    /// over optical thickness and angle, filled as pixels reach it.
+    order_gaps: Option<order_gaps::OrderGaps>,
 }
 
 /// Solves pixels for the scene's unknowns.
@@ -910,10 +919,21 @@ impl Solver {
         } else {
             table::Tables::default()
         };
+        // Only `balanced` weighs a warm pixel's orders with the angle free
+        // on a model it keeps (`accurate` weighs them on every pixel).
+        let order_gaps = (tabled
+            && self.mode == Mode::Balanced
+            && matches!(self.scene.angle, AngleKnowledge::Unknown { .. }))
+        .then(|| {
+            let g_hi = self.d_max * model.q2_mid(lo);
+            order_gaps::OrderGaps::new(g_hi, 0.5 / self.table.sigma_center, (lo, hi))
+        })
+        .flatten();
         static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
         Ok(Prepared {
             id: NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
             tables,
+            order_gaps,
             model,
             envelope_range,
             sign,

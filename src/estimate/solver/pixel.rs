@@ -9,6 +9,7 @@ use super::fringes::AMBIGUITY_CHI2;
 use super::poor::{FREE_ANGLE, FREE_MARGIN, FREE_RUN};
 use super::refine::{free_angle_sigma, sse};
 use super::search::{Candidate, MAX_CANDIDATES};
+use super::table::ORDER_GAP_SAFE;
 use super::{Effort, Fit, Job, Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
 use crate::estimate::model::FilmModel;
 use crate::estimate::{PixelEstimate, Reason};
@@ -536,6 +537,15 @@ impl Solver {
         let g = fit.d * prep.model.q2_mid(fit.theta);
         let fringe = 0.5 / self.table.sigma_center;
         if let Some(m) = OrderMargin::carried(prev_margin, OrderMargin::FITTED, g, fringe) {
+            scratch.order_margin = Some(OrderMargin::new(OrderMargin::FITTED, g, m));
+            return Some(([fit, fit], 1));
+        }
+        // Nor where the noise-free orders lie far apart here
+        // (`order_gaps`).
+        if let Some(m) = self
+            .free_order_gap(prep, g, fit.theta, scratch)
+            .filter(|&m| m >= ORDER_GAP_SAFE)
+        {
             scratch.order_margin = Some(OrderMargin::new(OrderMargin::FITTED, g, m));
             return Some(([fit, fit], 1));
         }

@@ -115,7 +115,7 @@ fn bytes_per_point(nb: usize) -> usize {
 /// two orders' difference); at 250, even `z = 5` leaves 92 variances, ten
 /// times the ambiguity margin (9) at the largest residual variance the χ²
 /// test passes (1.8 noise variances at 31 bands).
-const ORDER_GAP_SAFE: f64 = 250.0;
+pub(super) const ORDER_GAP_SAFE: f64 = 250.0;
 
 /// Memory all of a solver's tables may take, bytes.
 pub const TABLE_BUDGET_BYTES: usize = 256 << 20;
