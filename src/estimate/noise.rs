@@ -154,7 +154,12 @@ pub(crate) fn band_var4(var0: f64x4, shot: f64x4, rel2: f64x4, r: f64x4) -> f64x
 /// [`NoiseModel::chi2_and_mean_var`]: four bands at a time in `f64x4`
 /// lanes (the divisions overlap), the tail band by band, with the same
 /// arithmetic as [`NoiseModel::var`].
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+#[multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+sse4.1",
+    "aarch64+neon"
+))]
 fn model_chi2(
     var0: &[f64],
     shot: &[f64],
@@ -192,7 +197,12 @@ fn model_chi2(
 /// [`FlatNoise::chi2_and_mean_var`]: four independent lanes, no branch and
 /// no division per band.
 #[allow(clippy::needless_range_loop)] // four lanes, indexed alike
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+#[multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+sse4.1",
+    "aarch64+neon"
+))]
 fn flat_chi2(var: &[f64], inv: &[f64], y: &[f64], w: &[f64], r: &[f64]) -> (f64, f64) {
     let n = y
         .len()

@@ -139,7 +139,12 @@ struct UniformArgs {
 /// The band loop of the uniform real path, compiled for the best vector
 /// unit the CPU offers (chosen once at run time; the baseline build runs
 /// everywhere).
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+#[multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+sse4.1",
+    "aarch64+neon"
+))]
 fn uniform_kernel(w: &[f64], a: UniformArgs, r: &mut [f64], dd: &mut [f64], dth: &mut [f64]) {
     let UniformArgs {
         d,

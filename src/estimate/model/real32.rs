@@ -222,7 +222,12 @@ fn chunk<const DERIV: bool, const S: bool, const P: bool>(
 
 /// [`super::real::real_nodes_kernel`] in eight `f32` lanes: every node's
 /// R (and dR/dd, dR/dθ with `a.deriv`) into `r`, `dd`, `dth`.
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+#[multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+sse4.1",
+    "aarch64+neon"
+))]
 pub(super) fn real_nodes_kernel32(
     k: &RealNodes32,
     a: RealArgs,

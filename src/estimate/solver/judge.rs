@@ -425,7 +425,12 @@ fn judged_quad(b: &JudgedBands, k: usize, n: usize, theta: bool) -> [f64x4; 5] {
 /// noise model (`var0`, `shot`, `rel2`, as [`band_var4`] forms a band's
 /// variance), four bands a step in `f64x4` lanes (the scalar band loop
 /// had waited on each division in turn).
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+#[multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+sse4.1",
+    "aarch64+neon"
+))]
 fn judged_sums(
     b: JudgedBands,
     var0: &[f64],
@@ -447,7 +452,12 @@ fn judged_sums(
 
 /// [`judged_sums`] where no variance depends on the reflectance: each
 /// band's variance and its inverse given, no division.
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+#[multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+sse4.1",
+    "aarch64+neon"
+))]
 fn judged_sums_flat(
     b: JudgedBands,
     (var, inv): (&[f64], &[f64]),

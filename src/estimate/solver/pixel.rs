@@ -35,7 +35,12 @@ struct WarmJob {
 /// unit, in one pass of four lanes (the sum in four partial sums, band k
 /// into lane k mod 4, the bands past the last four summed in turn: one
 /// running sum is a chain of dependent additions), the tail band by band.
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+#[multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+sse4.1",
+    "aarch64+neon"
+))]
 fn load_spectrum(spectrum: &[f64], y: &mut [f64], w: &mut [f64]) -> (usize, bool, f64) {
     let n = spectrum.len().min(y.len()).min(w.len());
     let (spectrum, y, w) = (&spectrum[..n], &mut y[..n], &mut w[..n]);

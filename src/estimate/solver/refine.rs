@@ -254,7 +254,12 @@ impl CurAt {
 
 /// `Σ w (y − r)²`, in four independent lanes (a single sum waits on
 /// each addition; four vectorise).
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+#[multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+sse4.1",
+    "aarch64+neon"
+))]
 pub(super) fn sse(y: &[f64], w: &[f64], r: &[f64]) -> f64 {
     let n = y.len().min(w.len()).min(r.len());
     let (y, w, r) = (&y[..n], &w[..n], &r[..n]);
@@ -277,7 +282,12 @@ pub(super) fn sse(y: &[f64], w: &[f64], r: &[f64]) -> f64 {
 /// Σ w jd jt, Σ w jt², Σ w jd e, Σ w jt e]`, `e = y − r`; with `theta`
 /// false the angle's terms are 0 (its slope may not even be computed).
 /// Four independent lanes, so the band loop vectorises.
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+#[multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+sse4.1",
+    "aarch64+neon"
+))]
 fn normal_sums(y: &[f64], w: &[f64], r: &[f64], jd: &[f64], jt: &[f64], theta: bool) -> [f64; 5] {
     let n = y
         .len()

@@ -470,7 +470,12 @@ impl Solver {
 /// in blocks of four bands by four pixels, each a 4 × 4 transpose the
 /// vector unit does in registers (one load per band and one store per
 /// pixel, not one of each per value); the edges value by value.
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+#[multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+sse4.1",
+    "aarch64+neon"
+))]
 fn gather(rows: &[f32], ws: usize, x0: usize, m: usize, nb: usize, batch: &mut [f64]) {
     let (k4, i4) = (nb - nb % 4, m - m % 4);
     let batch = &mut batch[..m * nb];

@@ -18,7 +18,12 @@ use wide::f64x4;
 /// the `c`'s sums follow once. Four independent lanes per sum (a single
 /// f64 chain would not vectorise), the tail band by band.
 #[allow(clippy::needless_range_loop)] // four lanes, indexed alike
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+#[multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+sse4.1",
+    "aarch64+neon"
+))]
 pub(super) fn interval_dots(
     r: [&[f32]; 2],
     dr: [&[f32]; 2],
@@ -71,7 +76,12 @@ pub(super) fn interval_dots(
 /// [`ThicknessTable::values`]: `centre + h00·A + h10·P + h01·B + h11·Q`
 /// per band, four bands at a time in `f64x4` lanes (the arithmetic of
 /// [`interp_chi2`]).
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+#[multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+sse4.1",
+    "aarch64+neon"
+))]
 pub(super) fn interp_values(
     r: [&[f32]; 2],
     dr: [&[f32]; 2],
@@ -96,7 +106,12 @@ pub(super) fn interp_values(
 /// `centre + h00·A + h10·P + h01·B + h11·Q` and `flat_chi2`'s sums over
 /// it, in the same four lanes.
 #[allow(clippy::needless_range_loop, clippy::too_many_arguments)] // four lanes, indexed alike
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+#[multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+sse4.1",
+    "aarch64+neon"
+))]
 pub(super) fn interp_chi2(
     r: [&[f32]; 2],
     dr: [&[f32]; 2],
@@ -152,7 +167,12 @@ pub(super) fn interp_chi2(
 /// by over 31 bands — a test decision moves only for a pixel within that
 /// sliver of its threshold. The sums are `f64` across the lanes.
 #[allow(clippy::needless_range_loop, clippy::too_many_arguments)] // eight lanes, indexed alike
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+#[multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+sse4.1",
+    "aarch64+neon"
+))]
 pub(super) fn interp_model_chi2(
     r: [&[f32]; 2],
     dr: [&[f32]; 2],
@@ -359,7 +379,12 @@ fn hermite_at(
 /// thick hard coat's 731-point table in ~1 µs; fused and grouped, its
 /// angle-known `fast` runs 1.1–1.2× faster). f32 keeps 1e-7 of `Σy²`, far
 /// below a residual of `nb σ²` at any usable noise level.
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+#[multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+sse4.1",
+    "aarch64+neon"
+))]
 pub(super) fn scan_blocked(coarse: &[f32], rr: &[f32], y: &[f32], yy: f32, sse: &mut [f32]) {
     // A fused multiply–add where the vector unit has one (Rust never
     // contracts `a * b + c` itself; without FMA `mul_add` would be a
@@ -449,7 +474,12 @@ fn scan_blocks<const FMA: bool>(coarse: &[f32], rr: &[f32], y: &[f32], yy: f32, 
 /// Each point's ranking key: the lowest value of the parabola through it
 /// and its neighbours where it is a local minimum (`≤` its left, `<` its
 /// right; the ends compare with +∞), +∞ elsewhere and at NaN.
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+#[multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+sse4.1",
+    "aarch64+neon"
+))]
 pub(super) fn minimum_keys(sse: &[f32], keys: &mut [f32]) {
     let n = sse.len();
     // Branch-free (selects only), so the loop vectorises; the same
@@ -480,7 +510,12 @@ pub(super) fn minimum_keys(sse: &[f32], keys: &mut [f32]) {
 }
 
 /// `Σ w (y − R)²` at every grid point (spectra with missing bands).
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1", "aarch64+neon"))]
+#[multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+sse4.1",
+    "aarch64+neon"
+))]
 pub(super) fn scan_weighted(r: &[f32], y: &[f32], w: &[f32], sse: &mut [f32]) {
     let nbp = y.len();
     for (row, out) in r.chunks_exact(nbp).step_by(SCAN_STRIDE).zip(sse.iter_mut()) {
