@@ -1157,6 +1157,12 @@ impl Solver {
         if let Some(i) = &mut self.index {
             i.noise_sigma = typical;
         }
+        // The orders' gaps were refined to a stopping rule that reads the
+        // noise: a new noise model starts them afresh, so a pixel's verdict
+        // never depends on which noise model came before.
+        if let Some(g) = self.prepared.as_mut().and_then(|p| p.order_gaps.as_mut()) {
+            *g = g.emptied();
+        }
     }
 
     /// Let the index sample's pooled residual raise the model-free noise

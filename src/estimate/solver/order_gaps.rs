@@ -27,9 +27,10 @@
 //! outside it) is never safe: the pixel weighs its orders as before.
 //!
 //! The grid is filled on first use, by whichever thread reaches a corner
-//! first (a corner's value depends on the corner alone, so threads that
-//! race compute the same bits); it lives with the prepared model and is
-//! kept for every later image (a live run's sweeps).
+//! first (a corner's value depends on the corner and the noise model
+//! alone, so threads that race compute the same bits); it lives with the
+//! prepared model and is kept for every later image (a live run's sweeps)
+//! until the noise model changes.
 
 use super::{Prepared, Scratch, Solver};
 use crate::estimate::model::ModelOut;
@@ -86,6 +87,14 @@ impl OrderGaps {
             n_t,
             points: Arc::new(OnceLock::new()),
         })
+    }
+
+    /// The same grid with no point computed.
+    pub(super) fn emptied(&self) -> OrderGaps {
+        OrderGaps {
+            points: Arc::new(OnceLock::new()),
+            ..self.clone()
+        }
     }
 
     /// The grid point `(i, j)`'s optical thickness and angle.
@@ -226,9 +235,12 @@ impl Solver {
             scratch.gap_y = vec![0.0; n];
             scratch.gap_w = vec![1.0; n];
         }
-        // The pixel's state aside; the point's spectrum in its place.
+        // The pixel's state aside; the point's spectrum in its place, and
+        // the strict stopping rule whatever the solve in progress uses (a
+        // point's value depends on the point and the noise model alone).
         std::mem::swap(&mut scratch.cur, &mut scratch.gap_cur);
         let cur_at = scratch.cur_at.take();
+        let step_chi2 = std::mem::take(&mut scratch.step_chi2);
         prep.model.eval(d, theta, &mut scratch.cur, false);
         scratch.gap_y.copy_from_slice(&scratch.cur.r[..n]);
         let r_max = scratch.gap_y.iter().fold(0f64, |a, &b| a.max(b));
@@ -257,6 +269,7 @@ impl Solver {
         std::mem::swap(&mut scratch.weight, &mut scratch.gap_w);
         std::mem::swap(&mut scratch.cur, &mut scratch.gap_cur);
         scratch.cur_at = cur_at;
+        scratch.step_chi2 = step_chi2;
         (gap, r_max)
     }
 }
