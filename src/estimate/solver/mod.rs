@@ -37,6 +37,9 @@
 //!   the start of the other modes), and the angle start (2).
 //! - `refine.rs`: the refinement (3) and the profile bounds on σ.
 //! - `pixel.rs`: one pixel through the stages, and the checks (4).
+//! - `order_gaps.rs`: how far apart the neighbouring fringe orders lie
+//!   with the angle free, noise-free, on a grid (`balanced`'s warm pixels
+//!   skip weighing orders that lie far apart).
 //! - `weigh.rs`: the best fit refined with the bands weighed by their
 //!   noise, where their variances differ (4a).
 //! - `row.rs`: rows and whole cubes.
