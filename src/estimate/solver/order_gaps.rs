@@ -135,22 +135,41 @@ impl OrderGaps {
     }
 }
 
-/// A point's value packed: the gap and the largest reflectance.
-fn pack(gap: f32, r_max: f32) -> u64 {
-    (u64::from(gap.to_bits()) << 32) | u64::from(r_max.to_bits())
+/// A point's value packed: the gap and the largest noise variance it is
+/// read against.
+fn pack(gap: f32, var: f32) -> u64 {
+    (u64::from(gap.to_bits()) << 32) | u64::from(var.to_bits())
 }
 
 fn unpack(v: u64) -> (f32, f32) {
     (f32::from_bits((v >> 32) as u32), f32::from_bits(v as u32))
 }
 
+/// `x` in `f32`, rounded towards `up` (+∞) or towards −∞.
+fn to_f32(x: f64, up: bool) -> f32 {
+    let y = x as f32;
+    let past = if up {
+        f64::from(y) < x
+    } else {
+        f64::from(y) > x
+    };
+    if past && y.is_finite() && y != 0.0 {
+        // One ulp back towards x (x and y share their sign here).
+        let step = if (y > 0.0) == up { 1 } else { -1i32 };
+        f32::from_bits((y.to_bits() as i32 + step) as u32)
+    } else {
+        y
+    }
+}
+
 impl Solver {
     /// The noise-free gap between the fringe order of a fit at optical
     /// thickness `g` and angle `theta` and its neighbours (the angle free),
     /// in the largest noise variance of any band at the reflectances
-    /// there: the least over the grid cell's corners. `None` where the
-    /// grid is not kept, the point lies outside it, or no noise model is
-    /// known; 0 near the thickness range's ends.
+    /// there: the least gap over the grid cell's corners in the largest of
+    /// their variances. `None` where the grid is not kept, the point lies
+    /// outside it, or no noise model is known; 0 near the thickness
+    /// range's ends.
     pub(super) fn free_order_gap(
         &self,
         prep: &Prepared,
@@ -159,29 +178,26 @@ impl Solver {
         scratch: &mut Scratch,
     ) -> Option<f64> {
         let gaps = prep.order_gaps.as_ref()?;
+        self.noise.as_ref()?;
         let (i, j) = gaps.cell(g, theta)?;
-        let (mut gap, mut r_max) = (f32::INFINITY, 0f32);
+        let (mut gap, mut var) = (f32::INFINITY, 0f32);
         for (a, b) in [(i, j), (i + 1, j), (i, j + 1), (i + 1, j + 1)] {
-            let (g_c, r_c) = self.gap_point(prep, gaps, a, b, scratch);
+            let (g_c, v_c) = self.gap_point(prep, gaps, a, b, scratch);
             if g_c.is_nan() || g_c < 0.0 {
                 return Some(0.0);
             }
             gap = gap.min(g_c);
-            r_max = r_max.max(r_c);
+            var = var.max(v_c);
         }
-        let var = if self.flat_noise.is_some() {
-            self.max_flat_var
-        } else {
-            // Within a cell the reflectance moves a little from its
-            // corners': a margin of 0.05 on the largest.
-            self.noise
-                .as_ref()?
-                .max_var_below((f64::from(r_max) + 0.05).min(1.0))
-        };
-        (var > 0.0).then(|| f64::from(gap) / var)
+        (var > 0.0).then(|| f64::from(gap) / f64::from(var))
     }
 
-    /// Grid point `(i, j)`, computed on first use.
+    /// Grid point `(i, j)`, computed on first use: its gap (rounded down)
+    /// and the largest noise variance of any band at its reflectances
+    /// (rounded up; within a cell the reflectance moves a little from its
+    /// corners', so a margin of 0.05 on the largest). The grid starts
+    /// afresh with each noise model, so the variance is the one in force,
+    /// and no pixel pays for it again.
     fn gap_point(
         &self,
         prep: &Prepared,
@@ -197,13 +213,10 @@ impl Solver {
         }
         let (g, theta) = gaps.at(i, j);
         let (gap, r_max) = self.order_gap_free_at(prep, g, theta, scratch);
-        // Rounded down to f32: never above the gap computed.
-        let gap32 = if (gap as f32 as f64) > gap {
-            f32::from_bits((gap as f32).to_bits() - 1)
-        } else {
-            gap as f32
-        };
-        let v = pack(gap32, r_max as f32);
+        let var = self
+            .max_noise_var_below((r_max + 0.05).min(1.0))
+            .unwrap_or(f64::NAN);
+        let v = pack(to_f32(gap, false), to_f32(var, true));
         cell.store(v, Ordering::Relaxed);
         unpack(v)
     }
@@ -295,6 +308,25 @@ mod tests {
         // refinements' stopping rule reads it).
         s.set_noise(NoiseModel::uniform(0.001, bands.len(), NoiseSource::Given));
         s
+    }
+
+    /// A point's gap rounds down and its variance up into `f32`.
+    #[test]
+    fn stored_values_round_the_safe_way() {
+        for x in [
+            1e-8,
+            3.3e-7,
+            0.1,
+            1.0 / 3.0,
+            250.0 + 1e-9,
+            7.0e5,
+            -1.0,
+            -0.3,
+        ] {
+            let (lo, hi) = (to_f32(x, false), to_f32(x, true));
+            assert!(f64::from(lo) <= x && f64::from(hi) >= x, "{x}: {lo} {hi}");
+            assert!(hi.to_bits().abs_diff(lo.to_bits()) <= 1, "{x}: {lo} {hi}");
+        }
     }
 
     /// A pixel reads the least gap of its cell's corners: inside a cell

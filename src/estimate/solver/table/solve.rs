@@ -349,10 +349,16 @@ impl Solver {
     /// The largest noise variance of any band at the reflectances `table`
     /// spans (`None` without a noise model).
     fn max_noise_var_on(&self, table: &ThicknessTable) -> Option<f64> {
+        self.max_noise_var_below(table.r_max())
+    }
+
+    /// The largest noise variance of any band at reflectances up to
+    /// `r_max` (`None` without a noise model; a flat model's one largest).
+    pub(in crate::estimate::solver) fn max_noise_var_below(&self, r_max: f64) -> Option<f64> {
         if self.flat_noise.is_some() {
             return Some(self.max_flat_var);
         }
-        self.noise.as_ref().map(|n| n.max_var_below(table.r_max()))
+        self.noise.as_ref().map(|n| n.max_var_below(r_max))
     }
 
     /// `accurate`: the fits on the interpolant within 25 residual variances
