@@ -188,12 +188,15 @@ pub(super) fn real_nodes_kernel(
         n3s: &k.n3s[..n],
     };
     let (r, dd, dth) = (&mut r[..n], &mut dd[..n], &mut dth[..n]);
+    let (w, n1, n1s, n2s, n3s) = (cut.w, cut.n1, cut.n1s, cut.n2s, cut.n3s);
     if a.deriv {
-        overlapped!(i in n => {
+        overlapped!(i in n, in(w, n1, n1s, n2s, n3s), out(r, dd, dth) => {
+            let cut = Cut { w, n1, n1s, n2s, n3s };
             (r[i], dd[i], dth[i]) = node::<true>(&cut, i, &a);
         });
     } else {
-        overlapped!(i in n => {
+        overlapped!(i in n, in(w, n1, n1s, n2s, n3s), out(r) => {
+            let cut = Cut { w, n1, n1s, n2s, n3s };
             r[i] = node::<false>(&cut, i, &a).0;
         });
     }
