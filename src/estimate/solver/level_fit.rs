@@ -277,23 +277,9 @@ impl Solver {
         }
         let want = self.scene.level == LevelMode::Scaled || significant;
         if want && !level.is_plausible() {
-            // A level no calibration error explains, that would still move
-            // the thicknesses by more than their σ: the data depart from
-            // the one-film reflectance by more than any pixel's σ admits
-            // (a glass substrate's backside reflection at normal incidence,
-            // the angle free: the fits moved to 58° and every thickness
-            // read 25 % thick, valid under a table's 10 % scale accuracy).
-            // No pixel's thickness can then be trusted.
-            self.calibration_suspect = significant;
-            self.level_note = if significant {
-                format!(
-                    "absolute: the image departs from a film's reflectance in a way no calibration error explains (a level of gain {g:.3} and offset {o:.4} would lower χ² by {delta:.0} and move thicknesses by {shift:.1} σ): every pixel flagged poor fit (normalised intensities? use --level free; a backside reflection, a second layer?)"
-                )
-            } else {
-                format!(
-                    "absolute: the fitted level (gain {g:.3}, offset {o:.4}) is no calibration error but data that are not reflectance; pixels are judged as they are (use --level free for normalised intensities)"
-                )
-            };
+            self.level_note = format!(
+                "absolute: the fitted level (gain {g:.3}, offset {o:.4}) is no calibration error but data that are not reflectance; pixels are judged as they are (use --level free for normalised intensities)"
+            );
             self.level = identity;
             self.level_mode = LevelMode::Absolute;
             if unknown_index {
