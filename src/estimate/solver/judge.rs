@@ -7,7 +7,7 @@
 use super::alternatives::WEAK_FRINGES;
 use super::refine::MIN_FREE_THETA;
 use super::table::ThicknessTable;
-use super::{Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
+use super::{Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG, CLOSED_FORM_GROSS};
 use crate::estimate::lanes::{load, Chi2Lanes};
 use crate::estimate::noise::band_var4;
 use crate::estimate::{PixelEstimate, Reason};
@@ -78,9 +78,11 @@ impl Solver {
             None => judged_sums(bands, &noise.var0, &noise.shot, noise.rel2, free),
         };
         s.trial = t;
-        if !(self.fit_passes(chi2, n_ok, n_par)
-            && self.bound_reason(prep, d, th, theta_known).is_none())
-        {
+        let passes = self.fit_passes(chi2, n_ok, n_par);
+        // Missed by far (not a start a step would mend): a wrong order.
+        s.closed_form_gross =
+            !passes && chi2 > CLOSED_FORM_GROSS * self.chi2.threshold((n_ok - n_par).max(1));
+        if !(passes && self.bound_reason(prep, d, th, theta_known).is_none()) {
             return Err((d, th));
         }
         if !fe.is_valid() {
