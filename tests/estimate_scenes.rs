@@ -12,7 +12,7 @@
 //! on the worst pixel proves there is none.
 
 mod scene_common;
-use irid::estimate::{Mode, ParamMaps, Reason, Solver};
+use irid::estimate::{Cube, Mode, ParamMaps, Reason, Solver};
 use irid::scene::{AngleKnowledge, FilmKnowledge, Scene};
 use irid::synth::{compare, scene_bands, Accuracy, Renderer, TruthMaps};
 use scene_common::{
@@ -736,6 +736,42 @@ fn fast_rows_agree_with_the_per_pixel_fast_path() {
     );
 }
 
+/// A bundled scene (`data/scenes/NAME.toml`) cropped to `width` × 3
+/// pixels, noise seed 5.
+fn bundled(name: &str, width: usize) -> Scene {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("data/scenes/{name}.toml"));
+    let mut s = Scene::load(&path).expect("the bundled scene loads");
+    let t = s.truth.as_mut().expect("the scene has a truth");
+    (t.width, t.height, t.seed) = (width, 3, 5);
+    s
+}
+
+/// Scene `s` rendered, its truth, and a `mode` solver whose index, noise
+/// and level are estimated from it; the scene must leave the angle free.
+fn rendered_angle_free(s: &Scene, mode: Mode, label: &str) -> (Cube, TruthMaps, Solver) {
+    let bands = scene_bands(s).unwrap();
+    let r = Renderer::new(s).unwrap();
+    let cube = r.render_cube(&bands).unwrap();
+    let truth = r.truth_maps(&bands);
+    let mut solver = Solver::new(s, &bands, mode).unwrap();
+    solver.estimate_film_index(&cube).unwrap();
+    assert!(solver.scene_angle().known_at(0, 0).is_none(), "{label}");
+    (cube, truth, solver)
+}
+
+/// Rows against lone pixels, tallied: the rows trustworthy
+/// ([`assert_rows_trustworthy`]) and at most 2 % of the pixels judged
+/// otherwise alone (a lone search can miss the basin a row's start finds,
+/// and the reverse).
+fn assert_rows_as_lone(label: &str, valid: usize, total: usize, wrong: usize, differ: usize) {
+    eprintln!("{label}: {valid} of {total} valid, {wrong} valid and wrong, {differ} judged otherwise alone");
+    assert_rows_trustworthy(label, valid, total, wrong);
+    assert!(
+        differ as f64 <= 0.02 * total as f64,
+        "{label}: {differ} judged otherwise"
+    );
+}
+
 /// `fast` with the angle free, row by row, where the closed form serves
 /// few pixels: a row stops looking for it after four pixels it served
 /// nothing (none found, or one that missed the spectrum by a hundred
@@ -750,17 +786,7 @@ fn fast_rows_agree_with_the_per_pixel_fast_path() {
 #[test]
 fn fast_rows_that_stop_looking_for_a_closed_form_agree_with_lone_pixels() {
     for (name, width) in [("dispersive-p61", 80), ("thin-coating", 120)] {
-        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("data/scenes/{name}.toml"));
-        let mut s = Scene::load(&path).expect("the bundled scene loads");
-        let t = s.truth.as_mut().expect("the scene has a truth");
-        (t.width, t.height, t.seed) = (width, 3, 5);
-        let bands = scene_bands(&s).unwrap();
-        let r = Renderer::new(&s).unwrap();
-        let cube = r.render_cube(&bands).unwrap();
-        let truth = r.truth_maps(&bands);
-        let mut solver = Solver::new(&s, &bands, Mode::Fast).unwrap();
-        solver.estimate_film_index(&cube).unwrap();
-        assert!(solver.scene_angle().known_at(0, 0).is_none(), "{name}");
+        let (cube, truth, solver) = rendered_angle_free(&bundled(name, width), Mode::Fast, name);
         let (mut valid, mut total, mut wrong, mut differ) = (0, 0, 0, 0);
         scene_common::rows_against_lone(&solver, &cube, |x, y, r, p, _| {
             total += 1;
@@ -781,12 +807,7 @@ fn fast_rows_that_stop_looking_for_a_closed_form_agree_with_lone_pixels() {
             valid += usize::from(r.is_valid());
             wrong += usize::from(valid_and_wrong(r, truth.thickness_nm[y * cube.width + x]));
         });
-        eprintln!("{name}: {valid} of {total} valid, {wrong} valid and wrong, {differ} judged otherwise alone");
-        assert_rows_trustworthy(name, valid, total, wrong);
-        assert!(
-            differ as f64 <= 0.02 * total as f64,
-            "{name}: {differ} judged otherwise"
-        );
+        assert_rows_as_lone(name, valid, total, wrong, differ);
     }
 }
 
@@ -807,13 +828,6 @@ fn fast_rows_that_stop_looking_for_a_closed_form_agree_with_lone_pixels() {
 /// often the wrong one there).
 #[test]
 fn balanced_rows_with_the_angle_free_agree_with_lone_pixels() {
-    let bundled = |name: &str, width: usize| {
-        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("data/scenes/{name}.toml"));
-        let mut s = Scene::load(&path).expect("the bundled scene loads");
-        let t = s.truth.as_mut().expect("the scene has a truth");
-        (t.width, t.height, t.seed) = (width, 3, 5);
-        s
-    };
     let mut steep = bundled("wide-range", 32);
     steep.truth.as_mut().unwrap().thickness_nm = irid::scene::Field::Columns([300.0, 37.0]);
     let mut cylinder = Scene::paper_cylinder();
@@ -824,14 +838,8 @@ fn balanced_rows_with_the_angle_free_agree_with_lone_pixels() {
         ("dispersive p", bundled("dispersive-p61", 80)),
         ("steep", steep),
     ] {
-        let bands = scene_bands(&s).unwrap();
-        let r = Renderer::new(&s).unwrap();
-        let cube = r.render_cube(&bands).unwrap();
-        let truth = r.truth_maps(&bands);
-        let mut solver = Solver::new(&s, &bands, Mode::Balanced).unwrap();
-        solver.estimate_film_index(&cube).unwrap();
         // Every scene here has the angle free: the lone pixel searches.
-        assert!(solver.scene_angle().known_at(0, 0).is_none(), "{label}");
+        let (cube, truth, solver) = rendered_angle_free(&s, Mode::Balanced, label);
         let (mut valid, mut total, mut wrong, mut differ) = (0, 0, 0, 0);
         scene_common::rows_against_lone(&solver, &cube, |x, y, r, p, _| {
             total += 1;
@@ -860,12 +868,7 @@ fn balanced_rows_with_the_angle_free_agree_with_lone_pixels() {
             valid += usize::from(r.is_valid());
             wrong += usize::from(valid_and_wrong(r, truth.thickness_nm[y * cube.width + x]));
         });
-        eprintln!("{label}: {valid} of {total} valid, {wrong} valid and wrong, {differ} judged otherwise alone");
-        assert_rows_trustworthy(label, valid, total, wrong);
-        assert!(
-            differ as f64 <= 0.02 * total as f64,
-            "{label}: {differ} judged otherwise"
-        );
+        assert_rows_as_lone(label, valid, total, wrong, differ);
     }
 }
 
