@@ -1,10 +1,12 @@
 //! `irid fit` on spectrum tables holding what no film reflects, as a user's
 //! files do: dark (all-zero) spectra among real ones, and raw counts under
 //! `--level free`. The spectra are rendered by a normal-incidence Airy sum
-//! written out here (not irid's model), with seeded noise.
+//! written out here (not irid's model), with seeded noise (ChaCha8, as `irid synth`).
 
 mod cli_common;
 use cli_common::{ok, s};
+use rand::SeedableRng;
+use rand_distr::{Distribution, Normal};
 use std::f64::consts::PI;
 use std::path::Path;
 
@@ -24,23 +26,6 @@ fn reflectance(d: f64, lam: f64) -> f64 {
     num / den
 }
 
-/// A seeded normal deviate stream (xorshift and Box–Muller).
-struct Noise(u64);
-
-impl Noise {
-    fn uniform(&mut self) -> f64 {
-        self.0 ^= self.0 << 13;
-        self.0 ^= self.0 >> 7;
-        self.0 ^= self.0 << 17;
-        ((self.0 >> 11) as f64 + 0.5) / (1u64 << 53) as f64
-    }
-
-    fn normal(&mut self) -> f64 {
-        let (u, v) = (self.uniform(), self.uniform());
-        (-2.0 * u.ln()).sqrt() * (2.0 * PI * v).cos()
-    }
-}
-
 /// Thirty films of 100–2 420 nm at 61 bands (400–700 nm), each sample
 /// `f(R, λ)` of its noisy reflectance; the spectra whose index `dark`
 /// picks are all zero. Returns the true thicknesses (None: dark).
@@ -57,13 +42,14 @@ fn write_table(
         text.push_str(&format!(",s{i:02}_d{}", d.unwrap_or(0.0)));
     }
     text.push('\n');
-    let mut noise = Noise(0x9e37_79b9_7f4a_7c15);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    let noise = Normal::new(0.0, SIGMA).expect("σ is positive");
     for k in 0..61 {
         let lam = 400.0 + 5.0 * k as f64;
         text.push_str(&format!("{lam}"));
         for d in &films {
             let v = match d {
-                Some(d) => f(reflectance(*d, lam) + SIGMA * noise.normal(), lam),
+                Some(d) => f(reflectance(*d, lam) + noise.sample(&mut rng), lam),
                 None => 0.0,
             };
             text.push_str(&format!(",{v}"));
