@@ -74,7 +74,7 @@ proptest! {
         let mut idx = irid::estimate::IndexEstimate {
             n: 1.37, sigma: 0.0, estimated: false, twin: None, twin_delta_chi2: f64::NAN,
             noise_sigma: 0.001, note: String::new(), ambiguous: false, at_bound: false, sigma_in_level: false,
-            scale_branches: None,
+            scale_branches: None, branches: None,
         };
         idx.noise_sigma = 0.001;
         solver.set_film_index(idx).unwrap();

@@ -15,6 +15,17 @@ use crate::optics::dispersion::Dispersion;
 use crate::scene::FilmKnowledge;
 use rayon::prelude::*;
 
+/// A sample pixel's share of the index profile is capped at this many χ²
+/// thresholds (see [`Solver::gross_capped`]): a wrong index 0.02 off raises
+/// a pixel by tens of thresholds at most on the scene matrix's images.
+const GROSS_MISFIT: f64 = 100.0;
+
+/// An equivalent index whose profile lies within this many noise
+/// variances of the best is refined and weighed as a twin (see
+/// `equivalents`); the images of the scene matrix put theirs thousands
+/// above.
+const EQUIVALENT_NEAR: f64 = 100.0;
+
 /// Step of the coarse film-index profile.
 const INDEX_GRID_STEP: f64 = 0.02;
 
@@ -366,7 +377,7 @@ impl Solver {
                 if sse.is_finite() {
                     let p = if th.is_some() { 1.0 } else { 2.0 };
                     let n = spec.iter().filter(|v| v.is_finite()).count();
-                    (sse, n as f64, p, 1.0)
+                    (self.gross_capped(sse, n, p as usize), n as f64, p, 1.0)
                 } else {
                     (0.0, 0.0, 0.0, 0.0)
                 }
@@ -375,6 +386,22 @@ impl Solver {
                 || (0.0, 0.0, 0.0, 0.0),
                 |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2, a.3 + b.3),
             )
+    }
+
+    /// A sample pixel's residual, at most [`GROSS_MISFIT`] χ² thresholds of
+    /// the noise model: one defect the film cannot explain at any index
+    /// (one spectrum in forty at 10⁵ variances) must not choose the index
+    /// for the rest, which near their minimum each add about their degrees
+    /// of freedom.
+    pub(super) fn gross_capped(&self, sse: f64, n_obs: usize, n_par: usize) -> f64 {
+        match &self.noise {
+            Some(m) => {
+                let var = m.typical_sigma(0.05).powi(2);
+                let dof = n_obs.saturating_sub(n_par).max(1);
+                sse.min(GROSS_MISFIT * self.chi2.threshold(dof) * var)
+            }
+            None => sse,
+        }
     }
 
     fn profile_at(
@@ -510,41 +537,90 @@ impl Solver {
             }
         }
         refined.sort_by(|a, b| a.1.total_cmp(&b.1));
+        // The best index's exact equivalents at the sample's typical angle
+        // (`equivalents`): with the angle free their minima are sharp, and
+        // the coarse grid can step over them.
+        // One evaluation each; refined only where it comes near (an image
+        // whose pixels see several angles breaks the equivalence, and
+        // keeps the search's cost).
+        let near_var = self.index_var(refined[0].0, refined[0].1, sample)?;
+        let least = refined[0];
+        for (m, delta) in self.equivalents_of(least.0, sample) {
+            if !(lo..=hi).contains(&m) || (m - least.0).abs() < 0.04 {
+                continue;
+            }
+            if delta / near_var >= EQUIVALENT_NEAR {
+                continue;
+            }
+            // The carried fits' residual where it is the lower: an exact
+            // equivalent the fresh fits miss stays a tie (also where the
+            // coarse profile found its basin and refined it with them).
+            let carried = least.1 + delta.max(0.0);
+            match refined.iter_mut().find(|r| (r.0 - m).abs() < 0.04) {
+                Some(r) => r.1 = r.1.min(carried),
+                None => {
+                    let mut r = self.refine_index(m, (lo, hi), &cost)?;
+                    r.1 = r.1.min(carried);
+                    refined.push(r);
+                }
+            }
+        }
+        refined.sort_by(|a, b| a.1.total_cmp(&b.1));
         let var = self.index_var(refined[0].0, refined[0].1, sample)?;
         let noise_sigma = var.sqrt();
         let mut best = refined[0];
         let mut note = String::new();
         let mut ambiguous = false;
+        let mut branches = None;
         let (twin, dchi2) = match refined.get(1) {
             Some(t) => (Some(t.0), (t.1 - best.1) / var),
             None => (None, f64::INFINITY),
         };
-        if let Some(tn) = twin {
-            if dchi2 < 9.0 {
-                if let Some(p) = prior {
-                    if (tn - p).abs() < (best.0 - p).abs() {
-                        let other = best;
-                        best = refined[1];
-                        note = format!(
-                            "twin branches {:.4} and {:.4} not resolved by the data (Δχ² = {:.1}); the prior chose",
-                            best.0, other.0, dchi2
-                        );
-                    } else {
-                        note = format!(
-                            "twin at {:.4} not resolved by the data (Δχ² = {:.1}); the prior chose",
-                            tn, dchi2
-                        );
-                    }
-                } else {
-                    ambiguous = true;
-                    note = format!(
-                        "AMBIGUOUS: twin at {:.4} fits almost as well (Δχ² = {:.1}); give a prior or the index; σ spans both branches",
-                        tn, dchi2
-                    );
-                }
+        // Every refined minimum within Δχ² 9 of the least: the data do not
+        // tell them apart (p light can hold four: the twin's two roots and
+        // the index of equal admittance beside the truth).
+        let tied: Vec<f64> = refined
+            .iter()
+            .filter(|r| (r.1 - refined[0].1) / var < 9.0)
+            .map(|r| r.0)
+            .collect();
+        let list = |ns: &[f64]| {
+            let v: Vec<String> = ns.iter().map(|n| format!("{n:.4}")).collect();
+            v.join(", ")
+        };
+        if tied.len() > 1 {
+            if let Some(p) = prior {
+                let near = |r: &&(f64, f64, f64)| (r.0 - p).abs();
+                let chosen = refined[..tied.len()]
+                    .iter()
+                    .min_by(|a, b| near(a).total_cmp(&near(b)))
+                    .copied()
+                    .unwrap_or(best);
+                best = chosen;
+                note = format!(
+                    "branches {} not resolved by the data (Δχ² = {dchi2:.1}); the prior chose {:.4}",
+                    list(&tied),
+                    best.0
+                );
             } else {
-                note = format!("twin at {:.4} rejected (Δχ² = {:.0})", tn, dchi2);
+                ambiguous = true;
+                let lo = tied.iter().copied().fold(f64::INFINITY, f64::min);
+                let hi = tied.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+                branches = Some([lo, hi]);
+                note = if tied.len() == 2 {
+                    format!(
+                        "AMBIGUOUS: twin at {:.4} fits almost as well (Δχ² = {dchi2:.1}); give a prior or the index; σ spans both branches",
+                        tied[1]
+                    )
+                } else {
+                    format!(
+                        "AMBIGUOUS: {} fit almost as well (Δχ² < 9); give a prior or the index; σ spans every branch",
+                        list(&tied[1..])
+                    )
+                };
             }
+        } else if let Some(tn) = twin {
+            note = format!("twin at {:.4} rejected (Δχ² = {:.0})", tn, dchi2);
         }
         let sigma = if best.2 > 0.0 {
             (var / best.2).sqrt()
@@ -573,6 +649,7 @@ impl Solver {
             at_bound,
             sigma_in_level: false,
             scale_branches: None,
+            branches,
         })
     }
 
@@ -591,7 +668,10 @@ impl Solver {
     }
 
     /// Fit `sse ≈ s0 + κ (n − n0)²` on a fine local grid around `n_start`;
-    /// returns `(n0, s0, κ)`.
+    /// returns `(n0, s0, κ)`: the least cost evaluated (never a vertex worse
+    /// than a point already seen: with the angle free a profile's minimum
+    /// can be narrower than the grid, and a parabola through its flanks
+    /// points away from it) and the last parabola's curvature.
     fn refine_index(
         &self,
         n_start: f64,
@@ -600,7 +680,8 @@ impl Solver {
     ) -> Result<(f64, f64, f64), EstimateError> {
         let mut center = n_start;
         let mut half = INDEX_GRID_STEP;
-        let mut result = (center, f64::INFINITY, 0.0);
+        let mut best = (center, f64::INFINITY);
+        let mut curvature = 0.0;
         for _ in 0..3 {
             let pts: Vec<f64> = (-3..=3)
                 .map(|i| (center + half * i as f64 / 3.0).clamp(bounds.0, bounds.1))
@@ -608,6 +689,11 @@ impl Solver {
             let mut vals = Vec::with_capacity(pts.len());
             for &p in &pts {
                 vals.push(cost(p)?);
+            }
+            for (&p, &v) in pts.iter().zip(&vals) {
+                if v < best.1 {
+                    best = (p, v);
+                }
             }
             // Least-squares parabola in u = n − center.
             let (mut s0, mut s1, mut s2, mut s3, mut s4) = (0.0, 0.0, 0.0, 0.0, 0.0);
@@ -625,30 +711,23 @@ impl Solver {
                 t2 += v * u2;
             }
             let m = [[s4, s3, s2], [s3, s2, s1], [s2, s1, s0]];
-            let Some([a, b, c]) = solve3(m, [t2, t1, t0]) else {
+            let Some([a, b, _]) = solve3(m, [t2, t1, t0]) else {
                 break;
             };
-            let (imin, vmin) = vals
-                .iter()
-                .enumerate()
-                .min_by(|x, y| x.1.total_cmp(y.1))
-                .map(|(i, v)| (i, *v))
-                .unwrap_or((3, f64::INFINITY));
+            curvature = a.max(0.0);
             if a > 0.0 {
                 let u = (-b / (2.0 * a)).clamp(-half, half);
                 let n0 = (center + u).clamp(bounds.0, bounds.1);
-                let s = c - b * b / (4.0 * a);
-                result = (n0, s.max(0.0).min(vmin), a);
-                center = n0;
-            } else {
-                center = pts[imin];
-                result = (center, vmin, 0.0);
+                // The vertex itself, not the parabola's value there.
+                let v = cost(n0)?;
+                if v < best.1 {
+                    best = (n0, v);
+                }
             }
+            center = best.0;
             half *= 0.3;
         }
-        // The value at the vertex itself, not the parabola's.
-        let s = cost(result.0)?;
-        Ok((result.0, s, result.2))
+        Ok((best.0, best.1, curvature))
     }
 }
 

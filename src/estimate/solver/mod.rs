@@ -51,8 +51,10 @@
 //! - `linalg.rs`: 3×3 linear algebra.
 
 mod alternatives;
+mod angle_grid;
 mod bands;
 mod closed_form;
+mod equivalents;
 mod free;
 mod fringes;
 mod index;
@@ -123,6 +125,10 @@ pub struct IndexEstimate {
     /// optical thickness (not a linearisation: one spectrum can put the two
     /// far apart).
     pub scale_branches: Option<[f64; 2]>,
+    /// Where the index is ambiguous, the least and the greatest of the
+    /// indices that fit as well (the twin among them): every pixel's σ_d
+    /// spans the thicknesses they give it.
+    pub branches: Option<[f64; 2]>,
 }
 
 /// A closed form whose χ² exceeds the fit test's threshold this many times
@@ -432,6 +438,9 @@ struct Effort {
     closed_form_only: bool,
     /// How many candidate starts are refined.
     n_refine: usize,
+    /// With the angle free, also start a thin film from a grid of angles
+    /// and optical thicknesses (the index search: see `angle_grid`).
+    angle_grid: bool,
     /// Iteration cap of each refinement.
     iters: usize,
     /// Fit against the thickness table where one was built for the
@@ -459,6 +468,7 @@ impl Effort {
                 closed_form: true,
                 closed_form_only: true,
                 n_refine: 1,
+                angle_grid: false,
                 // A cap, not a count: converged fits stop early, and one
                 // stopped short in a flat valley (thick films, angle
                 // unknown) must not pass for a minimum.
@@ -475,6 +485,7 @@ impl Effort {
                 closed_form: true,
                 closed_form_only: false,
                 n_refine: 2,
+                angle_grid: false,
                 iters: 25,
                 table: true,
                 verify_order: false,
@@ -486,6 +497,7 @@ impl Effort {
                 closed_form: true,
                 closed_form_only: false,
                 n_refine: 3,
+                angle_grid: false,
                 iters: 25,
                 table: true,
                 verify_order: true,
@@ -506,6 +518,7 @@ impl Effort {
         closed_form: false,
         closed_form_only: false,
         n_refine: 3,
+        angle_grid: true,
         iters: 25,
         table: false,
         verify_order: false,
@@ -800,6 +813,7 @@ impl Solver {
                 at_bound: false,
                 sigma_in_level: false,
                 scale_branches: None,
+                branches: None,
             });
         }
         if scene.level == LevelMode::Free {
@@ -1157,8 +1171,12 @@ impl Solver {
             let (a, b) = (est.sigma_thickness_nm, dd_dn * sigma_n);
             // An unresolved twin: the thickness on the other branch (same
             // optical thickness) is as likely, so σ spans it.
-            let c = match (index.ambiguous, index.twin) {
-                (true, Some(t)) => (d_at(t) - est.thickness_nm).abs(),
+            let c = match (index.ambiguous, index.branches, index.twin) {
+                (true, Some([lo, hi]), _) => {
+                    let d = est.thickness_nm;
+                    (d_at(lo) - d).abs().max((d_at(hi) - d).abs())
+                }
+                (true, None, Some(t)) => (d_at(t) - est.thickness_nm).abs(),
                 _ => 0.0,
             };
             est.sigma_thickness_nm = (a * a + b * b + c * c + scale * scale).sqrt();

@@ -4,6 +4,7 @@
 //! covariance, validity flags.
 
 use super::alternatives::OrderMargin;
+use super::angle_grid;
 use super::closed_form::angle_start;
 use super::fringes::AMBIGUITY_CHI2;
 use super::poor::{FREE_ANGLE, FREE_MARGIN, FREE_RUN};
@@ -336,7 +337,7 @@ impl Solver {
         }
         starts[..n_starts].sort_by(|a, b| a.1.total_cmp(&b.1));
         let (n_refine, iters) = (effort.n_refine, effort.iters);
-        let mut fits = [Fit::default(); 3];
+        let mut fits = [Fit::default(); 3 + 2];
         let mut n_fits = 0;
         for st in starts[..n_starts.min(n_refine)].iter() {
             if !st.1.is_finite() {
@@ -352,14 +353,26 @@ impl Solver {
             );
             n_fits += 1;
         }
+        // Only where the best fit so far is thin (`angle_grid`).
+        let rescue = |f: &Fit| f.d * prep.model.q2_mid(f.theta) < angle_grid::THIN * lam_min;
+        let best_so_far = fits[..n_fits].iter().min_by(|a, b| a.sse.total_cmp(&b.sse));
+        if effort.angle_grid && theta_known.is_none() && best_so_far.is_none_or(rescue) {
+            let cands = &cands[..n_cands];
+            n_fits +=
+                self.angle_grid_fits(prep, cands, lam_min, iters, scratch, &mut fits[n_fits..]);
+            // `finish` weighs the first three as the search's own.
+            fits[..n_fits].sort_by(|a, b| a.sse.total_cmp(&b.sse));
+            n_fits = n_fits.min(3);
+        }
         if let Some(f) = warm_fit {
             // The neighbour's basin competes with the search's: a thin
             // film's search starts can lead to a shallower basin of the
             // (d, θ) valley, and a weak one's to a twin.
-            if n_fits < fits.len() {
+            if n_fits < 3 {
                 fits[n_fits] = f;
                 n_fits += 1;
-            } else if let Some(worst) = fits.iter_mut().max_by(|a, b| a.sse.total_cmp(&b.sse)) {
+            } else if let Some(worst) = fits[..3].iter_mut().max_by(|a, b| a.sse.total_cmp(&b.sse))
+            {
                 if f.sse < worst.sse {
                     *worst = f;
                 }
