@@ -40,14 +40,7 @@ impl Solver {
         sample
             .par_iter()
             .map_init(Scratch::default, |scratch, px| {
-                let job = Job {
-                    spectrum: &px.spectrum,
-                    theta_known: px.theta,
-                    noise: None,
-                    effort: Effort::INDEX_SEARCH,
-                    pre: Some(px),
-                    start: None,
-                };
+                let job = Job::sample(px);
                 let (_, sse) = self.solve_with(prep, job, scratch);
                 let at = (scratch.last_fit_d, scratch.last_fit_theta);
                 let n_obs = px.spectrum.iter().filter(|v| v.is_finite()).count();
@@ -101,14 +94,7 @@ impl Solver {
                         let q = |x: f64| (x * x - kx2(th)).max(1e-12).sqrt();
                         // `solve_with` loads the pixel's spectrum for the
                         // refinement below.
-                        let job = Job {
-                            spectrum: &px.spectrum,
-                            theta_known: px.theta,
-                            noise: None,
-                            effort: Effort::INDEX_SEARCH,
-                            pre: Some(px),
-                            start: None,
-                        };
+                        let job = Job::sample(px);
                         let _ = self.solve_with(&prep_m, job, scratch);
                         scratch.cur_at = None;
                         let free = px.theta.is_none();

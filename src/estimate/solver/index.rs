@@ -6,7 +6,7 @@ use super::level_hedge::Look;
 use super::linalg::solve3;
 use super::search::{Candidate, MAX_CANDIDATES};
 use super::{
-    Effort, IndexEstimate, Job, Prepared, Scratch, Solver, INDEX_SAMPLE_PIXELS, LEVEL_SAMPLE_PIXELS,
+    IndexEstimate, Job, Prepared, Scratch, Solver, INDEX_SAMPLE_PIXELS, LEVEL_SAMPLE_PIXELS,
 };
 use crate::estimate::level::{Level, LevelMode};
 use crate::estimate::noise::NoiseModel;
@@ -360,15 +360,7 @@ impl Solver {
             .par_iter()
             .map_init(Scratch::default, |scratch, px| {
                 let (spec, th) = (&px.spectrum, &px.theta);
-                let job = Job {
-                    spectrum: spec,
-                    theta_known: *th,
-                    noise: None,
-                    effort: Effort::INDEX_SEARCH,
-                    pre: Some(px),
-                    start: None,
-                };
-                let (_, sse) = self.solve_with(prep, job, scratch);
+                let (_, sse) = self.solve_with(prep, Job::sample(px), scratch);
                 // Every pixel with a fit counts, flagged or not: which
                 // pixels pass the quality tests changes with the trial
                 // index, and at high noise a profile over the passing ones

@@ -545,6 +545,21 @@ struct Job<'a> {
     start: Option<(f64, f64)>,
 }
 
+impl<'a> Job<'a> {
+    /// A lone sample pixel of the index search: untested, its fringe
+    /// candidates precomputed, searched in full.
+    fn sample(px: &'a SamplePixel) -> Job<'a> {
+        Job {
+            spectrum: &px.spectrum,
+            theta_known: px.theta,
+            noise: None,
+            effort: Effort::INDEX_SEARCH,
+            pre: Some(px),
+            start: None,
+        }
+    }
+}
+
 /// Result of refining one start.
 #[derive(Clone, Copy, Debug, Default)]
 struct Fit {

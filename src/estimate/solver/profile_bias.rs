@@ -25,7 +25,7 @@
 
 use super::alternatives::WEAK_FRINGES;
 use super::index::SamplePixel;
-use super::{Effort, IndexEstimate, Job, Scratch, Solver};
+use super::{IndexEstimate, Job, Scratch, Solver};
 use crate::estimate::level::LevelMode;
 use crate::estimate::model::ModelOut;
 use crate::optics::dispersion::Dispersion;
@@ -74,14 +74,7 @@ impl Solver {
         let fits: Vec<(Option<(f64, f64)>, f64)> = sample
             .par_iter()
             .map_init(Scratch::default, |scratch, px| {
-                let job = Job {
-                    spectrum: &px.spectrum,
-                    theta_known: px.theta,
-                    noise: None,
-                    effort: Effort::INDEX_SEARCH,
-                    pre: Some(px),
-                    start: None,
-                };
+                let job = Job::sample(px);
                 let (e, _) = self.solve_with(&prep, job, scratch);
                 let (d, th) = if e.is_valid() {
                     (e.thickness_nm, e.theta_deg.to_radians())
