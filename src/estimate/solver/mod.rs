@@ -44,6 +44,11 @@
 //!   noise, where their variances differ (4a).
 //! - `row.rs`: rows and whole cubes.
 //! - `index.rs`: the global film-index search.
+//! - `equivalents.rs`: the indices that reflect exactly as the one found
+//!   (the twin, in p light the index of equal admittance), weighed as
+//!   branches of the index.
+//! - `angle_grid.rs`: the index search's extra angle starts for a thin
+//!   lone pixel.
 //! - `level_fit.rs`: the image-wide level (`scaled`, and `auto`'s test).
 //! - `free.rs`: the per-pixel free level (normalised intensities).
 //! - `judge.rs`: the fit-quality test and flags against the noise model,
@@ -1184,8 +1189,9 @@ impl Solver {
             };
             let sigma_n = if index.sigma_in_level { 0.0 } else { sigma_n };
             let (a, b) = (est.sigma_thickness_nm, dd_dn * sigma_n);
-            // An unresolved twin: the thickness on the other branch (same
-            // optical thickness) is as likely, so σ spans it.
+            // An unresolved twin or equivalent: the thickness on another
+            // branch (same optical thickness) is as likely, so σ spans
+            // every branch.
             let c = match (index.ambiguous, index.branches, index.twin) {
                 (true, Some([lo, hi]), _) => {
                     let d = est.thickness_nm;
