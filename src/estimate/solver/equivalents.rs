@@ -34,21 +34,21 @@ use crate::optics::dispersion::Dispersion;
 use rayon::prelude::*;
 
 impl Solver {
-    /// Each sample pixel's fit at index `n` (d, θ in radians; `None` where
-    /// none) and its residual, capped as the profile caps it.
-    fn fits_at(&self, prep: &Prepared, sample: &[SamplePixel]) -> Vec<(Option<(f64, f64)>, f64)> {
-        sample
-            .par_iter()
-            .map_init(Scratch::default, |scratch, px| {
-                let job = Job::sample(px);
-                let (_, sse) = self.solve_with(prep, job, scratch);
-                let at = (scratch.last_fit_d, scratch.last_fit_theta);
-                let n_obs = px.spectrum.iter().filter(|v| v.is_finite()).count();
-                let p = if px.theta.is_some() { 1 } else { 2 };
-                let ok = sse.is_finite() && at.0.is_finite() && at.1.is_finite();
-                (ok.then_some(at), self.gross_capped(sse, n_obs, p))
-            })
-            .collect()
+    /// One sample pixel's fit under `prep` (d, θ in radians; `None` where
+    /// none) and its residual, capped as the profile caps it; its spectrum
+    /// is left loaded in `scratch`.
+    fn lone_fit(
+        &self,
+        prep: &Prepared,
+        px: &SamplePixel,
+        scratch: &mut Scratch,
+    ) -> (Option<(f64, f64)>, f64) {
+        let (_, sse) = self.solve_with(prep, Job::sample(px), scratch);
+        let at = (scratch.last_fit_d, scratch.last_fit_theta);
+        let n_obs = px.spectrum.iter().filter(|v| v.is_finite()).count();
+        let p = if px.theta.is_some() { 1 } else { 2 };
+        let ok = sse.is_finite() && at.0.is_finite() && at.1.is_finite();
+        (ok.then_some(at), self.gross_capped(sse, n_obs, p))
     }
 
     /// The indices that reflect exactly as `n` does at the sample's typical
@@ -62,7 +62,12 @@ impl Solver {
         let Ok(prep) = self.prepare_with(&Dispersion::constant(n), false) else {
             return Vec::new();
         };
-        let fits = self.fits_at(&prep, sample);
+        let fits: Vec<_> = sample
+            .par_iter()
+            .map_init(Scratch::default, |scratch, px| {
+                self.lone_fit(&prep, px, scratch)
+            })
+            .collect();
         let mut angles: Vec<f64> = sample
             .iter()
             .zip(&fits)
@@ -82,20 +87,17 @@ impl Solver {
             .iter()
             .filter_map(|&m| {
                 let prep_m = self.prepare_with(&Dispersion::constant(m), false).ok()?;
-                let fresh = self.fits_at(&prep_m, sample);
                 let carried: f64 = sample
                     .par_iter()
                     .zip(&fits)
-                    .zip(&fresh)
-                    .map_init(Scratch::default, |scratch, ((px, f), g)| {
+                    .map_init(Scratch::default, |scratch, (px, f)| {
+                        // The fresh fit, which leaves the pixel's spectrum
+                        // loaded for the carried one's refinement.
+                        let fresh = self.lone_fit(&prep_m, px, scratch).1;
                         let Some((d, th)) = f.0 else {
-                            return g.1;
+                            return fresh;
                         };
                         let q = |x: f64| (x * x - kx2(th)).max(1e-12).sqrt();
-                        // `solve_with` loads the pixel's spectrum for the
-                        // refinement below.
-                        let job = Job::sample(px);
-                        let _ = self.solve_with(&prep_m, job, scratch);
                         scratch.cur_at = None;
                         let free = px.theta.is_none();
                         let fit = self.refine(
@@ -109,9 +111,9 @@ impl Solver {
                         let n_obs = px.spectrum.iter().filter(|v| v.is_finite()).count();
                         let p = if free { 2 } else { 1 };
                         if fit.sse.is_finite() {
-                            g.1.min(self.gross_capped(fit.sse, n_obs, p))
+                            fresh.min(self.gross_capped(fit.sse, n_obs, p))
                         } else {
-                            g.1
+                            fresh
                         }
                     })
                     .sum();

@@ -531,8 +531,8 @@ impl Solver {
         refined.sort_by(|a, b| a.1.total_cmp(&b.1));
         // The best index's exact equivalents at the sample's typical angle
         // (`equivalents`): with the angle free their minima are sharp, and
-        // the coarse grid can step over them.
-        // One evaluation each; refined only where it comes near (an image
+        // the coarse grid can step over them. One evaluation each; refined
+        // only where it comes near (an image
         // whose pixels see several angles breaks the equivalence, and
         // keeps the search's cost).
         let near_var = self.index_var(refined[0].0, refined[0].1, sample)?;
@@ -558,7 +558,12 @@ impl Solver {
             }
         }
         refined.sort_by(|a, b| a.1.total_cmp(&b.1));
-        let var = self.index_var(refined[0].0, refined[0].1, sample)?;
+        // The least may have moved to an equivalent: its variance then.
+        let var = if refined[0] == least {
+            near_var
+        } else {
+            self.index_var(refined[0].0, refined[0].1, sample)?
+        };
         let noise_sigma = var.sqrt();
         let mut best = refined[0];
         let mut note = String::new();
