@@ -12,10 +12,12 @@ use super::refine::{free_angle_sigma, sse};
 use super::search::{Candidate, MAX_CANDIDATES};
 use super::table::ORDER_GAP_SAFE;
 use super::{Effort, Fit, Job, Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
+use crate::estimate::lanes;
 use crate::estimate::model::FilmModel;
 use crate::estimate::{PixelEstimate, Reason};
 use multiversion::multiversion;
 use std::f64::consts::PI;
+use wide::f64x4;
 
 /// What the warm start needs of its pixel (see [`Solver::try_warm`]).
 #[derive(Clone, Copy)]
@@ -45,40 +47,40 @@ struct WarmJob {
 fn load_spectrum(spectrum: &[f64], y: &mut [f64], w: &mut [f64]) -> (usize, bool, f64) {
     let n = spectrum.len().min(y.len()).min(w.len());
     let (spectrum, y, w) = (&spectrum[..n], &mut y[..n], &mut w[..n]);
-    let mut acc = [0.0f64; 4];
-    let mut n_ok = [0u64; 4];
-    let mut beyond = [0u64; 4];
+    let mut acc = f64x4::ZERO;
+    let (mut n_ok, mut beyond) = (0u32, 0u32);
+    let (lo, hi) = (f64x4::splat(-0.2), f64x4::splat(1.2));
     let quads = spectrum
         .chunks_exact(4)
         .zip(y.chunks_exact_mut(4).zip(w.chunks_exact_mut(4)));
     for (s, (y, w)) in quads {
-        // Branch-free: a finite value's mask is all ones, the rest zero.
-        let s: [f64; 4] = [s[0], s[1], s[2], s[3]];
-        let mask = s.map(|v| u64::from(v.is_finite()).wrapping_neg());
-        let v = [0, 1, 2, 3].map(|l| f64::from_bits(s[l].to_bits() & mask[l]));
-        for l in 0..4 {
-            beyond[l] |= mask[l] & u64::from(!(-0.2..=1.2).contains(&v[l]));
-            y[l] = v[l];
-            w[l] = f64::from_bits(1f64.to_bits() & mask[l]);
-            n_ok[l] += mask[l] & 1;
-            acc[l] += v[l];
-        }
+        // Branch-free in vector lanes: a finite value's mask is all ones,
+        // the rest zero (a compare per lane had compiled to scalar
+        // branches).
+        let s = lanes::load(s);
+        let finite = s.is_finite();
+        let v = s & finite;
+        let inside = v.simd_ge(lo) & v.simd_le(hi);
+        beyond |= (finite & !inside).to_bitmask();
+        n_ok += finite.to_bitmask().count_ones();
+        y.copy_from_slice(&v.to_array());
+        w.copy_from_slice(&(finite & f64x4::ONE).to_array());
+        acc += v;
     }
-    let (mut ok_tail, mut beyond_tail) = (0u64, 0u64);
+    let (mut ok_tail, mut beyond_tail) = (0u32, false);
     for k in n - n % 4..n {
         let v = spectrum[k];
         let ok = v.is_finite();
-        beyond_tail |= u64::from(ok & !(-0.2..=1.2).contains(&v));
+        beyond_tail |= ok & !(-0.2..=1.2).contains(&v);
         y[k] = if ok { v } else { 0.0 };
         w[k] = if ok { 1.0 } else { 0.0 };
-        ok_tail += u64::from(ok);
+        ok_tail += u32::from(ok);
     }
     let tail: f64 = y[n - n % 4..].iter().sum();
-    let n_ok = n_ok.iter().sum::<u64>() + ok_tail;
-    let beyond = beyond.iter().fold(beyond_tail, |a, b| a | b);
+    let acc = acc.to_array();
     (
-        n_ok as usize,
-        beyond != 0,
+        (n_ok + ok_tail) as usize,
+        beyond != 0 || beyond_tail,
         (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail,
     )
 }

@@ -224,7 +224,7 @@ impl Solver {
                 scratch.closed_form_gross = false;
                 if let (Some(e), true) = (est, self.judging()) {
                     // The closed form must explain the whole spectrum.
-                    cube.spectrum_into(x, y, pixel);
+                    unflatten(&flat, j, &self.table.sorted, pixel);
                     scratch.ensure(nb);
                     scratch.spectrum.copy_from_slice(pixel);
                     scratch.weight.fill(1.0);
@@ -245,7 +245,7 @@ impl Solver {
                             // The level's share of σ goes through the
                             // pixel's own fit to these values (already
                             // read where the closed form was judged).
-                            cube.spectrum_into(x, y, pixel);
+                            unflatten(&flat, j, &self.table.sorted, pixel);
                         }
                         self.with_level(prep, pixel, theta_known.is_none(), &mut e, scratch);
                         e
@@ -259,7 +259,7 @@ impl Solver {
                     None => {
                         // The closed form was just tried on these very
                         // samples: straight to the fitted path.
-                        cube.spectrum_into(x, y, pixel);
+                        unflatten(&flat, j, &self.table.sorted, pixel);
                         let effort = Effort {
                             closed_form: false,
                             ..Effort::of(Mode::Fast)
@@ -486,6 +486,18 @@ impl Solver {
     "x86_64+sse4.1",
     "aarch64+neon"
 ))]
+/// Pixel `j` of a chunk held band-major in sorted band order (`flat`, band
+/// `r`'s pixel `j` at `r·CHUNK + j`) back into the cube's band order: the
+/// chunk is already in cache, where the band planes lie megabytes apart.
+#[inline]
+fn unflatten(flat: &[f32], j: usize, sorted: &[(usize, f64, f64)], pixel: &mut [f64]) {
+    for (r, b) in sorted.iter().enumerate() {
+        if let (Some(p), Some(&v)) = (pixel.get_mut(b.0), flat.get(r * detect::CHUNK + j)) {
+            *p = f64::from(v);
+        }
+    }
+}
+
 fn gather(rows: &[f32], ws: usize, x0: usize, m: usize, nb: usize, batch: &mut [f64]) {
     let (k4, i4) = (nb - nb % 4, m - m % 4);
     let batch = &mut batch[..m * nb];
