@@ -724,7 +724,7 @@ impl Solver {
         let (sig_d, sig_th) = if theta_known.is_some() {
             ((at_var / at.jtj[0].max(1e-300)).sqrt(), 0.0)
         } else {
-            free_angle_sigma(model, &at, at_var, self.theta_range)
+            free_angle_sigma(model, &at, at_var, self.theta_range, self.sin2_range)
         };
         // Near d = 0 the reflectance is even in d (dR/dd = 0 at d = 0), so
         // the linearised σ is meaningless: take the one-sided profile bound

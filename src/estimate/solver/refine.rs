@@ -389,7 +389,8 @@ const MIN_STEP_THETA: f64 = 1e-6;
 
 /// σ of thickness and angle (rad) with the angle free, from the fit's
 /// Gauss–Newton matrix `jtj` in (d, θ) and the residual variance `var`,
-/// with the angle's search range `(lo, hi)` as a uniform prior on sin²θ (a
+/// with the angle's search range `(lo, hi)` (its sin²θ, `(s_lo, s_hi)`,
+/// the solver's, not worked out per pixel) as a uniform prior on sin²θ (a
 /// flat direction gives a large, finite σ). The covariance is formed in
 /// (g, s), where the model is nearly linear even at normal incidence (in θ
 /// the thickness moves as θ² there and a linearised σ says nothing), and
@@ -399,6 +400,7 @@ pub(super) fn free_angle_sigma(
     best: &Fit,
     var: f64,
     (lo, hi): (f64, f64),
+    (s_lo, s_hi): (f64, f64),
 ) -> (f64, f64) {
     let v = Valley::new(model);
     let m = v.jacobian(best.d, best.theta, true);
@@ -407,7 +409,6 @@ pub(super) fn free_angle_sigma(
     let a2 = m.dd_dg * m.dd_dg * a;
     let b2 = m.dd_dg * (a * m.dd_ds + b * m.dth_ds);
     let c2 = m.dd_ds * m.dd_ds * a + 2.0 * m.dd_ds * m.dth_ds * b + m.dth_ds * m.dth_ds * c;
-    let (s_lo, s_hi) = (lo.sin().powi(2), hi.sin().powi(2));
     let c2 = c2 + 12.0 / ((s_hi - s_lo) * (s_hi - s_lo)).max(1e-12) * var;
     let det = a2 * c2 - b2 * b2;
     if det.is_nan() || det <= 0.0 {
