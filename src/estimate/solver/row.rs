@@ -478,17 +478,6 @@ impl Solver {
     }
 }
 
-/// Pixels `x0..x0 + m` (m ≤ [`GATHER`]) of the row's band lines (`rows[k·ws
-/// + x]`) into `batch`, pixel-major (`batch[i·nb + k]`), widened to `f64`:
-/// in blocks of four bands by four pixels, each a 4 × 4 transpose the
-/// vector unit does in registers (one load per band and one store per
-/// pixel, not one of each per value); the edges value by value.
-#[multiversion(targets(
-    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
-    "x86_64+avx2+fma",
-    "x86_64+sse4.1",
-    "aarch64+neon"
-))]
 /// Pixel `j` of a chunk held band-major in sorted band order (`flat`, band
 /// `r`'s pixel `j` at `r·CHUNK + j`) back into the cube's band order: the
 /// chunk is already in cache, where the band planes lie megabytes apart.
@@ -501,6 +490,17 @@ fn unflatten(flat: &[f32], j: usize, sorted: &[(usize, f64, f64)], pixel: &mut [
     }
 }
 
+/// Pixels `x0..x0 + m` (m ≤ [`GATHER`]) of the row's band lines (`rows[k·ws
+/// + x]`) into `batch`, pixel-major (`batch[i·nb + k]`), widened to `f64`:
+/// in blocks of four bands by four pixels, each a 4 × 4 transpose the
+/// vector unit does in registers (one load per band and one store per
+/// pixel, not one of each per value); the edges value by value.
+#[multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+sse4.1",
+    "aarch64+neon"
+))]
 fn gather(rows: &[f32], ws: usize, x0: usize, m: usize, nb: usize, batch: &mut [f64]) {
     let (k4, i4) = (nb - nb % 4, m - m % 4);
     let batch = &mut batch[..m * nb];
