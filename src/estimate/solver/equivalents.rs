@@ -45,10 +45,16 @@ impl Solver {
     ) -> (Option<(f64, f64)>, f64) {
         let (_, sse) = self.solve_with(prep, Job::sample(px), scratch);
         let at = (scratch.last_fit_d, scratch.last_fit_theta);
+        let ok = sse.is_finite() && at.0.is_finite() && at.1.is_finite();
+        (ok.then_some(at), self.sample_capped(sse, px))
+    }
+
+    /// [`Solver::gross_capped`] for a sample pixel's residual: its usable
+    /// bands, and one parameter more where its angle is free.
+    fn sample_capped(&self, sse: f64, px: &SamplePixel) -> f64 {
         let n_obs = px.spectrum.iter().filter(|v| v.is_finite()).count();
         let p = if px.theta.is_some() { 1 } else { 2 };
-        let ok = sse.is_finite() && at.0.is_finite() && at.1.is_finite();
-        (ok.then_some(at), self.gross_capped(sse, n_obs, p))
+        self.gross_capped(sse, n_obs, p)
     }
 
     /// The indices that reflect exactly as `n` does at the sample's typical
@@ -108,10 +114,8 @@ impl Solver {
                             Effort::INDEX_SEARCH.iters,
                             scratch,
                         );
-                        let n_obs = px.spectrum.iter().filter(|v| v.is_finite()).count();
-                        let p = if free { 2 } else { 1 };
                         if fit.sse.is_finite() {
-                            fresh.min(self.gross_capped(fit.sse, n_obs, p))
+                            fresh.min(self.sample_capped(fit.sse, px))
                         } else {
                             fresh
                         }
@@ -195,22 +199,11 @@ mod tests {
                         let d = 180.0;
                         let dm = d * q(n2) / q(m);
                         for lam in [400.0, 473.0, 550.0, 612.0, 700.0] {
-                            let r0 = tmm::reflectance(
-                                c(1.0),
-                                &[Layer::real(n2, d)],
-                                c(n3),
-                                th,
-                                lam,
-                                pol,
-                            );
-                            let r1 = tmm::reflectance(
-                                c(1.0),
-                                &[Layer::real(m, dm)],
-                                c(n3),
-                                th,
-                                lam,
-                                pol,
-                            );
+                            let r = |n: f64, d: f64| {
+                                let film = [Layer::real(n, d)];
+                                tmm::reflectance(c(1.0), &film, c(n3), th, lam, pol)
+                            };
+                            let (r0, r1) = (r(n2, d), r(m, dm));
                             assert!(
                                 (r0 - r1).abs() < 1e-12,
                                 "{pol:?} {deg}° n2 {n2} on {n3}: {m} gives {r1} for {r0} at {lam}"

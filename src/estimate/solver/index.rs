@@ -685,7 +685,13 @@ impl Solver {
                 .collect();
             let mut vals = Vec::with_capacity(pts.len());
             for &p in &pts {
-                vals.push(cost(p)?);
+                // The centre is the least point so far (the last round's
+                // vertex, already evaluated): not solved again.
+                let known = (p == best.0 && best.1.is_finite()).then_some(best.1);
+                vals.push(match known {
+                    Some(v) => v,
+                    None => cost(p)?,
+                });
             }
             for (&p, &v) in pts.iter().zip(&vals) {
                 if v < best.1 {
