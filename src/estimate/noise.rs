@@ -27,10 +27,9 @@
 
 #![allow(clippy::needless_range_loop)] // band-indexed numeric loops read clearer with indices
 
-use super::lanes::{load, Chi2Lanes};
+use super::lanes::{load, Chi2Lanes, F64x4};
 use super::Cube;
 use multiversion::multiversion;
-use wide::f64x4;
 
 /// Where a noise level came from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -146,12 +145,12 @@ pub(crate) fn band_var(var0: f64, shot: f64, rel2: f64, r: f64) -> f64 {
 
 /// [`band_var`] for four bands, lane for lane the same arithmetic.
 #[inline(always)]
-pub(crate) fn band_var4(var0: f64x4, shot: f64x4, rel2: f64x4, r: f64x4) -> f64x4 {
-    let r = r.max(f64x4::ZERO);
-    (var0 + shot * r + rel2 * r * r).max(f64x4::splat(SIGMA_FLOOR * SIGMA_FLOOR))
+pub(crate) fn band_var4(var0: F64x4, shot: F64x4, rel2: F64x4, r: F64x4) -> F64x4 {
+    let r = r.max(F64x4::ZERO);
+    (var0 + shot * r + rel2 * r * r).max(F64x4::splat(SIGMA_FLOOR * SIGMA_FLOOR))
 }
 
-/// [`NoiseModel::chi2_and_mean_var`]: four bands at a time in `f64x4`
+/// [`NoiseModel::chi2_and_mean_var`]: four bands at a time in `F64x4`
 /// lanes (the divisions overlap), the tail band by band, with the same
 /// arithmetic as [`NoiseModel::var`].
 #[multiversion(targets(
@@ -175,7 +174,7 @@ fn model_chi2(
         .min(var0.len())
         .min(shot.len());
     let (y, w, r, var0, shot) = (&y[..n], &w[..n], &r[..n], &var0[..n], &shot[..n]);
-    let rel4 = f64x4::splat(rel2);
+    let rel4 = F64x4::splat(rel2);
     let mut lanes = Chi2Lanes::new();
     let quads = y.chunks_exact(4).zip(r.chunks_exact(4)).zip(
         w.chunks_exact(4)
@@ -212,7 +211,7 @@ fn flat_chi2(var: &[f64], inv: &[f64], y: &[f64], w: &[f64], r: &[f64]) -> (f64,
         .min(inv.len());
     let (y, w, r) = (&y[..n], &w[..n], &r[..n]);
     let (var, inv) = (&var[..n], &inv[..n]);
-    // Four bands at a time in `f64x4` lanes (indexed lanes kept the loop
+    // Four bands at a time in `F64x4` lanes (indexed lanes kept the loop
     // scalar: the bounds checks), the tail band by band, with the same
     // arithmetic (`lanes`).
     let mut lanes = Chi2Lanes::new();

@@ -8,11 +8,10 @@ use super::alternatives::WEAK_FRINGES;
 use super::refine::MIN_FREE_THETA;
 use super::table::ThicknessTable;
 use super::{Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
-use crate::estimate::lanes::{load, Chi2Lanes};
+use crate::estimate::lanes::{load, Chi2Lanes, F64x4};
 use crate::estimate::noise::band_var4;
 use crate::estimate::{PixelEstimate, Reason};
 use multiversion::multiversion;
-use wide::f64x4;
 
 /// How close to a bound of its search an estimate may come before it is
 /// "pinned" there: a fraction of the searched span.
@@ -353,7 +352,7 @@ impl JudgedBands<'_> {
 /// (`e = y − r`).
 struct JudgeLanes {
     chi2: Chi2Lanes,
-    normal: [f64x4; 5],
+    normal: [F64x4; 5],
 }
 
 impl JudgeLanes {
@@ -362,14 +361,14 @@ impl JudgeLanes {
     fn new() -> JudgeLanes {
         JudgeLanes {
             chi2: Chi2Lanes::new(),
-            normal: [f64x4::ZERO; 5],
+            normal: [F64x4::ZERO; 5],
         }
     }
 
     /// Four bands: weights `w`, residuals `e`, slopes `jd` and `jt`, the
     /// variances `var` and their inverses `inv`.
     #[inline(always)]
-    fn add(&mut self, w: f64x4, e: f64x4, (jd, jt): (f64x4, f64x4), var: f64x4, inv: f64x4) {
+    fn add(&mut self, w: F64x4, e: F64x4, (jd, jt): (F64x4, F64x4), var: F64x4, inv: F64x4) {
         self.chi2.add(w, e, var, inv);
         let wi = w * inv;
         let s = &mut self.normal;
@@ -385,7 +384,7 @@ impl JudgeLanes {
     #[inline(always)]
     fn totals(self) -> ([f64; 5], (f64, f64)) {
         let normal = self.normal.map(|v| {
-            let a = v.to_array();
+            let a = v.lanes_done();
             (a[0] + a[1]) + (a[2] + a[3])
         });
         (normal, self.chi2.sums().totals())
@@ -394,7 +393,7 @@ impl JudgeLanes {
 
 /// Four values of `v` from `k`, those past `n` padded with `pad`.
 #[inline(always)]
-fn quad(v: &[f64], k: usize, n: usize, pad: f64) -> f64x4 {
+fn quad(v: &[f64], k: usize, n: usize, pad: f64) -> F64x4 {
     if k + 4 <= n {
         return load(&v[k..]);
     }
@@ -402,19 +401,19 @@ fn quad(v: &[f64], k: usize, n: usize, pad: f64) -> f64x4 {
     for (l, x) in q.iter_mut().enumerate().take(n - k) {
         *x = v[k + l];
     }
-    f64x4::new(q)
+    F64x4(q)
 }
 
 /// Four bands of `b` from band `k` (`[w, e, jd, jt, r]`; past `n` weight
 /// 0, which adds nothing), with the angle's slope 0 unless `theta` (it
 /// may not be computed).
 #[inline(always)]
-fn judged_quad(b: &JudgedBands, k: usize, n: usize, theta: bool) -> [f64x4; 5] {
+fn judged_quad(b: &JudgedBands, k: usize, n: usize, theta: bool) -> [F64x4; 5] {
     let r = quad(b.r, k, n, 0.0);
     let jt = if theta {
         quad(b.jt, k, n, 0.0)
     } else {
-        f64x4::ZERO
+        F64x4::ZERO
     };
     [
         quad(b.w, k, n, 0.0),
@@ -427,7 +426,7 @@ fn judged_quad(b: &JudgedBands, k: usize, n: usize, theta: bool) -> [f64x4; 5] {
 
 /// The sums of [`JudgeLanes`] over every band under a reflectance-dependent
 /// noise model (`var0`, `shot`, `rel2`, as [`band_var4`] forms a band's
-/// variance), four bands a step in `f64x4` lanes (the scalar band loop
+/// variance), four bands a step in `F64x4` lanes (the scalar band loop
 /// had waited on each division in turn).
 #[multiversion(targets(
     "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
@@ -444,12 +443,12 @@ fn judged_sums(
 ) -> ([f64; 5], (f64, f64)) {
     let n = b.len().min(var0.len()).min(shot.len());
     let mut lanes = JudgeLanes::new();
-    let rel = f64x4::splat(rel2);
+    let rel = F64x4::splat(rel2);
     for k in (0..n).step_by(4) {
         let [w, e, jd, jt, r] = judged_quad(&b, k, n, theta);
         // Padding lanes: variance 1 (their weight 0 drops them).
         let var = band_var4(quad(var0, k, n, 1.0), quad(shot, k, n, 0.0), rel, r);
-        lanes.add(w, e, (jd, jt), var, f64x4::ONE / var);
+        lanes.add(w, e, (jd, jt), var, F64x4::ONE / var);
     }
     lanes.totals()
 }

@@ -12,7 +12,6 @@ use super::refine::{free_angle_sigma, sse};
 use super::search::{Candidate, MAX_CANDIDATES};
 use super::table::ORDER_GAP_SAFE;
 use super::{Effort, Fit, Job, Prepared, Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
-use crate::estimate::lanes;
 use crate::estimate::model::FilmModel;
 use crate::estimate::{PixelEstimate, Reason};
 use multiversion::multiversion;
@@ -57,7 +56,7 @@ fn load_spectrum(spectrum: &[f64], y: &mut [f64], w: &mut [f64]) -> (usize, bool
         // Branch-free in vector lanes: a finite value's mask is all ones,
         // the rest zero (a compare per lane had compiled to scalar
         // branches).
-        let s = lanes::load(s);
+        let s = f64x4::new([s[0], s[1], s[2], s[3]]);
         let finite = s.is_finite();
         let v = s & finite;
         let inside = v.simd_ge(lo) & v.simd_le(hi);

@@ -1,14 +1,13 @@
 //! The tables' vector kernels: a fit's interval sums, the interpolant's
-//! values and χ² (four f64 lanes, `wide::f64x4`: indexed lanes compiled to
+//! values and χ² (four f64 lanes, `wide::F64x4`: indexed lanes compiled to
 //! scalar code), and the scan of every grid point (eight f32 lanes), each
 //! compiled per vector unit (`multiversion`). The arithmetic is written so
 //! that each lane repeats the scalar tail's, to the bit.
 
 use super::SCAN_STRIDE;
-use crate::estimate::lanes::{load, widen, Chi2Lanes};
+use crate::estimate::lanes::{load, widen, Chi2Lanes, F64x4};
 use crate::estimate::noise::{NoiseModel, SIGMA_FLOOR};
 use multiversion::multiversion;
-use wide::f64x4;
 
 /// `[Σe², Σe·c1, Σe·c2, Σe·c3]` over the bands of one grid interval,
 /// `e = y − centre − A` (see [`IntervalCubic`]): values `r` and slopes
@@ -43,7 +42,7 @@ pub(super) fn interval_dots(
     // enclosing function's target features, and here it was called (not
     // inlined) once per band from the AVX2 version. Chunks of four zipped
     // (not indexed: the bounds checks of `k0 + l` kept the loop scalar).
-    let (mut s0, mut s1, mut s2, mut s3) = (f64x4::ZERO, f64x4::ZERO, f64x4::ZERO, f64x4::ZERO);
+    let (mut s0, mut s1, mut s2, mut s3) = (F64x4::ZERO, F64x4::ZERO, F64x4::ZERO, F64x4::ZERO);
     let quads = ra
         .chunks_exact(4)
         .zip(rb.chunks_exact(4))
@@ -57,7 +56,7 @@ pub(super) fn interval_dots(
         s2 += e * widen(da);
         s3 += e * widen(db);
     }
-    let mut acc = [s0, s1, s2, s3].map(f64x4::to_array);
+    let mut acc = [s0, s1, s2, s3].map(F64x4::lanes_done);
     for k in nb - nb % 4..nb {
         let a = f64::from(ra[k]);
         let e = y[k] - centre[k] - a;
@@ -74,7 +73,7 @@ pub(super) fn interval_dots(
 }
 
 /// [`ThicknessTable::values`]: `centre + h00·A + h10·P + h01·B + h11·Q`
-/// per band, four bands at a time in `f64x4` lanes (the arithmetic of
+/// per band, four bands at a time in `F64x4` lanes (the arithmetic of
 /// [`interp_chi2`]).
 #[multiversion(targets(
     "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
@@ -92,7 +91,7 @@ pub(super) fn interp_values(
     let n = centre.len().min(out.len());
     let (ra, rb, da, db) = (&r[0][..n], &r[1][..n], &dr[0][..n], &dr[1][..n]);
     let (centre, out) = (&centre[..n], &mut out[..n]);
-    let g = [h00, h10, h01, h11].map(f64x4::splat);
+    let g = [h00, h10, h01, h11].map(F64x4::splat);
     for (q, out) in end_quads([ra, rb, da, db], centre).zip(out.chunks_exact_mut(4)) {
         out.copy_from_slice(&hermite_quad(q, g).to_array());
     }
@@ -130,10 +129,10 @@ pub(super) fn interp_chi2(
         .min(inv.len());
     let (ra, rb, da, db) = (&r[0][..n], &r[1][..n], &dr[0][..n], &dr[1][..n]);
     let (centre, y, w, var, inv) = (&centre[..n], &y[..n], &w[..n], &var[..n], &inv[..n]);
-    // Four bands at a time in `f64x4` lanes (see `interval_dots`), the
+    // Four bands at a time in `F64x4` lanes (see `interval_dots`), the
     // tail band by band, with the same arithmetic.
     let mut lanes = Chi2Lanes::new();
-    let g = [h00, h10, h01, h11].map(f64x4::splat);
+    let g = [h00, h10, h01, h11].map(F64x4::splat);
     let quads = end_quads([ra, rb, da, db], centre)
         .zip(y.chunks_exact(4))
         .zip(
@@ -345,8 +344,8 @@ fn quad<'a>(
 #[inline(always)]
 fn hermite_quad(
     ([ra, rb, da, db], centre): EndQuad<'_>,
-    [g00, g10, g01, g11]: [f64x4; 4],
-) -> f64x4 {
+    [g00, g10, g01, g11]: [F64x4; 4],
+) -> F64x4 {
     load(centre) + g00 * widen(ra) + g10 * widen(da) + g01 * widen(rb) + g11 * widen(db)
 }
 
