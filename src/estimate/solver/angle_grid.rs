@@ -43,6 +43,13 @@ const GRID_G_STEPS: usize = 24;
 /// search 2.7×: most of its films lie below.)
 pub(super) const THIN: f64 = GRID_G_STEP * GRID_G_STEPS as f64;
 
+/// A lone pixel's best fit this close to an end of the angle range (rad,
+/// a tenth of a degree) is pinned there; where the search asks for it
+/// (the twin test's runner-up), the grid serves it whatever its
+/// thickness: R is even in θ, so normal incidence is a stationary point
+/// every refinement can stall at.
+pub(super) const PINNED_RAD: f64 = 1.75e-3;
+
 /// Grid starts refined.
 const GRID_REFINED: usize = 2;
 

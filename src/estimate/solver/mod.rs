@@ -437,6 +437,9 @@ struct Effort {
     /// With the angle free, also start a thin film from a grid of angles
     /// and optical thicknesses (the index search: see `angle_grid`).
     angle_grid: bool,
+    /// ... and a fit pinned at an end of the angle range, whatever its
+    /// thickness (the twin test's runner-up: see `angle_grid`).
+    grid_pinned: bool,
     /// Iteration cap of each refinement.
     iters: usize,
     /// Fit against the thickness table where one was built for the
@@ -465,6 +468,7 @@ impl Effort {
                 closed_form_only: true,
                 n_refine: 1,
                 angle_grid: false,
+                grid_pinned: false,
                 // A cap, not a count: converged fits stop early, and one
                 // stopped short in a flat valley (thick films, angle
                 // unknown) must not pass for a minimum.
@@ -482,6 +486,7 @@ impl Effort {
                 closed_form_only: false,
                 n_refine: 2,
                 angle_grid: false,
+                grid_pinned: false,
                 iters: 25,
                 table: true,
                 verify_order: false,
@@ -494,6 +499,7 @@ impl Effort {
                 closed_form_only: false,
                 n_refine: 3,
                 angle_grid: false,
+                grid_pinned: false,
                 iters: 25,
                 table: true,
                 verify_order: true,
@@ -515,6 +521,7 @@ impl Effort {
         closed_form_only: false,
         n_refine: 3,
         angle_grid: true,
+        grid_pinned: false,
         iters: 25,
         table: false,
         verify_order: false,
@@ -553,6 +560,15 @@ impl<'a> Job<'a> {
             pre: Some(px),
             start: None,
         }
+    }
+
+    /// [`Job::sample`] searched further: a fit pinned at an end of the
+    /// angle range also starts from the angle grid (the twin test's
+    /// runner-up).
+    fn sample_pinned(px: &'a SamplePixel) -> Job<'a> {
+        let mut job = Job::sample(px);
+        job.effort.grid_pinned = true;
+        job
     }
 }
 

@@ -354,8 +354,15 @@ impl Solver {
             );
             n_fits += 1;
         }
-        // Only where the best fit so far is thin (`angle_grid`).
-        let rescue = |f: &Fit| f.d * prep.model.q2_mid(f.theta) < angle_grid::THIN * lam_min;
+        // Only where the best fit so far is thin, or (the twin test's
+        // runner-up) pinned at an end of the angle range (`angle_grid`).
+        let (th_lo, th_hi) = self.theta_range;
+        let rescue = |f: &Fit| {
+            f.d * prep.model.q2_mid(f.theta) < angle_grid::THIN * lam_min
+                || (effort.grid_pinned
+                    && (f.theta <= th_lo + angle_grid::PINNED_RAD
+                        || f.theta >= th_hi - angle_grid::PINNED_RAD))
+        };
         let best_so_far = fits[..n_fits].iter().min_by(|a, b| a.sse.total_cmp(&b.sse));
         if effort.angle_grid && theta_known.is_none() && best_so_far.is_none_or(rescue) {
             let cands = &cands[..n_cands];
