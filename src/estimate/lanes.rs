@@ -222,6 +222,9 @@ mod tests {
         let mut s = F64x4::splat(1.0);
         s += F64x4::ONE;
         assert_eq!(s.lanes_done(), [2.0; 4]);
-        assert_eq!(used(F64x4([0.0, -0.0, 3.0, f64::NAN])).0, [0.0, 0.0, 1.0, 1.0]);
+        assert_eq!(
+            used(F64x4([0.0, -0.0, 3.0, f64::NAN])).0,
+            [0.0, 0.0, 1.0, 1.0]
+        );
     }
 }
