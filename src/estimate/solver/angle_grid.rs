@@ -22,6 +22,10 @@
 //! every pixel doubled the paper's index search and bent a dispersive
 //! film's misfit (one index for fused silica) into a level its thinner and
 //! thicker films shared, which the level's halves test then missed.
+//!
+//! The twin test's runner-up index is searched further
+//! ([`PINNED_RAD`]): there a fit pinned at an end of the angle range takes
+//! the grid too, whatever its thickness.
 
 use super::refine::sse;
 use super::search::Candidate;

@@ -34,8 +34,9 @@ const INDEX_GRID_STEP: f64 = 0.02;
 /// ([`Solver::search_index`]).
 const POLISH_BELOW: f64 = 100.0;
 
-/// The first window of that second refinement: the first round's window
-/// at its third round (0.02 · 0.3), so it can move ±0.008 in all.
+/// The first window of that second refinement: the first refinement's
+/// second window (0.02 · 0.3), so over its three rounds it can move
+/// ±0.008 in all.
 const POLISH_HALF: f64 = 0.006;
 
 /// A pixel of the global index search, with its fringe candidates for
@@ -728,6 +729,9 @@ impl Solver {
         if curvature > 0.0 {
             return Ok((var / curvature).sqrt());
         }
+        // The cost at `n` afresh, not `best`'s: that may be an
+        // equivalent's carried fits, lower than any fresh evaluation, and
+        // the difference must compare like with like.
         let c0 = cost(n)?;
         for h in [1e-3, 4e-3, 16e-3] {
             let (a, b) = ((n - h).max(lo), (n + h).min(hi));
