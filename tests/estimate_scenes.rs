@@ -700,6 +700,16 @@ fn a_wide_thickness_range_keeps_orders_and_honest_sigma_in_every_mode() {
     }
 }
 
+/// The paper's cylinder cropped to `width` columns (its thickness ramp
+/// kept): rows narrower than `angle_map`'s five samples take `fast`'s
+/// band-major path with the angle free, as a wide row whose samples give
+/// no line does.
+fn narrow_paper_cylinder(width: usize) -> Scene {
+    let mut s = Scene::paper_cylinder();
+    s.truth.as_mut().expect("a truth").width = width;
+    s
+}
+
 #[test]
 fn fast_rows_agree_with_the_per_pixel_fast_path() {
     // The band-major row path must compute what the per-pixel path does.
@@ -707,7 +717,7 @@ fn fast_rows_agree_with_the_per_pixel_fast_path() {
     // the previous pixel's fit first (a lone pixel has none and refines
     // from the closed form): both converge to the same minimum, to
     // `fast`'s tolerance (each within 0.32 σ of it).
-    let s = Scene::paper_cylinder();
+    let s = narrow_paper_cylinder(36);
     let bands = scene_bands(&s).unwrap();
     let cube = Renderer::new(&s).unwrap().render_cube(&bands).unwrap();
     let mut solver = Solver::new(&s, &bands, Mode::Fast).unwrap();
@@ -785,7 +795,8 @@ fn assert_rows_as_lone(label: &str, valid: usize, total: usize, wrong: usize, di
 /// wrong).
 #[test]
 fn fast_rows_that_stop_looking_for_a_closed_form_agree_with_lone_pixels() {
-    for (name, width) in [("dispersive-p61", 80), ("thin-coating", 120)] {
+    // Rows narrower than five angle samples: the band-major path.
+    for (name, width) in [("dispersive-p61", 36), ("thin-coating", 36)] {
         let (cube, truth, solver) = rendered_angle_free(&bundled(name, width), Mode::Fast, name);
         let (mut valid, mut total, mut wrong, mut differ) = (0, 0, 0, 0);
         scene_common::rows_against_lone(&solver, &cube, |x, y, r, p, _| {
@@ -1033,7 +1044,9 @@ fn fast_judges_a_weak_angle_as_the_full_fit_does() {
     // 46 800 of 125 440 pixels in the scene matrix). Judged by the full
     // model's σ_θ, the verdicts agree pixel by pixel but for noise-level
     // ties at the limit.
-    let s = Scene::paper_cylinder();
+    // (Rows narrow enough for the band-major path: wider ones are solved
+    // on their estimated angle, whose σ_θ is the row's, not a pixel's.)
+    let s = narrow_paper_cylinder(36);
     let (fast, ..) = fit(&s, Mode::Fast);
     let (balanced, ..) = fit(&s, Mode::Balanced);
     let weak = Reason::AngleNotIdentifiable as u8;

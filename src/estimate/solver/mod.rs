@@ -57,6 +57,7 @@
 
 mod alternatives;
 mod angle_grid;
+mod angle_map;
 mod bands;
 mod closed_form;
 mod equivalents;
@@ -96,6 +97,7 @@ use search::FringeBasis;
 use share::{ShareScratch, ShareTable};
 use std::cell::Cell;
 use std::f64::consts::PI;
+use std::sync::Arc;
 
 /// The film index used for a fit: estimated once from the image, or known.
 #[derive(Clone, Debug, PartialEq)]
@@ -180,6 +182,8 @@ pub struct Scratch {
     batch: Vec<f64>,
     /// That spectrum scaled by 1 ± ε (the scale accuracy's refits).
     scaled: Vec<f64>,
+    /// A row's angle samples (x, θ, σ_θ) (`angle_map`).
+    angle_samples: Vec<(f64, f64, f64)>,
     sorted_y: Vec<f64>,
     spectrum: Vec<f64>,
     weight: Vec<f64>,
@@ -250,6 +254,9 @@ pub struct Scratch {
     angle_memo: Cell<Option<AngleMemo>>,
     /// Where the last table lookup found its angle (`Tables::get_hinted`).
     table_hint: Cell<usize>,
+    /// The last angle bin looked up, as (angle bits, bin)
+    /// (`AngleBins::at_hinted`).
+    bin_hint: Cell<Option<(u64, usize)>>,
     /// The level's share of σ (`Solver::with_level`).
     share: ShareScratch,
     /// A grid point's spectrum, weights and model evaluations while its
@@ -622,9 +629,29 @@ struct Prepared {
     fringe_amplitude: f64,
     /// The model over thickness at each known angle (`fast`, `balanced`).
     tables: table::Tables,
+    /// `fast` with the angle free: tables on a fine angle grid, built as
+    /// the rows' estimated angles need them ([`angle_map`]).
+    /// (Its grid is laid when the first row needs it, once the noise
+    /// level that sets its fineness is known.)
+    angle_bins: Option<Arc<std::sync::OnceLock<Option<table::AngleBins>>>>,
     /// `balanced` with the angle free: the neighbouring fringe orders' gap
     /// over optical thickness and angle, filled as pixels reach it.
     order_gaps: Option<order_gaps::OrderGaps>,
+}
+
+impl Prepared {
+    /// The table at exactly angle `theta`: a known angle's, or the angle
+    /// bin's there (`fast` with the angle free).
+    fn table_at<'a>(&'a self, theta: f64, scratch: &Scratch) -> Option<&'a table::ThicknessTable> {
+        self.tables
+            .get_hinted(theta, &scratch.table_hint)
+            .or_else(|| self.bins()?.at_hinted(theta, &scratch.bin_hint))
+    }
+
+    /// The angle bins, once their grid is laid.
+    fn bins(&self) -> Option<&table::AngleBins> {
+        self.angle_bins.as_ref()?.get()?.as_ref()
+    }
 }
 
 /// Solves pixels for the scene's unknowns.
@@ -986,6 +1013,7 @@ impl Solver {
         } else {
             table::Tables::default()
         };
+        let angle_bins = (tabled && self.angle_bins_apply()).then(Default::default);
         // Only `balanced` weighs a warm pixel's orders with the angle free
         // on a model it keeps (`accurate` weighs them on every pixel).
         let order_gaps = (tabled
@@ -1000,6 +1028,7 @@ impl Solver {
         Ok(Prepared {
             id: NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
             tables,
+            angle_bins,
             order_gaps,
             model,
             envelope_range,
@@ -1072,6 +1101,36 @@ impl Solver {
             .filter(|t| t.is_finite() && (0.0..PI / 2.0).contains(t))
             .collect();
         table::Tables::build(model, &angles, range)
+    }
+
+    /// `fast` with the angle free (and the level not free): each row is
+    /// solved on its estimated angle ([`angle_map`]).
+    fn angle_bins_apply(&self) -> bool {
+        matches!(self.scene.angle, AngleKnowledge::Unknown { .. })
+            && self.mode == Mode::Fast
+            && self.scene.level != LevelMode::Free
+    }
+
+    /// The angle grid for `model`, as fine as moving a pixel to its bin
+    /// may change the model by a tenth of the noise level `noise` (and no
+    /// finer than the tables' interpolation tolerance).
+    fn angle_bins(&self, model: &FilmModel, noise: f64) -> Option<table::AngleBins> {
+        let AngleKnowledge::Unknown { search } = self.scene.angle else {
+            return None;
+        };
+        let range = table::BinRange {
+            d_min: self.d_min,
+            d_max: self.d_max,
+            g_hi: 1.05 * self.g_max.0,
+            g_reach: self.run_reach(1.0),
+        };
+        let hi = search.1.min(PI / 2.0 - 1e-9);
+        let tol = if noise.is_finite() {
+            (0.1 * noise).max(table::INTERP_TOL)
+        } else {
+            table::INTERP_TOL
+        };
+        table::AngleBins::new(model, (search.0.max(0.0), hi), range, tol)
     }
 
     /// The mode.

@@ -142,7 +142,7 @@ impl Solver {
         }
         let lam_min = self.band_span().0;
         if let Some(t) = theta_known.filter(|_| effort.table && job_start.is_none()) {
-            let found = match prep.tables.get_hinted(t, &scratch.table_hint) {
+            let found = match prep.table_at(t, scratch) {
                 Some(table) => Some((table, t)),
                 None => prep.tables.nearest(t),
             };
@@ -684,7 +684,7 @@ impl Solver {
         // more precision than the instrument's noise allows.
         let judging = noise.is_some() && self.judging();
         let tabled = if best.tabled {
-            prep.tables.get_hinted(best.theta, &scratch.table_hint)
+            prep.table_at(best.theta, scratch)
         } else {
             None
         };

@@ -46,8 +46,10 @@ impl Solver {
         // Where the thickness tables serve the known angles, every pixel
         // takes them (no extremum pass needed).
         let tabled = self.prepared.as_ref().is_some_and(|p| !p.tables.is_empty());
+        let on_angle = self.row_angle_applies(cube.width);
         if self.mode == Mode::Fast
             && !tabled
+            && !on_angle
             && self.level_mode != crate::estimate::level::LevelMode::Free
         {
             let pre = candidates.filter(|c| {
@@ -89,6 +91,14 @@ impl Solver {
         let mut batch = std::mem::take(&mut scratch.batch);
         batch.resize(GATHER * nb, 0.0);
         let (mut x0, end) = (done, w.min(out.len()));
+        // `fast` with the angle free: on the row's estimated angle, where
+        // its samples give one (`angle_map`).
+        if on_angle
+            && end == w
+            && self.solve_row_on_angle(&rows, ws, w, out, &mut fits, &mut batch, scratch)
+        {
+            x0 = end;
+        }
         while x0 < end {
             let m = GATHER.min(end - x0);
             gather(&rows, ws, x0, m, nb, &mut batch);
@@ -501,7 +511,7 @@ fn unflatten(flat: &[f32], j: usize, sorted: &[(usize, f64, f64)], pixel: &mut [
     "x86_64+sse4.1",
     "aarch64+neon"
 ))]
-fn gather(rows: &[f32], ws: usize, x0: usize, m: usize, nb: usize, batch: &mut [f64]) {
+pub(super) fn gather(rows: &[f32], ws: usize, x0: usize, m: usize, nb: usize, batch: &mut [f64]) {
     let (k4, i4) = (nb - nb % 4, m - m % 4);
     let batch = &mut batch[..m * nb];
     let line = |k: usize| &rows[k * ws + x0..k * ws + x0 + m];

@@ -24,9 +24,12 @@ use std::cell::Cell;
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::Arc;
 
+mod bins;
 mod kernels;
 mod poly;
 mod solve;
+
+pub use bins::{AngleBins, BinRange};
 
 use kernels::{
     interp_chi2, interp_model_chi2, interp_values, interval_dots, minimum_keys, scan_blocked,
