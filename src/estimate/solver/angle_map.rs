@@ -45,7 +45,7 @@ use super::{Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
 use crate::estimate::{PixelEstimate, Reason};
 
 /// A row's samples: about this many, evenly spread ...
-const SAMPLES_PER_ROW: usize = 16;
+const SAMPLES_PER_ROW: usize = 12;
 
 /// ... but no closer than this many pixels apart.
 pub(super) const SAMPLE_STRIDE: usize = 8;
