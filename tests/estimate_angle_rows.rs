@@ -289,3 +289,38 @@ fn a_row_whose_angle_follows_no_line_is_fitted_pixel_by_pixel() {
     );
     assert!(rows.reason.iter().all(|&r| r as u8 != Reason::Masked as u8));
 }
+
+/// Spectra no film makes inside a row (a ripple over 40 columns, 30× the
+/// noise) and a dead row: the ripple's pixels are flagged whichever path
+/// they take (the line's angle, the free fit, a run of failures), the
+/// dead row is flagged as input, and the row's other pixels keep their
+/// line (valid, right, as many as a clean row's).
+#[test]
+fn spectra_no_film_makes_inside_a_row_are_flagged_and_the_rest_keep_the_line() {
+    let (w, h) = (320, 4);
+    let (s, mut cube, td, _) = cube_with_angles(
+        (w, h),
+        |x, _| 300.0 + 2.5 * x as f64,
+        |_, y| 30.0 + 2.0 * y as f64,
+    );
+    scene_common::add_ripple(&mut cube, 100..140);
+    let n = cube.plane_len();
+    for k in 0..cube.bands.len() {
+        cube.data[k * n + 3 * w..k * n + 4 * w].fill(0.0);
+    }
+    let mut solver = Solver::new(&s, &cube.bands, Mode::Fast).unwrap();
+    let rows = solver.fit_cube(&cube).unwrap();
+    let (nr, mae, _, wrong, _) = score_maps(&rows, &td);
+    let ripple_valid = (0..3)
+        .flat_map(|y| (100..140).map(move |x| y * w + x))
+        .filter(|&i| rows.valid[i] > 0.5)
+        .count();
+    let dead_valid = (3 * w..4 * w).filter(|&i| rows.valid[i] > 0.5).count();
+    eprintln!("ripple: {nr} valid, MAE {mae:.3}, {wrong} wrong, {ripple_valid} ripple valid, {dead_valid} dead valid");
+    assert_eq!(ripple_valid, 0, "a ripple no film makes is never valid");
+    assert_eq!(dead_valid, 0, "a dead row is never valid");
+    assert!(wrong * 100 <= nr, "{wrong} of {nr} valid and wrong");
+    // Every clean pixel of the three live rows but a few at the ripple's
+    // edges.
+    assert!(nr >= 3 * (w - 40) - 12, "{nr} valid of {}", 3 * (w - 40));
+}

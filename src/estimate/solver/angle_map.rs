@@ -42,6 +42,7 @@
 
 use super::row::gather;
 use super::{Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
+use crate::estimate::level::LevelMode;
 use crate::estimate::{PixelEstimate, Reason};
 
 /// A row's samples: about this many, evenly spread ...
@@ -269,6 +270,7 @@ impl Solver {
             .as_ref()
             .is_some_and(|p| p.angle_bins.is_some())
             && self.index.is_some()
+            && self.level_mode != LevelMode::Free
             && w >= MIN_SAMPLES * SAMPLE_STRIDE
     }
 
