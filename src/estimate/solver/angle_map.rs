@@ -256,7 +256,7 @@ impl RowAngle {
         self.a + self.b * (x - self.x0)
     }
 
-    /// The angle at `x` and its standard error, radians.
+    /// The value (sin²θ) at `x` and its standard error.
     pub fn at(&self, x: f64) -> (f64, f64) {
         let dx = x - self.x0;
         (self.at_raw(x), (self.var_a + dx * dx * self.var_b).sqrt())

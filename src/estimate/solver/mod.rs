@@ -182,7 +182,7 @@ pub struct Scratch {
     batch: Vec<f64>,
     /// That spectrum scaled by 1 ± ε (the scale accuracy's refits).
     scaled: Vec<f64>,
-    /// A row's angle samples (x, θ, σ_θ) (`angle_map`).
+    /// A row's angle samples (x, sin²θ, its σ) (`angle_map`).
     angle_samples: Vec<(f64, f64, f64)>,
     sorted_y: Vec<f64>,
     spectrum: Vec<f64>,
@@ -630,9 +630,9 @@ struct Prepared {
     /// The model over thickness at each known angle (`fast`, `balanced`).
     tables: table::Tables,
     /// `fast` with the angle free: tables on a fine angle grid, built as
-    /// the rows' estimated angles need them ([`angle_map`]).
-    /// (Its grid is laid when the first row needs it, once the noise
-    /// level that sets its fineness is known.)
+    /// the rows' estimated angles need them ([`angle_map`]); the grid is
+    /// laid when the first row needs it, once the noise level that sets
+    /// its fineness is known.
     angle_bins: Option<Arc<std::sync::OnceLock<Option<table::AngleBins>>>>,
     /// `balanced` with the angle free: the neighbouring fringe orders' gap
     /// over optical thickness and angle, filled as pixels reach it.

@@ -285,39 +285,23 @@ impl AngleBins {
 
 #[cfg(test)]
 mod tests {
+    use super::super::tests::model;
     use super::*;
-    use crate::optics::band::Band;
-    use crate::optics::dispersion::Dispersion;
-    use crate::optics::Polarization;
 
-    fn model() -> FilmModel {
-        let bands: Vec<Band> = (0..31)
-            .map(|i| Band {
-                center_nm: 400.0 + 10.0 * i as f64,
-                fwhm_nm: 0.0,
-            })
-            .collect();
-        FilmModel::new(
-            &bands,
-            &Dispersion::constant(1.0),
-            &Dispersion::constant(1.37),
-            &Dispersion::constant(1.60),
-            Polarization::S,
-            &[false; 31],
-        )
-        .expect("a lossless model")
-    }
-
-    #[test]
-    fn a_bin_is_built_once_at_its_own_angle_and_off_grid_angles_get_none() {
-        let range = BinRange {
+    /// 0–2000 nm, no reach past the scan.
+    fn range() -> BinRange {
+        BinRange {
             d_min: 0.0,
             d_max: 2000.0,
             g_hi: 3000.0,
             g_reach: None,
-        };
+        }
+    }
+
+    #[test]
+    fn a_bin_is_built_once_at_its_own_angle_and_off_grid_angles_get_none() {
         let m = model();
-        let bins = AngleBins::new(&m, (0.0, 80f64.to_radians()), range, 1e-5).expect("bins");
+        let bins = AngleBins::new(&m, (0.0, 80f64.to_radians()), range(), 1e-5).expect("bins");
         let t = bins.bin_of(30.004f64.to_radians()).expect("in the grid");
         assert!((t.to_degrees() - 30.004).abs() < 0.5, "{}", t.to_degrees());
         assert_eq!(bins.bin_of(t), Some(t), "a bin's angle is its own bin");
@@ -345,15 +329,9 @@ mod tests {
     /// knots 0.25° apart) of what it does at θ.
     #[test]
     fn moving_to_the_bin_along_equal_phase_changes_the_model_by_at_most_the_tolerance() {
-        let range = BinRange {
-            d_min: 0.0,
-            d_max: 2000.0,
-            g_hi: 3000.0,
-            g_reach: None,
-        };
         let m = model();
         let tol = 1e-4;
-        let bins = AngleBins::new(&m, (0.0, 75f64.to_radians()), range, tol).expect("bins");
+        let bins = AngleBins::new(&m, (0.0, 75f64.to_radians()), range(), tol).expect("bins");
         let (mut at, mut moved) = (ModelOut::new(31), ModelOut::new(31));
         let mut worst: f64 = 0.0;
         for i in 0..300 {

@@ -1102,7 +1102,9 @@ mod tests {
     use crate::optics::dispersion::Dispersion;
     use crate::optics::Polarization;
 
-    fn model() -> FilmModel {
+    /// 1.46 on 1.6, unpolarised, 31 bands 400–700 nm (also the angle
+    /// bins' tests' model).
+    pub(super) fn model() -> FilmModel {
         let bands: Vec<Band> = (0..31)
             .map(|i| Band {
                 center_nm: 400.0 + 10.0 * i as f64,
