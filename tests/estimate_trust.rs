@@ -768,3 +768,54 @@ fn a_calibration_error_below_the_test_is_hedged_not_trusted() {
     assert!(wrong <= 0.25, "{wrong}");
     assert!(mae <= 2.0, "{mae}");
 }
+
+/// `fast` with the angle free solves each row on an angle estimated from
+/// its samples' free fits; under an image-wide level error every sample's
+/// angle moves alike, so the row's angle does, and each pixel's thickness
+/// with it. Its σ must carry the level's share as a free fit's does (with
+/// a known angle's share, 56–69 % of the pixels lay within 2σ). The same
+/// cases and bounds as `calibration_errors_are_corrected_by_default_…`
+/// (`balanced`): valid ≥ 95 %, mean |Δd| ≤ 1.3× the case's bound, 2σ
+/// coverage ≥ 0.88 over four seeds (four draws of the level's error: no
+/// bound from above is possible from them), at most 1 % valid and wrong.
+#[test]
+fn fast_rows_on_their_angle_carry_the_levels_share_of_sigma() {
+    type Gain = Box<dyn Fn(usize) -> f64>;
+    let cases: Vec<(&str, Gain, f64, f64)> = vec![
+        ("white 5 % high", Box::new(|_| 1.0 / 1.05), 0.0, 0.752),
+        ("white 8 % low", Box::new(|_| 1.0 / 0.92), 0.0, 0.649),
+        ("stray light +0.004", Box::new(|_| 1.0), 0.004, 0.369),
+        ("per-band ±6 %", Box::new(per_band(0.06)), 0.0, 0.740),
+    ];
+    for (label, gain, offset, bound) in cases {
+        let (mut covered, mut valid, mut total, mut abs_err, mut wrong) = (0, 0, 0, 0.0, 0.0);
+        for seed in 1..=4u64 {
+            let mut base = Scene::paper_cylinder();
+            base.truth.as_mut().unwrap().seed = seed;
+            let (mut cube, truth) = render(&base);
+            miscalibrate(&mut cube, &gain, offset);
+            let (maps, _) = fit_with(&base, &cube, Mode::Fast);
+            wrong = f64::max(wrong, valid_wrong(&maps, &truth));
+            let n = maps.width * maps.height;
+            total += n;
+            for i in (0..n).filter(|&i| maps.valid[i] > 0.5) {
+                let e = (maps.thickness_nm[i] - truth.thickness_nm[i]).abs() as f64;
+                covered += usize::from(e <= 2.0 * maps.sigma_thickness_nm[i] as f64);
+                valid += 1;
+                abs_err += e;
+            }
+        }
+        let (vf, mae, cov) = (
+            valid as f64 / total as f64,
+            abs_err / valid as f64,
+            covered as f64 / valid as f64,
+        );
+        eprintln!(
+            "{label}: valid {vf:.3}, MAE {mae:.3} nm, 2σ {cov:.3}, valid and wrong ≤ {wrong:.4}"
+        );
+        assert!(vf >= 0.95, "{label}: valid {vf}");
+        assert!(mae <= 1.3 * bound, "{label}: MAE {mae} against {bound}");
+        assert!(cov >= 0.88, "{label}: 2σ coverage {cov}");
+        assert!(wrong <= 0.01, "{label}: {wrong} valid and wrong");
+    }
+}

@@ -123,7 +123,7 @@ impl Solver {
     /// it cannot be told (a global parameter the pixel cannot differentiate:
     /// not reached, the level's only one is the index, whose model is kept
     /// with it).
-    fn share_var(
+    pub(super) fn share_var(
         &self,
         prep: &Prepared,
         spectrum: &[f64],
