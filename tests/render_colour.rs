@@ -172,7 +172,21 @@ fn the_readme_trade_table_parses() {
         (got.0 / want.0 - 1.0).abs() < 1e-9 && got.1 == want.1 && got.2 == want.2,
         "{got:?} vs {want:?}"
     );
-    assert!(rows.iter().all(|r| r.mean_err_nm >= r.efficient_nm * 0.95));
+    // No estimator beats the efficient error of its own case, but for
+    // `fast` with the angle free, which shares each row's angle among its
+    // pixels (a smoothness the per-pixel bound does not assume): that one
+    // still cannot beat the bound with the angle known.
+    for r in &rows {
+        let floor = if r.mode == "fast" && !r.angle_known {
+            rows.iter()
+                .find(|k| k.scene == r.scene && k.angle_known && k.mode == r.mode)
+                .expect("the known-angle case")
+                .efficient_nm
+        } else {
+            r.efficient_nm
+        };
+        assert!(r.mean_err_nm >= 0.95 * floor, "{r:?}");
+    }
     let broken = readme.replacen(&format!("| {} |", cells[4]), "| fast-ish |", 1);
     let e = parse_table(&broken).unwrap_err().to_string();
     assert!(e.contains("pixels/s"), "{e}");
