@@ -94,27 +94,33 @@ fn report(label: &str, acc: &Accuracy, wrong: f64, solver: &Solver) {
     );
 }
 
-#[test]
-fn calibration_errors_are_corrected_by_default_and_flagged_when_absolute() {
-    // A level error is shared by every pixel of an image, so one image's
-    // coverage is not a binomial count: what σ must cover is the scatter
-    // of the level estimate over noise realisations. Four seeds per case.
-    //
-    // The last field is the Cramér–Rao bound of each case under the level
-    // that describes it (film index unknown, every pixel's angle unknown):
-    // the mean |Δd| an efficient estimator reaches, from an independent
-    // formulation (`python3 tools/level_crb.py`). A level with more
-    // parameters than the error needs costs precision (stray light fitted
-    // as a gain and an offset: 0.99 nm; a per-band gain fitted with
-    // per-band offsets too: 1.06 nm), which 1.3× the bound does not allow.
-    type Gain = Box<dyn Fn(usize) -> f64>;
-    let cases: Vec<(&str, Gain, f64, f64)> = vec![
+/// A per-band gain (applied as `y = gain·R + offset`).
+type Gain = Box<dyn Fn(usize) -> f64>;
+
+/// The calibration errors on the paper's cylinder: label, gain,
+/// offset, and the Cramér–Rao bound of each case under the level that
+/// describes it (film index unknown, every pixel's angle unknown): the
+/// mean |Δd| an efficient estimator reaches, from an independent
+/// formulation (`python3 tools/level_crb.py`). A level with more
+/// parameters than the error needs costs precision (stray light fitted as
+/// a gain and an offset: 0.99 nm; a per-band gain fitted with per-band
+/// offsets too: 1.06 nm), which 1.3× the bound does not allow.
+fn calibration_cases() -> Vec<(&'static str, Gain, f64, f64)> {
+    vec![
         ("white 5 % high", Box::new(|_| 1.0 / 1.05), 0.0, 0.752),
         ("white 8 % low", Box::new(|_| 1.0 / 0.92), 0.0, 0.649),
         ("stray light +0.004", Box::new(|_| 1.0), 0.004, 0.369),
         ("per-band ±6 %", Box::new(per_band(0.06)), 0.0, 0.740),
-    ];
-    for (label, gain, offset, bound) in cases {
+    ]
+}
+
+#[test]
+fn calibration_errors_are_corrected_by_default_and_flagged_when_absolute() {
+    // A level error is shared by every pixel of an image, so one image's
+    // coverage is not a binomial count: what σ must cover is the scatter
+    // of the level estimate over noise realisations. Four seeds per case;
+    // the bounds: `calibration_cases`.
+    for (label, gain, offset, bound) in calibration_cases() {
         let (mut covered, mut valid, mut total, mut abs_err, mut sig) = (0, 0, 0, 0.0, 0.0);
         for seed in 1..=4u64 {
             let mut base = Scene::paper_cylinder();
@@ -780,14 +786,7 @@ fn a_calibration_error_below_the_test_is_hedged_not_trusted() {
 /// bound from above is possible from them), at most 1 % valid and wrong.
 #[test]
 fn fast_rows_on_their_angle_carry_the_levels_share_of_sigma() {
-    type Gain = Box<dyn Fn(usize) -> f64>;
-    let cases: Vec<(&str, Gain, f64, f64)> = vec![
-        ("white 5 % high", Box::new(|_| 1.0 / 1.05), 0.0, 0.752),
-        ("white 8 % low", Box::new(|_| 1.0 / 0.92), 0.0, 0.649),
-        ("stray light +0.004", Box::new(|_| 1.0), 0.004, 0.369),
-        ("per-band ±6 %", Box::new(per_band(0.06)), 0.0, 0.740),
-    ];
-    for (label, gain, offset, bound) in cases {
+    for (label, gain, offset, bound) in calibration_cases() {
         let (mut covered, mut valid, mut total, mut abs_err, mut wrong) = (0, 0, 0, 0.0, 0.0);
         for seed in 1..=4u64 {
             let mut base = Scene::paper_cylinder();
