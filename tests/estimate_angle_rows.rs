@@ -266,25 +266,24 @@ fn a_row_whose_angle_follows_no_line_is_fitted_pixel_by_pixel() {
         "{close} of {nr} within 0.65σ of alone"
     );
     // The free fits' σ_θ is a pixel's (degrees), not a line's.
-    let median_st = {
-        let mut v: Vec<f32> = (0..w * h)
-            .filter(|&i| rows.valid[i] > 0.5)
-            .map(|i| rows.sigma_theta_deg[i])
-            .collect();
-        v.sort_by(f32::total_cmp);
-        v[v.len() / 2]
-    };
-    let lone_st = {
-        let mut v: Vec<f64> = lone
-            .iter()
-            .filter(|p| p.is_valid())
-            .map(|p| p.sigma_theta_deg)
-            .collect();
+    let median = |mut v: Vec<f64>| {
         v.sort_by(f64::total_cmp);
         v[v.len() / 2]
     };
+    let median_st = median(
+        (0..w * h)
+            .filter(|&i| rows.valid[i] > 0.5)
+            .map(|i| f64::from(rows.sigma_theta_deg[i]))
+            .collect(),
+    );
+    let lone_st = median(
+        lone.iter()
+            .filter(|p| p.is_valid())
+            .map(|p| p.sigma_theta_deg)
+            .collect(),
+    );
     assert!(
-        (f64::from(median_st) - lone_st).abs() <= 0.1 * lone_st,
+        (median_st - lone_st).abs() <= 0.1 * lone_st,
         "median σ_θ {median_st} vs alone {lone_st}"
     );
     assert!(rows.reason.iter().all(|&r| r as u8 != Reason::Masked as u8));

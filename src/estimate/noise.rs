@@ -532,7 +532,7 @@ fn spectral_sigmas(cube: &Cube) -> Option<(f64, Vec<f64>)> {
 }
 
 /// Median (reorders `v`; `v` not empty).
-fn median(v: &mut [f64]) -> f64 {
+pub(crate) fn median(v: &mut [f64]) -> f64 {
     let m = v.len() / 2;
     let (_, x, _) = v.select_nth_unstable_by(m, |a, b| a.total_cmp(b));
     *x

@@ -419,12 +419,7 @@ impl Solver {
                         o
                     }
                 };
-                scratch.note_warm(&o);
-                fits.push(if o.is_valid() {
-                    o.thickness_nm
-                } else {
-                    scratch.last_fit_d
-                });
+                scratch.note_fit(&o, fits);
                 out[x] = o;
             }
             x0 += m;
@@ -471,8 +466,7 @@ fn median_sigma(samples: &[(f64, f64, f64)]) -> f64 {
         return f64::INFINITY;
     }
     let mut s: Vec<f64> = samples.iter().map(|s| s.2).collect();
-    let mid = s.len() / 2;
-    *s.select_nth_unstable_by(mid, f64::total_cmp).1
+    crate::estimate::noise::median(&mut s)
 }
 
 /// `sin²θ`: the angle's natural parameter. The model depends on the

@@ -324,6 +324,18 @@ impl Scratch {
         self.step_chi2 = 0.0;
     }
 
+    /// After a pixel of a row: [`Scratch::note_warm`], and its best-fit
+    /// thickness (its last fit's where it was flagged) pushed to `fits`
+    /// ([`Scratch::fit_thickness`]).
+    fn note_fit(&mut self, est: &PixelEstimate, fits: &mut Vec<f64>) {
+        self.note_warm(est);
+        fits.push(if est.is_valid() {
+            est.thickness_nm
+        } else {
+            self.last_fit_d
+        });
+    }
+
     /// After a pixel of a row: its fit as the next pixel's warm start if
     /// valid, none otherwise; a valid pixel also ends a run of poor ones.
     fn note_warm(&mut self, est: &PixelEstimate) {

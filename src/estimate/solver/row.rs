@@ -106,12 +106,7 @@ impl Solver {
                 let (x, pixel) = (x0 + i, &batch[i * nb..(i + 1) * nb]);
                 scratch.last_fit_d = f64::NAN;
                 let o = self.solve_pixel(pixel, self.scene.angle.known_at(x, y), scratch);
-                scratch.note_warm(&o);
-                fits.push(if o.is_valid() {
-                    o.thickness_nm
-                } else {
-                    scratch.last_fit_d
-                });
+                scratch.note_fit(&o, &mut fits);
                 out[x] = o;
             }
             x0 += m;
