@@ -113,9 +113,9 @@ impl Renderer {
         }
     }
 
-    fn media_at(&self, wavelength_nm: f64) -> Result<Media, SynthError> {
+    fn media_at(&self, wavelength_nm: f64, center_nm: f64) -> Result<Media, SynthError> {
         let get = |d: &crate::optics::dispersion::Dispersion, medium| {
-            d.index_at(wavelength_nm)
+            d.index_in_passband(wavelength_nm, center_nm)
                 .map_err(|source| SynthError::Optics {
                     medium,
                     wavelength_nm,
@@ -144,7 +144,7 @@ impl Renderer {
         };
         let mut nodes = Vec::with_capacity(points.len());
         for (lam, wgt) in points {
-            nodes.push((lam, wgt, self.media_at(lam)?));
+            nodes.push((lam, wgt, self.media_at(lam, band.center_nm)?));
         }
         let pol = self.scene.polarization;
         out[..w * h]

@@ -548,6 +548,25 @@ impl Dispersion {
         }
     }
 
+    /// The complex index at a node `wavelength_nm` of a passband centred
+    /// on `center_nm`: where the node lies outside the model's range but
+    /// the centre inside, the index at the range's nearest end (a
+    /// passband's tail past a table's end, ~2 FWHM at most, is read at
+    /// the end: the model says nothing beyond it, and refusing the band
+    /// would refuse a measurement the centre's index describes).
+    pub fn index_in_passband(
+        &self,
+        wavelength_nm: f64,
+        center_nm: f64,
+    ) -> Result<Complex64, OpticsError> {
+        match (self.index_at(wavelength_nm), self.range_nm()) {
+            (Err(e), Some((lo, hi))) if (lo..=hi).contains(&center_nm) => {
+                self.index_at(wavelength_nm.clamp(lo, hi)).map_err(|_| e)
+            }
+            (r, _) => r,
+        }
+    }
+
     /// The complex index at `wavelength_nm`.
     pub fn index_at(&self, wavelength_nm: f64) -> Result<Complex64, OpticsError> {
         // The model's name is only needed for an error: build it then, so
@@ -831,5 +850,20 @@ mod tests {
         let i = d.index_at(600.0).unwrap();
         assert!((i.re - 1.5).abs() < 1e-15 && (i.im - 0.2).abs() < 1e-15);
         assert!(d.index_at(350.0).is_err());
+    }
+    #[test]
+    fn a_passbands_tail_past_a_table_reads_the_tables_end() {
+        let d = Dispersion::tabulated_n(vec![400.0, 500.0, 700.0], vec![1.50, 1.48, 1.46]).unwrap();
+        // Inside: the table.
+        assert_eq!(
+            d.index_in_passband(450.0, 405.0).unwrap(),
+            d.index_at(450.0).unwrap()
+        );
+        // A node below the table, its band's centre inside: the end.
+        assert!(d.index_at(381.0).is_err());
+        assert_eq!(d.index_in_passband(381.0, 402.0).unwrap().re, 1.50);
+        assert_eq!(d.index_in_passband(720.0, 695.0).unwrap().re, 1.46);
+        // A band centred outside stays an error.
+        assert!(d.index_in_passband(381.0, 390.0).is_err());
     }
 }

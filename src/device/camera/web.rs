@@ -278,11 +278,12 @@ impl WebCamera {
             let mut nodes = Vec::with_capacity(points.len());
             for (lam, wgt) in points {
                 let get = |d: &Dispersion, medium| {
-                    d.index_at(lam).map_err(|e| WebCameraError::Optics {
-                        medium,
-                        wavelength_nm: lam,
-                        message: e.to_string(),
-                    })
+                    d.index_in_passband(lam, b.center_nm)
+                        .map_err(|e| WebCameraError::Optics {
+                            medium,
+                            wavelength_nm: lam,
+                            message: e.to_string(),
+                        })
                 };
                 let m = Media {
                     n1: get(media[0], "ambient")?,

@@ -67,17 +67,6 @@ impl Solver {
         est_abs: &IndexEstimate,
         look: Look,
     ) -> Result<Option<IndexEstimate>, EstimateError> {
-        if self
-            .prepared
-            .as_ref()
-            .is_some_and(|p| p.integrated.is_some())
-            && self.scene.level == LevelMode::Auto
-        {
-            // The test fits point-sampled models; with wide passbands their
-            // misfit would pass for a level. `accurate` integrates instead.
-            self.level_note = "absolute (level not tested: passbands integrated)".into();
-            return Ok(None);
-        }
         let Some(noise) = self.noise.clone() else {
             self.level_note = "absolute (no independent noise level to test against)".into();
             return Ok(None);
@@ -672,14 +661,17 @@ impl Solver {
             &Dispersion::constant(n + INDEX_DN),
             &self.scene.substrate,
             self.scene.polarization,
-            &vec![false; self.bands.len()],
+            &self
+                .prepared
+                .as_ref()
+                .map_or_else(|| vec![false; self.bands.len()], |p| p.integrate.clone()),
         )
         .ok()
     }
 
     /// Each sample pixel fitted on its spectrum corrected by `level`, as
     /// the level fit needs it: raw values, model and model derivatives.
-    fn level_pixels(&self, sample: &[SamplePixel], level: &Level) -> Vec<LevelPixel> {
+    pub(super) fn level_pixels(&self, sample: &[SamplePixel], level: &Level) -> Vec<LevelPixel> {
         self.level_pixels_from(sample, level, &[])
     }
 
