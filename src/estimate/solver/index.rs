@@ -50,6 +50,9 @@ pub(super) struct SamplePixel {
     pub(super) n_cands: [usize; 2],
 }
 
+/// Pairs of neighbouring pixels the image's fit is tested on.
+pub(super) const IMAGE_FIT_PAIRS: usize = 800;
+
 /// The most the live runner's residual floor may raise the model-free
 /// noise estimate (a factor on σ).
 const RESIDUAL_FLOOR_MAX: f64 = 1.5;
@@ -164,6 +167,31 @@ impl Solver {
             est.noise_sigma = n.typical_sigma(0.05);
         }
         self.set_film_index(est.clone())?;
+        // The image's fit as a whole (`image_fit`), said once in the note
+        // however often the index is estimated.
+        for tail in ["; the image's fit:", "; but neighbouring pixels share"] {
+            if let Some(i) = self.level_note.find(tail) {
+                self.level_note.truncate(i);
+            }
+        }
+        if !self.calibration_suspect {
+            match self.image_fit(cube, IMAGE_FIT_PAIRS) {
+                Some(fit) if fit.rejected() => {
+                    self.calibration_suspect = true;
+                    self.level_note = format!(
+                        "{}; but neighbouring pixels share a misfit their noise does not explain ({:.3} noise variances per band, {:.1} σ over {} pairs; χ²/dof {:.3}): a wrong polarisation, film or substrate? every pixel flagged poor fit",
+                        self.level_note, fit.shared, fit.z, fit.pairs, fit.chi2_dof
+                    );
+                }
+                Some(fit) => {
+                    self.level_note = format!(
+                        "{}; the image's fit: neighbouring pixels share {:.3} noise variances per band ({:.1} σ over {} pairs)",
+                        self.level_note, fit.shared, fit.z, fit.pairs
+                    );
+                }
+                None => {}
+            }
+        }
         Ok(est)
     }
 
@@ -258,6 +286,16 @@ impl Solver {
     /// stratified lattice, those with complete enough spectra, with their
     /// known angles.
     fn sample_pixels(&self, cube: &Cube, max: usize) -> Vec<SamplePixel> {
+        let mut scratch = Scratch::default();
+        let mut spec = vec![0.0; cube.bands.len()];
+        Self::sample_sites(cube, max)
+            .into_iter()
+            .filter_map(|(x, y)| self.sample_at(cube, x, y, &mut spec, &mut scratch))
+            .collect()
+    }
+
+    /// About `max` distinct pixel positions on a stratified lattice.
+    pub(super) fn sample_sites(cube: &Cube, max: usize) -> Vec<(usize, usize)> {
         let (w, h) = (cube.width, cube.height);
         // A 2-D stratified grid (cells of the image's aspect), one pixel per
         // cell at a golden-ratio offset, so periodic structure in the scene
@@ -267,45 +305,55 @@ impl Solver {
             ((max as f64 * w as f64 / h.max(1) as f64).sqrt().ceil() as usize).clamp(1, w.max(1));
         let ny = max.div_ceil(nx).clamp(1, h.max(1));
         const PHI: f64 = 0.618_033_988_749_895;
-        let mut out = Vec::new();
-        let nb = cube.bands.len();
-        let mut spec = vec![0.0; nb];
-        let mut scratch = Scratch::default();
         // Where the grid is finer than the image in one direction two
         // cells can land on one pixel: it is taken once (the same data
         // twice would count as twice the information, and σ of what the
         // sample estimates would shrink by what it does not know).
         let mut taken = std::collections::HashSet::with_capacity(nx * ny);
-        let free = self.scene.level == LevelMode::Free;
+        let mut out = Vec::with_capacity(nx * ny);
         for k in 0..nx * ny {
             let (i, j) = (k % nx, k / nx);
             let fx = (i as f64 + (j as f64 * PHI).fract()) / nx as f64;
             let fy = (j as f64 + (i as f64 * PHI).fract()) / ny as f64;
             let x = ((fx * w as f64) as usize).min(w - 1);
             let y = ((fy * h as f64) as usize).min(h - 1);
-            if !taken.insert((x, y)) {
-                continue;
-            }
-            cube.spectrum_into(x, y, &mut spec);
-            // Missing bands (NaN: a dropped frame) are allowed as in any
-            // pixel's solve, up to a quarter of them.
-            let n_ok = spec.iter().filter(|v| v.is_finite()).count();
-            // Under `free` every pixel has its own scale: intensities and
-            // counts are what it fits.
-            let in_range = free
-                || spec
-                    .iter()
-                    .all(|v| !v.is_finite() || (-0.2..=1.2).contains(v));
-            if in_range
-                && 4 * n_ok >= 3 * nb
-                && !spec.iter().any(|v| v.is_infinite())
-                && !self.dark(&spec)
-            {
-                let theta = self.scene.angle.known_at(x, y);
-                out.push(self.sample_pixel(spec.clone(), theta, &mut scratch));
+            if taken.insert((x, y)) {
+                out.push((x, y));
             }
         }
         out
+    }
+
+    /// The pixel at `(x, y)` as a sample pixel, where its spectrum is
+    /// complete enough, within what a reflectance takes (any values under
+    /// the free level) and not dark.
+    pub(super) fn sample_at(
+        &self,
+        cube: &Cube,
+        x: usize,
+        y: usize,
+        spec: &mut [f64],
+        scratch: &mut Scratch,
+    ) -> Option<SamplePixel> {
+        let nb = cube.bands.len();
+        cube.spectrum_into(x, y, spec);
+        // Missing bands (NaN: a dropped frame) are allowed as in any
+        // pixel's solve, up to a quarter of them.
+        let n_ok = spec.iter().filter(|v| v.is_finite()).count();
+        // Under `free` every pixel has its own scale: intensities and
+        // counts are what it fits.
+        let in_range = self.scene.level == LevelMode::Free
+            || spec
+                .iter()
+                .all(|v| !v.is_finite() || (-0.2..=1.2).contains(v));
+        (in_range
+            && 4 * n_ok >= 3 * nb
+            && !spec.iter().any(|v| v.is_infinite())
+            && !self.dark(spec))
+        .then(|| {
+            let theta = self.scene.angle.known_at(x, y);
+            self.sample_pixel(spec.to_vec(), theta, scratch)
+        })
     }
 
     /// Whether a spectrum is zero within its noise: its mean within three σ

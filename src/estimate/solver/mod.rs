@@ -63,6 +63,7 @@ mod closed_form;
 mod equivalents;
 mod free;
 mod fringes;
+mod image_fit;
 mod index;
 mod judge;
 mod level_fit;
