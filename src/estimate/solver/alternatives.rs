@@ -142,10 +142,7 @@ impl Solver {
         else {
             return 0;
         };
-        let model = match (&prep.integrated, best.integrated) {
-            (Some(m), true) => m,
-            _ => &prep.model,
-        };
+        let model = &prep.model;
         let signal = self.fringe_signal(prep, best.theta, n_ok, sigma, scratch);
         let weak = signal < WEAK_FRINGES;
         if !weak && !free {
@@ -183,8 +180,7 @@ impl Solver {
             if *n >= out.len() || e > gate {
                 return;
             }
-            let mut f = self.refine_within(model, d, th, free, ITERS, bounds, scratch);
-            f.integrated = best.integrated;
+            let f = self.refine_within(model, d, th, free, ITERS, bounds, scratch);
             if f.sse.is_finite() {
                 out[*n] = f;
                 *n += 1;

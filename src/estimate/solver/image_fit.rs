@@ -77,8 +77,8 @@ impl Solver {
         let mut pixels = Vec::new();
         for (x, y) in Self::sample_sites(cube, max) {
             let x2 = if x + 1 < cube.width { x + 1 } else { x - 1 };
-            let a = self.sample_at(cube, x, y, &mut spec, &mut scratch);
-            let b = self.sample_at(cube, x2, y, &mut spec, &mut scratch);
+            let a = self.sample_at(cube, x, y, false, &mut spec, &mut scratch);
+            let b = self.sample_at(cube, x2, y, false, &mut spec, &mut scratch);
             if let (Some(a), Some(b)) = (a, b) {
                 pixels.push(a);
                 pixels.push(b);

@@ -290,7 +290,7 @@ impl Solver {
         let mut spec = vec![0.0; cube.bands.len()];
         Self::sample_sites(cube, max)
             .into_iter()
-            .filter_map(|(x, y)| self.sample_at(cube, x, y, &mut spec, &mut scratch))
+            .filter_map(|(x, y)| self.sample_at(cube, x, y, true, &mut spec, &mut scratch))
             .collect()
     }
 
@@ -326,12 +326,15 @@ impl Solver {
 
     /// The pixel at `(x, y)` as a sample pixel, where its spectrum is
     /// complete enough, within what a reflectance takes (any values under
-    /// the free level) and not dark.
+    /// the free level) and not dark; with its fringe candidates where
+    /// `search` (the index search starts from them; a fit as
+    /// [`Solver::level_pixels`] makes does not).
     pub(super) fn sample_at(
         &self,
         cube: &Cube,
         x: usize,
         y: usize,
+        search: bool,
         spec: &mut [f64],
         scratch: &mut Scratch,
     ) -> Option<SamplePixel> {
@@ -352,7 +355,16 @@ impl Solver {
             && !self.dark(spec))
         .then(|| {
             let theta = self.scene.angle.known_at(x, y);
-            self.sample_pixel(spec.to_vec(), theta, scratch)
+            if search {
+                self.sample_pixel(spec.to_vec(), theta, scratch)
+            } else {
+                SamplePixel {
+                    spectrum: spec.to_vec(),
+                    theta,
+                    cands: [[Candidate::default(); MAX_CANDIDATES]; 2],
+                    n_cands: [0; 2],
+                }
+            }
         })
     }
 

@@ -604,8 +604,6 @@ struct Fit {
     sse: f64,
     /// `JᵀJ` entries (dd, dθ, θθ).
     jtj: [f64; 3],
-    /// Fitted with the passband-integrated model.
-    integrated: bool,
     /// Fitted on the thickness table at `theta` (judged on its
     /// interpolant, within 1e-5 of the fringe amplitude of the model).
     tabled: bool,
@@ -639,14 +637,8 @@ struct Prepared {
     /// Real ambient and substrate indices at the middle band, when the
     /// half-wave level can be inverted in closed form (lossless, s or p).
     closed_form: Option<(f64, f64, Polarization)>,
-    /// A second model for fits the criterion of [`Solver::model_for`]
-    /// sends to it; `None` since `model` integrates every band whose
-    /// passband matters anywhere in the range (`integrate`).
-    integrated: Option<FilmModel>,
     /// Which bands `model` integrates over their passband.
     integrate: Vec<bool>,
-    /// Largest fringe amplitude over the angle range, for the criterion.
-    fringe_amplitude: f64,
     /// The model over thickness at each known angle (`fast`, `balanced`).
     tables: table::Tables,
     /// `fast` with the angle free: tables on a fine angle grid, built as
@@ -912,45 +904,6 @@ impl Solver {
         Ok(solver)
     }
 
-    /// The model a fit should use: the passband-integrated one when some
-    /// band would err by more than [`INTEGRATION_TOLERANCE`] if
-    /// point-sampled at this fit's optical thickness (the criterion of
-    /// `optics::band`), else the point-sampled one.
-    fn model_for<'p>(&self, prep: &'p Prepared, fit: &Fit) -> &'p FilmModel {
-        let Some(int) = &prep.integrated else {
-            return &prep.model;
-        };
-        let g = fit.d * prep.model.q2_mid(fit.theta);
-        if self.bands.iter().any(|b| {
-            b.fwhm_nm > 0.0
-                && b.needs_integration_for(g, prep.fringe_amplitude, INTEGRATION_TOLERANCE)
-        }) {
-            int
-        } else {
-            &prep.model
-        }
-    }
-
-    /// `fit` refitted with the passband-integrated model where
-    /// [`Solver::model_for`] asks for it (flagged `integrated`), and the
-    /// model it then stands on.
-    fn integrated_refit<'p>(
-        &self,
-        prep: &'p Prepared,
-        fit: Fit,
-        free_theta: bool,
-        iters: usize,
-        scratch: &mut Scratch,
-    ) -> (Fit, &'p FilmModel) {
-        let model = self.model_for(prep, &fit);
-        if std::ptr::eq(model, &prep.model) {
-            return (fit, model);
-        }
-        let mut f = self.refine(model, fit.d, fit.theta, free_theta, iters, scratch);
-        f.integrated = true;
-        (f, model)
-    }
-
     fn prepare(&self, film: &Dispersion) -> Result<Prepared, EstimateError> {
         self.prepare_with(film, true)
     }
@@ -1024,7 +977,6 @@ impl Solver {
         } else {
             point
         };
-        let integrated = None;
         let slopes = Slopes::new(&table);
         let envelope_range = table
             .iter()
@@ -1064,9 +1016,7 @@ impl Solver {
             table,
             cosine_table,
             closed_form,
-            integrated,
             integrate,
-            fringe_amplitude,
         })
     }
 

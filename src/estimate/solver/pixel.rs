@@ -253,15 +253,9 @@ impl Solver {
                     return out;
                 }
                 if good {
-                    // Where this pixel's fringes are fast enough for the
-                    // passband to matter, refit with the integrated model
-                    // (and judge the competing order with it too).
-                    let free = theta_known.is_none();
-                    let (fit, model) =
-                        self.integrated_refit(prep, fit, free, effort.iters, scratch);
                     let (fits, n_fits) = self.with_neighbour_order(
                         prep,
-                        model,
+                        &prep.model,
                         fit,
                         theta_known,
                         n_ok,
@@ -384,15 +378,6 @@ impl Solver {
                 if f.sse < worst.sse {
                     *worst = f;
                 }
-            }
-        }
-        if effort.verify_order {
-            // As on the closed-form path: fits whose fringes the passband
-            // affects are redone with the integrated model.
-            for f in &mut fits[..n_fits] {
-                *f = self
-                    .integrated_refit(prep, *f, theta_known.is_none(), iters, scratch)
-                    .0;
             }
         }
         let out = self.finish(
@@ -540,15 +525,11 @@ impl Solver {
             return Some(([fit, fit], 1));
         }
         if effort.verify_order {
-            // `accurate`: refit with the integrated model where this
-            // pixel's fringes are fast enough for the passband to matter,
-            // and weigh the neighbouring orders on every pixel (as after
-            // its closed form).
-            let free = theta_known.is_none();
-            let (fit, model) = self.integrated_refit(prep, fit, free, effort.iters, scratch);
+            // `accurate`: weigh the neighbouring orders on every pixel (as
+            // after its closed form).
             return Some(self.with_neighbour_order(
                 prep,
-                model,
+                &prep.model,
                 fit,
                 theta_known,
                 n_ok,
@@ -635,7 +616,6 @@ impl Solver {
         if f.sse < fit.sse + 25.0 * var {
             f = self.refine(model, f.d, f.theta, free, iters, scratch);
         }
-        f.integrated = fit.integrated;
         fits[1] = f;
         (fits, 2)
     }
@@ -676,10 +656,7 @@ impl Solver {
             return (PixelEstimate::invalid(Reason::PoorFit), f64::NAN);
         }
         let dof = (n_ok - n_par).max(1) as f64;
-        let model = match (&prep.integrated, best.integrated) {
-            (Some(m), true) => m,
-            _ => &prep.model,
-        };
+        let model = &prep.model;
         // The fit is judged against the noise model, and its σ never claims
         // more precision than the instrument's noise allows.
         let judging = noise.is_some() && self.judging();

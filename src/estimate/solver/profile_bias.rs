@@ -105,7 +105,7 @@ impl Solver {
         if median >= WEAK_FRINGES {
             return est;
         }
-        let model = prep.integrated.as_ref().unwrap_or(&prep.model);
+        let model = &prep.model;
         let nb = self.bands.len();
         let mut ns = Vec::with_capacity(REPLICATES);
         for rep in 0..REPLICATES {

@@ -166,7 +166,6 @@ impl Solver {
             theta: th,
             sse: cur_sse,
             jtj: [a, b, c],
-            integrated: false,
             tabled: false,
             stalled: stalled && iters > 0,
             // The model at the fit is in `cur`: its χ² costs one pass.

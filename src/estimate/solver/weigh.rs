@@ -194,7 +194,6 @@ impl Solver {
         }
         fit.chi2 =
             Some(self.chi2_and_noise_var(scratch, &scratch.cur.r)).filter(|c| c.0.is_finite());
-        fit.integrated = best.integrated;
         fit.chi2.is_some().then_some((fit, mean_var))
     }
 }

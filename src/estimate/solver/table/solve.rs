@@ -121,7 +121,7 @@ impl Solver {
             let scale = prep.model.q2_mid(table_theta) / prep.model.q2_mid(theta);
             for (f, g) in fits.iter_mut().zip(&mins[..n]) {
                 let d0 = table.d_at(g.j) * scale;
-                *f = self.exact_refit(prep, d0, theta, effort.verify_order, scratch);
+                *f = self.exact_refit(prep, d0, theta, scratch);
             }
         }
         let out = self.finish(&fits[..n], n_ok, Some(theta), noise, prep, lam_min, scratch);
@@ -264,7 +264,6 @@ impl Solver {
             theta,
             sse: e,
             jtj: [a, 0.0, 0.0],
-            integrated: false,
             tabled: true,
             stalled: false,
             chi2: None,
@@ -390,27 +389,14 @@ impl Solver {
         let best = fits.iter().map(|f| f.sse).fold(f64::INFINITY, f64::min);
         let var = best / n_ok.saturating_sub(1).max(1) as f64;
         for f in fits.iter_mut().filter(|f| f.sse <= best + 25.0 * var) {
-            *f = self.exact_refit(prep, f.d, theta, true, scratch);
+            *f = self.exact_refit(prep, f.d, theta, scratch);
         }
     }
 
-    /// The exact model's fit at the known `theta` from `d0`, refitted with
-    /// the passband integrated where `integrate` and the band criterion
-    /// ask for it.
-    fn exact_refit(
-        &self,
-        prep: &Prepared,
-        d0: f64,
-        theta: f64,
-        integrate: bool,
-        scratch: &mut Scratch,
-    ) -> Fit {
+    /// The exact model's fit at the known `theta` from `d0`.
+    fn exact_refit(&self, prep: &Prepared, d0: f64, theta: f64, scratch: &mut Scratch) -> Fit {
         let iters = Effort::of(self.mode).iters;
-        let fit = self.refine(&prep.model, d0, theta, false, iters, scratch);
-        if !integrate {
-            return fit;
-        }
-        self.integrated_refit(prep, fit, false, iters, scratch).0
+        self.refine(&prep.model, d0, theta, false, iters, scratch)
     }
 
     /// Refine grid minimum `g` on the interpolant.
@@ -429,7 +415,6 @@ impl Solver {
             theta,
             sse,
             jtj: [a, 0.0, 0.0],
-            integrated: false,
             tabled: true,
             stalled: false,
             chi2: None,
