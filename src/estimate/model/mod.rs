@@ -1059,18 +1059,24 @@ mod tests {
         }
     }
 
+    /// The paper's film (1.37 on 1.6 in air) on `bands`, each band
+    /// integrated over its passband where `integrate`.
+    fn paper_film(bands: &[Band], pol: Polarization, integrate: bool) -> FilmModel {
+        FilmModel::new(
+            bands,
+            &Dispersion::constant(1.0),
+            &Dispersion::constant(1.37),
+            &Dispersion::constant(1.6),
+            pol,
+            &vec![integrate; bands.len()],
+        )
+        .unwrap()
+    }
+
     #[test]
     fn real_path_matches_complex_airy_and_derivative_matches_difference() {
         for pol in [Polarization::S, Polarization::P, Polarization::Unpolarized] {
-            let m = FilmModel::new(
-                &bands(),
-                &Dispersion::constant(1.0),
-                &Dispersion::constant(1.37),
-                &Dispersion::constant(1.6),
-                pol,
-                &[false; 31],
-            )
-            .unwrap();
+            let m = paper_film(&bands(), pol, false);
             let mut out = ModelOut::new(31);
             let mut out2 = ModelOut::new(31);
             let (d, th) = (487.0, 0.5);
@@ -1105,15 +1111,7 @@ mod tests {
             b.fwhm_nm = 10.0;
         }
         for pol in [Polarization::S, Polarization::P, Polarization::Unpolarized] {
-            let m = FilmModel::new(
-                &wide,
-                &Dispersion::constant(1.0),
-                &Dispersion::constant(1.37),
-                &Dispersion::constant(1.6),
-                pol,
-                &[true; 31],
-            )
-            .unwrap();
+            let m = paper_film(&wide, pol, true);
             assert_eq!(m.nodes.len(), 9 * 31);
             assert_eq!(m.real_nodes.len(), m.nodes.len(), "the real path applies");
             let (mut out, mut refr) = (ModelOut::new(31), ModelOut::new(31));

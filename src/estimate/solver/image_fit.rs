@@ -65,8 +65,9 @@ impl ImageFit {
 impl Solver {
     /// About `max` pairs of horizontally neighbouring pixels of `cube`,
     /// each fitted under the index and level in force; `None` where the
-    /// test does not apply (no independent noise level, a free level, too
-    /// few pairs).
+    /// test does not apply (no independent noise level, a free level, a
+    /// noise level raised to the fits' own residual, an image one pixel
+    /// wide). Fewer than `MIN_PAIRS` pairs never reject.
     pub(super) fn image_fit(&self, cube: &Cube, max: usize) -> Option<ImageFit> {
         let noise = self.noise.as_ref()?;
         if self.level_mode == LevelMode::Free || self.residual_noise_floor || cube.width < 2 {
