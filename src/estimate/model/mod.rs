@@ -1059,6 +1059,25 @@ mod tests {
         }
     }
 
+    /// The largest difference over the bands between the model as it runs
+    /// (`out`, with its derivatives where `deriv`) and the complex Airy
+    /// sum (`refr`) at `d`, `th`.
+    fn worst_against_airy(
+        m: &FilmModel,
+        d: f64,
+        th: f64,
+        out: &mut ModelOut,
+        refr: &mut ModelOut,
+        deriv: bool,
+    ) -> f64 {
+        m.eval(d, th, out, deriv);
+        refr.r.fill(0.0);
+        m.eval_complex(d, th, refr, false);
+        (0..m.n_bands)
+            .map(|k| (out.r[k] - refr.r[k]).abs())
+            .fold(0.0, f64::max)
+    }
+
     /// The paper's film (1.37 on 1.6 in air) on `bands`, each band
     /// integrated over its passband where `integrate`.
     fn paper_film(bands: &[Band], pol: Polarization, integrate: bool) -> FilmModel {
@@ -1117,12 +1136,7 @@ mod tests {
             let (mut out, mut refr) = (ModelOut::new(31), ModelOut::new(31));
             for (d, deg) in [(87.0, 0.0), (487.0, 12.5), (1312.0, 45.0), (3001.0, 80.0)] {
                 let th = f64::to_radians(deg);
-                m.eval(d, th, &mut out, false);
-                refr.r.fill(0.0);
-                m.eval_complex(d, th, &mut refr, false);
-                let worst = (0..31)
-                    .map(|k| (out.r[k] - refr.r[k]).abs())
-                    .fold(0.0, f64::max);
+                let worst = worst_against_airy(&m, d, th, &mut out, &mut refr, false);
                 // The f32 lanes' budget where they apply (`real32`).
                 assert!(worst < 1e-5, "{pol:?} {d} nm at {deg}°: {worst}");
             }
@@ -1172,12 +1186,7 @@ mod tests {
                             tol > 1e-13,
                             "{d} nm at {deg}°: the f32 lanes apply in the model as it runs"
                         );
-                        m.eval(d, th, &mut out, true);
-                        refr.r.fill(0.0);
-                        m.eval_complex(d, th, &mut refr, false);
-                        let worst = (0..31)
-                            .map(|k| (out.r[k] - refr.r[k]).abs())
-                            .fold(0.0, f64::max);
+                        let worst = worst_against_airy(m, d, th, &mut out, &mut refr, true);
                         assert!(worst < tol, "{deg}°: {worst}");
                         let (e_d, e_t) = (1e-4, 1e-5);
                         for (step, analytic, scale) in [
