@@ -114,6 +114,20 @@ fn calibration_cases() -> Vec<(&'static str, Gain, f64, f64)> {
     ]
 }
 
+/// The paper's cylinder with noise seed `seed`, rendered and
+/// miscalibrated by `gain` and `offset`: the scene, the cube and the truth.
+fn miscalibrated_cylinder(
+    seed: u64,
+    gain: &dyn Fn(usize) -> f64,
+    offset: f64,
+) -> (Scene, Cube, TruthMaps) {
+    let mut base = Scene::paper_cylinder();
+    base.truth.as_mut().unwrap().seed = seed;
+    let (mut cube, truth) = render(&base);
+    miscalibrate(&mut cube, gain, offset);
+    (base, cube, truth)
+}
+
 #[test]
 fn calibration_errors_are_corrected_by_default_and_flagged_when_absolute() {
     // A level error is shared by every pixel of an image, so one image's
@@ -123,10 +137,7 @@ fn calibration_errors_are_corrected_by_default_and_flagged_when_absolute() {
     for (label, gain, offset, bound) in calibration_cases() {
         let (mut covered, mut valid, mut total, mut abs_err, mut sig) = (0, 0, 0, 0.0, 0.0);
         for seed in 1..=4u64 {
-            let mut base = Scene::paper_cylinder();
-            base.truth.as_mut().unwrap().seed = seed;
-            let (mut cube, truth) = render(&base);
-            miscalibrate(&mut cube, &gain, offset);
+            let (base, cube, truth) = miscalibrated_cylinder(seed, &gain, offset);
             // The default level (auto) corrects it.
             let (maps, solver) = fit_with(&base, &cube, Mode::Balanced);
             let acc = compare(&maps, &truth);
@@ -187,10 +198,7 @@ fn each_pixel_carries_the_level_share_its_own_fit_gives_it() {
     // left them 2.8 against 1.5), and every angle by as many of its σ as
     // its thickness (with no share, angles were 3.4–6.1 of their σ off).
     for seed in [101, 106] {
-        let mut base = Scene::paper_cylinder();
-        base.truth.as_mut().unwrap().seed = seed;
-        let (mut cube, truth) = render(&base);
-        miscalibrate(&mut cube, &|_| 1.0 / 1.05, 0.0);
+        let (base, cube, truth) = miscalibrated_cylinder(seed, &|_| 1.0 / 1.05, 0.0);
         let (maps, solver) = fit_with(&base, &cube, Mode::Balanced);
         let (level, mode, _) = solver.level();
         assert_eq!(mode, LevelMode::Scaled);
@@ -789,10 +797,7 @@ fn fast_rows_on_their_angle_carry_the_levels_share_of_sigma() {
     for (label, gain, offset, bound) in calibration_cases() {
         let (mut covered, mut valid, mut total, mut abs_err, mut wrong) = (0, 0, 0, 0.0, 0.0);
         for seed in 1..=4u64 {
-            let mut base = Scene::paper_cylinder();
-            base.truth.as_mut().unwrap().seed = seed;
-            let (mut cube, truth) = render(&base);
-            miscalibrate(&mut cube, &gain, offset);
+            let (base, cube, truth) = miscalibrated_cylinder(seed, &gain, offset);
             let (maps, _) = fit_with(&base, &cube, Mode::Fast);
             wrong = f64::max(wrong, valid_wrong(&maps, &truth));
             let n = maps.width * maps.height;
