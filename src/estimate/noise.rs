@@ -260,6 +260,26 @@ impl NoiseModel {
         self
     }
 
+    /// The noise of data corrected by an image-wide level: where the
+    /// measured `y_k = g_k·R_k + o_k` carries `var0 + shot·y`, the
+    /// corrected `(y_k − o_k)/g_k` carries `(var0 + shot·o)/g² +
+    /// (shot/g)·R` (a negative offset is not taken off the variance: near
+    /// R = 0 the data's own floor holds). The scale accuracy is a fraction
+    /// of R and stays. Bands past `gain`'s end, or with a gain that is not
+    /// positive and finite, keep their noise.
+    pub fn under_level(&self, gain: &[f64], offset: &[f64]) -> NoiseModel {
+        let mut out = self.clone();
+        for k in 0..out.var0.len().min(gain.len()).min(offset.len()) {
+            let (g, o) = (gain[k], offset[k]);
+            if !(g.is_finite() && g > 0.0 && o.is_finite()) {
+                continue;
+            }
+            out.var0[k] = (self.var0[k] + self.shot[k] * o.max(0.0)) / (g * g);
+            out.shot[k] = self.shot[k] / g;
+        }
+        out
+    }
+
     /// The reflectance-scale accuracy ε in force (0: none).
     pub fn accuracy(&self) -> f64 {
         self.rel2.sqrt()
@@ -544,6 +564,47 @@ mod tests {
     use crate::optics::band::Band;
     use rand::{Rng, SeedableRng};
     use rand_distr::{Distribution, Normal};
+
+    /// Data measured through a level and corrected by it scatter as
+    /// [`NoiseModel::under_level`] says: checked by drawing the measured
+    /// values (read and shot noise at the measured signal) and taking the
+    /// corrected values' sample variance, at three reflectances and gains
+    /// below and above one. 40 000 draws: the sample variance is within
+    /// 1.5 % of the truth at 2 σ (√(2/40 000) = 0.7 %); a model left at
+    /// the raw noise misses by 14–18 % here, one dividing by g instead of
+    /// g² by 8 %.
+    #[test]
+    fn corrected_data_scatter_as_the_noise_under_the_level() {
+        let raw = NoiseModel {
+            var0: vec![1e-6, 4e-6],
+            shot: vec![2e-5, 0.0],
+            rel2: 0.0,
+            source: NoiseSource::Camera,
+        };
+        let (gain, offset) = ([0.92, 1.08], [0.01, 0.004]);
+        let under = raw.under_level(&gain, &offset);
+        let mut rng = rand::rngs::StdRng::seed_from_u64(5);
+        let n = 40_000;
+        for k in 0..2 {
+            for r in [0.02, 0.1, 0.3] {
+                let y0 = gain[k] * r + offset[k];
+                let sd = raw.var(k, y0).sqrt();
+                let normal = Normal::new(y0, sd).unwrap();
+                let c: Vec<f64> = (0..n)
+                    .map(|_| (normal.sample(&mut rng) - offset[k]) / gain[k])
+                    .collect();
+                let mean = c.iter().sum::<f64>() / n as f64;
+                let var = c.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
+                let want = under.var(k, r);
+                assert!(
+                    (var / want - 1.0).abs() < 0.015,
+                    "band {k}, R {r}: sample variance {var:.4e}, model {want:.4e}"
+                );
+            }
+        }
+        // The identity level leaves the noise as it was.
+        assert_eq!(raw.under_level(&[1.0, 1.0], &[0.0, 0.0]), raw);
+    }
 
     /// Where the bands' spread of variance settles a complete spectrum's
     /// χ² test, it settles it as the band-by-band χ² does; it settles most

@@ -72,6 +72,9 @@ impl Solver {
                 self.set_noise(n);
             }
         }
+        // The level is fitted to the data as measured, against their own
+        // noise (a level from an earlier look is fitted afresh).
+        self.judge_noise(None);
         // Every mode takes the full sample: with half of it, `fast` once took
         // a few fits' local minima for a calibration error (a 1.4 % gain
         // that moved thicknesses by 5 σ on clean data).
@@ -88,7 +91,10 @@ impl Solver {
             if let Some(prep) = self.prepared.clone() {
                 let (sse, n_obs, n_par, _) = self.sample_sse(&prep, &sample, false);
                 let res = (sse / (n_obs - n_par).max(1.0)).sqrt();
-                let data = self.noise.as_ref().map_or(0.0, |n| n.typical_sigma(0.05));
+                let data = self
+                    .raw_noise
+                    .as_ref()
+                    .map_or(0.0, |n| n.typical_sigma(0.05));
                 if res.is_finite() && res > data {
                     // Scaled up as a whole: the bands keep their relative
                     // noise (a lamp's spectrum makes some bands noisier).
@@ -96,7 +102,7 @@ impl Solver {
                     // estimate may run low on camera noise, but a residual
                     // far above it is a misfit every pixel shares (a wrong
                     // film), which must fail, not raise the bar.
-                    let noise = match self.noise.take() {
+                    let noise = match self.raw_noise.take() {
                         Some(mut n) if data > 0.0 => {
                             let f = (res / data).min(RESIDUAL_FLOOR_MAX).powi(2);
                             n.var0.iter_mut().for_each(|v| *v *= f);
@@ -151,6 +157,11 @@ impl Solver {
                 }
             }
         }
+        // Pixels are solved on data corrected by the level, whose noise the
+        // level scales: σ/g (a gain of 0.92 left 4 % of clean pixels
+        // flagged when judged against the data's σ; one of 1.05 widened σ).
+        let level = (!self.level.is_identity()).then(|| self.level.clone());
+        self.judge_noise(level.as_ref());
         // Where the fringes are weak the profile is biased; measured and
         // removed once the level is settled (a level test at the corrected
         // index would read the profile's own minimum as a misfit to fix).
@@ -163,7 +174,7 @@ impl Solver {
             let prep = self.prepared.clone().expect("index prepared");
             let (sse, n_obs, n_par, _) = self.sample_sse(&prep, &sample, false);
             est.noise_sigma = (sse / (n_obs - n_par).max(1.0)).sqrt();
-        } else if let Some(n) = &self.noise {
+        } else if let Some(n) = &self.raw_noise {
             est.noise_sigma = n.typical_sigma(0.05);
         }
         self.set_film_index(est.clone())?;

@@ -687,8 +687,14 @@ pub struct Solver {
     d_max_given: bool,
     /// Largest optical thickness the bands resolve, nm, and what limits it.
     g_max: (f64, RangeLimit),
-    /// The noise model the fits are judged against, once known.
+    /// The noise model the fits are judged against, once known: the
+    /// data's own ([`Solver::raw_noise`]) while the level is fitted, and
+    /// the noise of the data corrected by the level in force once it is
+    /// settled ([`NoiseModel::under_level`]: σ/g).
     noise: Option<NoiseModel>,
+    /// The noise model of the data as measured (given, the camera's, or
+    /// estimated from the cube), with the scale accuracy.
+    raw_noise: Option<NoiseModel>,
     /// The same, where its variances do not depend on R (χ² without a
     /// division per band).
     flat_noise: Option<FlatNoise>,
@@ -843,6 +849,7 @@ impl Solver {
             d_max_given: scene.max_thickness_nm.is_some(),
             g_max,
             noise: None,
+            raw_noise: None,
             flat_noise: None,
             min_noise_var: 0.0,
             max_flat_var: f64::INFINITY,
@@ -1249,10 +1256,34 @@ impl Solver {
     }
 
     /// Use this noise model from now on (given, measured by the camera's
-    /// calibration, or estimated from the data).
+    /// calibration, or estimated from the data): the noise of the data as
+    /// measured; pixels solved under a level are judged against it as the
+    /// level carries it ([`NoiseModel::under_level`]).
     pub fn set_noise(&mut self, noise: NoiseModel) {
         let noise = noise.with_accuracy(self.scene.reflectance_accuracy);
         let typical = noise.typical_sigma(0.05);
+        self.raw_noise = Some(noise);
+        if let Some(i) = &mut self.index {
+            i.noise_sigma = typical;
+        }
+        let level = (!self.level.is_identity()).then(|| self.level.clone());
+        self.judge_noise(level.as_ref());
+    }
+
+    /// Judge fits against the measured noise as `level` (none: the
+    /// identity) carries it. Memos that read the noise start afresh only
+    /// where that changes it.
+    fn judge_noise(&mut self, level: Option<&Level>) {
+        let Some(raw) = &self.raw_noise else {
+            return;
+        };
+        let noise = match level {
+            Some(l) => raw.under_level(&l.gain, &l.offset),
+            None => raw.clone(),
+        };
+        if self.noise.as_ref() == Some(&noise) {
+            return;
+        }
         self.flat_noise = noise.flat();
         self.min_noise_var = noise.min_var();
         self.max_flat_var = self
@@ -1263,9 +1294,6 @@ impl Solver {
         self.weigh_bands = self.bands_weigh_differently();
         static NOISE_GEN: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
         self.noise_gen = NOISE_GEN.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        if let Some(i) = &mut self.index {
-            i.noise_sigma = typical;
-        }
         // The orders' gaps were refined to a stopping rule that reads the
         // noise: a new noise model starts them afresh, so a pixel's verdict
         // never depends on which noise model came before.
@@ -1281,9 +1309,10 @@ impl Solver {
         self.residual_noise_floor = on;
     }
 
-    /// The noise model in force, once known.
+    /// The noise model of the data as measured, once known (pixels under
+    /// a level are judged against it divided by the level's gain).
     pub fn noise(&self) -> Option<&NoiseModel> {
-        self.noise.as_ref()
+        self.raw_noise.as_ref()
     }
 
     /// The image-wide level in force and the level model it came from.
@@ -1299,6 +1328,8 @@ impl Solver {
         self.level_mode = mode;
         self.level_note = note;
         self.share_table = std::sync::OnceLock::new();
+        let level = (!self.level.is_identity()).then(|| self.level.clone());
+        self.judge_noise(level.as_ref());
     }
 
     /// The shortest and longest band centre, nm.
