@@ -44,6 +44,18 @@
 //! [`Band::needs_integration_for`] takes the actual amplitude, which a caller
 //! with the Fresnel coefficients has: `a = (R(cos Δ = 1) − R(cos Δ = −1)) / 2`.
 //!
+//! # How many nodes
+//!
+//! Rules of 3, 5 and 7 points are offered besides the 9-point one
+//! ([`Band::nodes_of`]). The `n`-point rule's error on a pure fringe is
+//! bounded by `u²ⁿ · n!/(2n)!`, but a film's reflectance is no pure
+//! fringe: its harmonics (relative size `|r12 r23|^{k−1}`) run `k` times
+//! faster and its phase `4πg/λ` is curved, and both are integrated worse
+//! than the fundamental. So the estimator does not trust a bound: it
+//! compares the film model on fewer nodes with the 9-point one where the
+//! error is largest, and keeps the fewest that agree within its tolerance
+//! (`estimate::solver`, `fewest_nodes`).
+//!
 //! Neglected: higher harmonics of `R(Δ)` (relative size `|r12 r23|`, and
 //! attenuated faster, as `A^{k²}`), higher orders of the phase curvature, and
 //! the much slower dispersion of the Fresnel coefficients. For `1 − A ≪ 1`, `1 − A ≈ (π · FWHM · 2g/λ²)²/(4 ln 2)`,
@@ -84,6 +96,52 @@ const GH_W: [f64; N_NODES] = [
     0.002789141321231769,
     2.2345844007746583e-05,
 ];
+
+/// The Gauss–Hermite rules a model may integrate a band with, fewest
+/// nodes first (odd, so the band centre is a node).
+pub const RULES: [usize; 4] = [3, 5, 7, 9];
+
+/// 3-, 5- and 7-point Gauss–Hermite abscissae and weights (÷ sqrt(π)).
+const GH3: ([f64; 3], [f64; 3]) = (
+    [-1.224_744_871_391_589, 0.0, 1.224_744_871_391_589],
+    [1.0 / 6.0, 2.0 / 3.0, 1.0 / 6.0],
+);
+const GH5: ([f64; 5], [f64; 5]) = (
+    [
+        -2.020_182_870_456_085_6,
+        -0.958_572_464_613_818_5,
+        0.0,
+        0.958_572_464_613_818_5,
+        2.020_182_870_456_085_6,
+    ],
+    [
+        0.011_257_411_327_720_693,
+        0.222_075_922_005_612_6,
+        0.533_333_333_333_333_3, // 8/15
+        0.222_075_922_005_612_6,
+        0.011_257_411_327_720_693,
+    ],
+);
+const GH7: ([f64; 7], [f64; 7]) = (
+    [
+        -2.651_961_356_835_233_4,
+        -1.673_551_628_767_471_4,
+        -0.816_287_882_858_964_6,
+        0.0,
+        0.816_287_882_858_964_6,
+        1.673_551_628_767_471_4,
+        2.651_961_356_835_233_4,
+    ],
+    [
+        0.000_548_268_855_972_218_2,
+        0.030_757_123_967_586_51,
+        0.240_123_178_605_012_73,
+        0.457_142_857_142_857_13, // 16/35
+        0.240_123_178_605_012_73,
+        0.030_757_123_967_586_51,
+        0.000_548_268_855_972_218_2,
+    ],
+);
 
 /// FWHM / σ of a Gaussian: 2 sqrt(2 ln 2).
 const FWHM_PER_SIGMA: f64 = 2.3548200450309493;
@@ -131,6 +189,23 @@ impl Band {
     pub fn nodes(&self) -> [(f64, f64); N_NODES] {
         let h = std::f64::consts::SQRT_2 * self.sigma_nm();
         std::array::from_fn(|i| (self.center_nm + h * GH_X[i], GH_W[i]))
+    }
+
+    /// The nodes of the `n`-point rule (one of [`RULES`]; any other count
+    /// above 1 takes the 9-point rule, 1 or less the band centre alone).
+    pub fn nodes_of(&self, n: usize) -> Vec<(f64, f64)> {
+        let (x, w): (&[f64], &[f64]) = match n {
+            0 | 1 => return vec![(self.center_nm, 1.0)],
+            3 => (&GH3.0, &GH3.1),
+            5 => (&GH5.0, &GH5.1),
+            7 => (&GH7.0, &GH7.1),
+            _ => (&GH_X, &GH_W),
+        };
+        let h = std::f64::consts::SQRT_2 * self.sigma_nm();
+        x.iter()
+            .zip(w)
+            .map(|(&x, &w)| (self.center_nm + h * x, w))
+            .collect()
     }
 
     /// `∫ f(λ) g(λ) dλ` over the normalised Gaussian passband.
@@ -208,6 +283,42 @@ mod tests {
             dfact *= (2 * k + 1) as f64;
         }
         assert!((b.integrate(|_| 0.37) - 0.37).abs() < 1e-15);
+    }
+
+    /// Every rule integrates the Gaussian's moments exactly up to degree
+    /// 2n − 1 (the even ones are (2k − 1)!!), and misses the next even one:
+    /// so its nodes and weights are those of the n-point rule.
+    #[test]
+    fn every_rule_has_the_moments_of_a_gaussian_to_its_degree() {
+        let b = Band::new(500.0, 10.0).unwrap();
+        let s = b.sigma_nm();
+        for n in RULES {
+            let nodes = b.nodes_of(n);
+            assert_eq!(nodes.len(), n);
+            let moment = |p: i32| -> f64 {
+                nodes
+                    .iter()
+                    .map(|&(l, w)| w * ((l - 500.0) / s).powi(p))
+                    .sum()
+            };
+            let mut dfact = 1.0;
+            for k in 0..n {
+                let m = moment(2 * k as i32);
+                assert!(
+                    (m - dfact).abs() <= 1e-12 * dfact,
+                    "{n} nodes, moment {}: {m}",
+                    2 * k
+                );
+                assert!(moment(2 * k as i32 + 1).abs() <= 1e-11 * dfact.max(1.0));
+                dfact *= (2 * k + 1) as f64;
+            }
+            // Degree 2n: (2n − 1)!! exactly is beyond the rule.
+            assert!(
+                (moment(2 * n as i32) - dfact).abs() > 1e-3 * dfact,
+                "{n} nodes"
+            );
+        }
+        assert_eq!(b.nodes_of(1), vec![(500.0, 1.0)]);
     }
 
     #[test]

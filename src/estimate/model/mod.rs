@@ -497,7 +497,8 @@ impl FilmModel {
     }
 
     /// Build the model. `integrate[i]` selects passband integration for band
-    /// `i` (if it has a width); other bands are point-sampled at their centre.
+    /// `i` (if it has a width, with the 9-point rule); other bands are
+    /// point-sampled at their centre.
     pub fn new(
         bands: &[Band],
         ambient: &Dispersion,
@@ -506,14 +507,31 @@ impl FilmModel {
         pol: Polarization,
         integrate: &[bool],
     ) -> Result<FilmModel, (&'static str, crate::optics::dispersion::OpticsError)> {
+        let nodes: Vec<usize> = integrate
+            .iter()
+            .map(|&i| if i { crate::optics::band::N_NODES } else { 1 })
+            .collect();
+        Self::with_nodes(bands, ambient, film, substrate, pol, &nodes)
+    }
+
+    /// Build the model with band `i`'s passband integrated on `nodes[i]`
+    /// Gauss–Hermite nodes ([`Band::nodes_of`]; 1, or a band without a
+    /// width: its centre alone).
+    pub fn with_nodes(
+        bands: &[Band],
+        ambient: &Dispersion,
+        film: &Dispersion,
+        substrate: &Dispersion,
+        pol: Polarization,
+        nodes_per_band: &[usize],
+    ) -> Result<FilmModel, (&'static str, crate::optics::dispersion::OpticsError)> {
         let mut nodes: Vec<Node> = Vec::new();
         for (i, band) in bands.iter().enumerate() {
-            let pts: Vec<(f64, f64)> =
-                if integrate.get(i).copied().unwrap_or(false) && band.fwhm_nm > 0.0 {
-                    band.nodes().to_vec()
-                } else {
-                    vec![(band.center_nm, 1.0)]
-                };
+            let n = match band.fwhm_nm > 0.0 {
+                true => nodes_per_band.get(i).copied().unwrap_or(1),
+                false => 1,
+            };
+            let pts = band.nodes_of(n);
             for (lambda, weight) in pts {
                 nodes.push(Node {
                     band: i,

@@ -655,7 +655,7 @@ impl Solver {
     /// the measured values' derivative with respect to the index, by a
     /// forward difference, where the index is estimated with the level.
     pub(super) fn index_step_model(&self, n: f64) -> Option<FilmModel> {
-        FilmModel::new(
+        FilmModel::with_nodes(
             &self.bands,
             &self.scene.ambient,
             &Dispersion::constant(n + INDEX_DN),
@@ -664,7 +664,7 @@ impl Solver {
             &self
                 .prepared
                 .as_ref()
-                .map_or_else(|| vec![false; self.bands.len()], |p| p.integrate.clone()),
+                .map_or_else(|| vec![1; self.bands.len()], |p| p.integrate.clone()),
         )
         .ok()
     }

@@ -53,6 +53,7 @@
 //! - `free.rs`: the per-pixel free level (normalised intensities).
 //! - `judge.rs`: the fit-quality test and flags against the noise model,
 //!   the physical thickness range and the search bounds.
+//! - `passband.rs`: how many quadrature nodes each band's passband takes.
 //! - `linalg.rs`: 3×3 linear algebra.
 
 mod alternatives;
@@ -70,6 +71,7 @@ mod level_fit;
 mod level_hedge;
 mod linalg;
 mod order_gaps;
+mod passband;
 mod pixel;
 mod poor;
 mod profile_bias;
@@ -637,8 +639,9 @@ struct Prepared {
     /// Real ambient and substrate indices at the middle band, when the
     /// half-wave level can be inverted in closed form (lossless, s or p).
     closed_form: Option<(f64, f64, Polarization)>,
-    /// Which bands `model` integrates over their passband.
-    integrate: Vec<bool>,
+    /// How many quadrature nodes `model` integrates each band's passband
+    /// on (1: its centre alone).
+    integrate: Vec<usize>,
     /// The model over thickness at each known angle (`fast`, `balanced`).
     tables: table::Tables,
     /// `fast` with the angle free: tables on a fine angle grid, built as
@@ -920,18 +923,18 @@ impl Solver {
     /// index is most of the search's cost on a spectrometer's hundreds of
     /// bands and tens of micrometres of range).
     fn prepare_with(&self, film: &Dispersion, tabled: bool) -> Result<Prepared, EstimateError> {
-        let model_with = |integrate: &[bool]| {
-            FilmModel::new(
+        let model_with = |nodes: &[usize]| {
+            FilmModel::with_nodes(
                 &self.bands,
                 &self.scene.ambient,
                 film,
                 &self.scene.substrate,
                 self.scene.polarization,
-                integrate,
+                nodes,
             )
             .map_err(|(medium, source)| EstimateError::Optics { medium, source })
         };
-        let point = model_with(&vec![false; self.bands.len()])?;
+        let point = model_with(&vec![1; self.bands.len()])?;
         let (lo, hi) = self.theta_range;
         // The envelopes of the point-sampled model (the closed form's
         // levels and the range of what a film can reflect).
@@ -971,7 +974,7 @@ impl Solver {
         // the range's smallest angle) and the largest fringe amplitude; the
         // model every fit and table of this index then uses.
         let g_top = self.d_max * point.q2_mid(lo);
-        let integrate: Vec<bool> = self
+        let integrated: Vec<bool> = self
             .bands
             .iter()
             .map(|b| {
@@ -979,10 +982,38 @@ impl Solver {
                     && b.needs_integration_for(g_top, fringe_amplitude, INTEGRATION_TOLERANCE)
             })
             .collect();
-        let model = if integrate.iter().any(|&i| i) {
-            model_with(&integrate)?
+        let (integrate, model) = if integrated.iter().any(|&i| i) {
+            // On each band the fewest quadrature nodes within the
+            // tolerance (`passband.rs`).
+            let nine: Vec<usize> = integrated
+                .iter()
+                .map(|&i| if i { crate::optics::band::N_NODES } else { 1 })
+                .collect();
+            let full = model_with(&nine)?;
+            // Up to the thickest film the bands resolve: past it a fit is
+            // flagged whatever the model (`judge.rs`, the range rule).
+            let q = point.q2_mid(lo);
+            let probes = passband::Probes {
+                d_range: (self.d_min, self.d_max.min(self.g_max.0 / q).max(self.d_min)),
+                theta_range: (lo, hi),
+                period_nm: self.band_span().0 / (2.0 * q),
+            };
+            let nodes = passband::fewest_nodes(
+                &full,
+                &integrated,
+                &probes,
+                INTEGRATION_TOLERANCE,
+                model_with,
+            )?;
+            tracing::debug!(?nodes, "passband nodes per band");
+            if nodes == nine {
+                (nodes, full)
+            } else {
+                let model = model_with(&nodes)?;
+                (nodes, model)
+            }
         } else {
-            point
+            (vec![1; self.bands.len()], point)
         };
         let slopes = Slopes::new(&table);
         let envelope_range = table
