@@ -70,6 +70,40 @@ fn the_wrong_polarisation_is_flagged_not_fitted() {
     }
 }
 
+/// A film index *given* wrong (1.37 for a film of 1.39, the angles free):
+/// a gain of ~0.75 with an offset per band explains every sample pixel,
+/// and the level's halves and the image test pass it (1.4 σ each). Taken
+/// as a calibration error it made every pixel valid and ~34 nm off.
+/// `auto` takes no gain beyond ±15 % for a calibration error
+/// (`MAX_AUTO_GAIN_ERROR`): the image is flagged, every pixel. A real
+/// calibration error of 8 % is still corrected
+/// (`estimate_trust::calibration_errors_are_corrected_by_default_and_flagged_when_absolute`),
+/// and the same cube with the index free reads 1.39 and its thicknesses.
+#[test]
+fn a_film_index_given_wrong_is_not_taken_for_a_calibration_error() {
+    let film139 = irid::scene::PAPER_CYLINDER.replace("film_n = 1.37", "film_n = 1.39");
+    let (cube, truth) = render(&scene(&film139));
+    let given = irid::scene::PAPER_CYLINDER.replace("search = [1.0, 1.6]", "n = 1.37");
+    for mode in [Mode::Fast, Mode::Balanced] {
+        let (maps, solver) = fit(&scene(&given), &cube, mode);
+        let note = solver.level().2;
+        eprintln!("{mode:?}: {:?} {note}", compare(&maps, &truth));
+        assert!(
+            note.contains("beyond a calibration error"),
+            "{mode:?}: {note}"
+        );
+        assert_eq!(maps.valid_count(), 0, "{mode:?}");
+    }
+    let (maps, solver) = fit(&scene(irid::scene::PAPER_CYLINDER), &cube, Mode::Balanced);
+    let acc = compare(&maps, &truth);
+    let n = solver.film_index().unwrap().n;
+    assert!((n - 1.39).abs() < 0.002, "index {n}");
+    assert!(
+        acc.valid_fraction > 0.97 && acc.thickness_mae_nm < 0.5,
+        "{acc:?}"
+    );
+}
+
 #[test]
 fn clean_images_are_not_rejected() {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/scenes");

@@ -782,7 +782,13 @@ seed = 3
         assert_eq!(solver.level().1, LevelMode::Absolute, "{mode:?}: {note}");
         if mode != Mode::Accurate {
             // `accurate` integrates passbands and tests no level.
-            assert!(note.contains("no calibration error"), "{mode:?}: {note}");
+            // The halves part, or the level's gain (0.85) is beyond a
+            // calibration's (`MAX_AUTO_GAIN_ERROR`): either flags it.
+            assert!(
+                note.contains("no calibration error")
+                    || note.contains("beyond a calibration error"),
+                "{mode:?}: {note}"
+            );
         }
     }
 }

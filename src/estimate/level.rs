@@ -83,6 +83,16 @@ pub const MAX_GAIN_ERROR: f64 = 0.3;
 /// Largest offset `scaled` corrects (see [`MAX_GAIN_ERROR`]).
 pub const MAX_OFFSET: f64 = 0.05;
 
+/// Largest mean gain error `auto` takes for a calibration error. A white
+/// reference, lamp drift or a reference tile's own table is off by a few
+/// percent (the cases: 5 % high, 8 % low, ±6 % per band); 15 % is
+/// twice the largest. A larger level is a model error it would absorb: on
+/// the paper's cylinder a film index given 1.5 % off (1.37 for 1.39, the
+/// angle free) took a gain of 0.754 and an offset per band, and every
+/// pixel came out valid and 34 nm off. `auto` flags such an image instead;
+/// `scaled`, asked for, still corrects up to [`MAX_GAIN_ERROR`].
+pub const MAX_AUTO_GAIN_ERROR: f64 = 0.15;
+
 /// An image-wide level: `y_k = gain[k]·R_k + offset[k]`, with covariances.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Level {

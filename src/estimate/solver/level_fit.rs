@@ -10,7 +10,7 @@ use super::index::SamplePixel;
 use super::level_hedge::Look;
 use super::{Effort, IndexEstimate, Job, Scratch, Solver};
 use crate::estimate::level::{
-    level_step, Level, LevelBasis, LevelMode, LevelPixel, AUTO_PROBABILITY,
+    level_step, Level, LevelBasis, LevelMode, LevelPixel, AUTO_PROBABILITY, MAX_AUTO_GAIN_ERROR,
 };
 use crate::estimate::model::{FilmModel, ModelOut};
 use crate::estimate::quality::chi2_upper_quantile;
@@ -271,6 +271,19 @@ impl Solver {
             );
             self.level = identity;
             self.level_mode = LevelMode::Absolute;
+            if unknown_index {
+                self.set_film_index(est_abs.clone())?;
+            }
+            return Ok(None);
+        }
+        if want && self.scene.level == LevelMode::Auto && (g - 1.0).abs() > MAX_AUTO_GAIN_ERROR {
+            self.level_note = format!(
+                "absolute: the image's misfit would take a gain of {g:.3} (offset {o:.4}), beyond a calibration error (±{:.0} %): a wrong film index, substrate or polarisation? every pixel flagged poor fit (use --level scaled if the reflectance scale is known to be that far off)",
+                100.0 * MAX_AUTO_GAIN_ERROR
+            );
+            self.level = identity;
+            self.level_mode = LevelMode::Absolute;
+            self.calibration_suspect = true;
             if unknown_index {
                 self.set_film_index(est_abs.clone())?;
             }
