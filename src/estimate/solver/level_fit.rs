@@ -266,28 +266,17 @@ impl Solver {
         }
         let want = self.scene.level == LevelMode::Scaled || significant;
         if want && !level.is_plausible() {
-            self.level_note = format!(
+            let note = format!(
                 "absolute: the fitted level (gain {g:.3}, offset {o:.4}) is no calibration error but data that are not reflectance; pixels are judged as they are (use --level free for normalised intensities)"
             );
-            self.level = identity;
-            self.level_mode = LevelMode::Absolute;
-            if unknown_index {
-                self.set_film_index(est_abs.clone())?;
-            }
-            return Ok(None);
+            return self.refuse_level(note, false, unknown_index.then_some(est_abs));
         }
         if want && self.scene.level == LevelMode::Auto && (g - 1.0).abs() > MAX_AUTO_GAIN_ERROR {
-            self.level_note = format!(
+            let note = format!(
                 "absolute: the image's misfit would take a gain of {g:.3} (offset {o:.4}), beyond a calibration error (±{:.0} %): a wrong film index, substrate or polarisation? every pixel flagged poor fit (use --level scaled if the reflectance scale is known to be that far off)",
                 100.0 * MAX_AUTO_GAIN_ERROR
             );
-            self.level = identity;
-            self.level_mode = LevelMode::Absolute;
-            self.calibration_suspect = true;
-            if unknown_index {
-                self.set_film_index(est_abs.clone())?;
-            }
-            return Ok(None);
+            return self.refuse_level(note, true, unknown_index.then_some(est_abs));
         }
         let mut halves = None;
         if want && chi2_scaled.is_finite() {
@@ -299,16 +288,10 @@ impl Solver {
             halves = self.level_halves_z(sample, &scaled_px, &level, basis, &est, &wn, &var)?;
             if let Some(z) = halves {
                 if z > MAX_HALVES_Z {
-                    self.level_note = format!(
+                    let note = format!(
                         "absolute: the image's misfit is no calibration error (a level fitted on its thinner films and one on its thicker differ by {z:.1} σ: a wrong polarisation, film or substrate?): every pixel flagged poor fit"
                     );
-                    self.level = identity;
-                    self.level_mode = LevelMode::Absolute;
-                    self.calibration_suspect = true;
-                    if unknown_index {
-                        self.set_film_index(est_abs.clone())?;
-                    }
-                    return Ok(None);
+                    return self.refuse_level(note, true, unknown_index.then_some(est_abs));
                 }
             }
         }
@@ -385,6 +368,25 @@ impl Solver {
             }
             Ok(None)
         }
+    }
+
+    /// Keep the calibration (`absolute`) with `note`; every pixel flagged
+    /// where `suspect`; the index searched on the raw sample (`est_abs`,
+    /// where the index is unknown) stands.
+    fn refuse_level(
+        &mut self,
+        note: String,
+        suspect: bool,
+        est_abs: Option<&IndexEstimate>,
+    ) -> Result<Option<IndexEstimate>, EstimateError> {
+        self.level_note = note;
+        self.level = Level::identity(self.bands.len());
+        self.level_mode = LevelMode::Absolute;
+        self.calibration_suspect |= suspect;
+        if let Some(est) = est_abs {
+            self.set_film_index(est.clone())?;
+        }
+        Ok(None)
     }
 
     /// A level of `basis` fitted from the identity, the index (where
