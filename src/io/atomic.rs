@@ -61,7 +61,7 @@ pub fn exists_error(path: &Path) -> IoError {
 /// Refuse early (before any work) if `path` exists and may not be
 /// replaced; [`write_atomically`] checks again when it writes.
 pub fn check_new(path: &Path, overwrite: Overwrite) -> Result<(), IoError> {
-    if overwrite == Overwrite::Refuse && path.symlink_metadata().is_ok() {
+    if overwrite == Overwrite::Refuse && path.symlink_metadata().is_ok() && !is_special(path) {
         return Err(exists_error(path));
     }
     Ok(())
@@ -75,6 +75,14 @@ pub fn write_atomically(
     overwrite: Overwrite,
     body: impl FnOnce(&mut BufWriter<File>) -> std::io::Result<()>,
 ) -> Result<(), IoError> {
+    // A device or a pipe (`--out /dev/null`, `/dev/stdout`, a FIFO) is
+    // written in place: a rename would replace it with a regular file
+    // (`/dev/null` became one, and everything that read it since read
+    // what had been written there).
+    // Nothing is lost there, so it is written with or without `--force`.
+    if is_special(path) {
+        return write_in_place(path, body).map_err(|e| IoError::os(path, e));
+    }
     let tmp = temp_path(path)?;
     let written = (|| {
         let file = File::options().write(true).create_new(true).open(&tmp)?;
@@ -113,6 +121,23 @@ pub fn write_atomically(
     Ok(())
 }
 
+/// Whether `path` names an existing device, pipe or socket (followed
+/// through links): a stream, not a file a result is kept in.
+fn is_special(path: &Path) -> bool {
+    std::fs::metadata(path).is_ok_and(|m| !m.is_file() && !m.is_dir())
+}
+
+/// Write through `body` into an existing special file (a device, a pipe).
+fn write_in_place(
+    path: &Path,
+    body: impl FnOnce(&mut BufWriter<File>) -> std::io::Result<()>,
+) -> std::io::Result<()> {
+    let file = File::options().write(true).open(path)?;
+    let mut w = BufWriter::new(file);
+    body(&mut w)?;
+    w.flush()
+}
+
 /// [`write_atomically`] of a byte buffer.
 pub fn write_bytes(path: &Path, overwrite: Overwrite, bytes: &[u8]) -> Result<(), IoError> {
     write_atomically(path, overwrite, |w| w.write_all(bytes))
@@ -128,6 +153,43 @@ mod tests {
             .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
             .filter(|n| n.contains(".tmp-"))
             .collect()
+    }
+
+    /// A pipe named as the output is written through, not replaced by a
+    /// regular file (as `--out /dev/null --force` once replaced
+    /// `/dev/null`), with or without `--force`: a stream holds no result
+    /// to lose.
+    #[cfg(unix)]
+    #[test]
+    fn a_pipe_or_device_is_written_in_place_not_replaced() {
+        use std::os::unix::fs::FileTypeExt;
+        let dir = tempfile::tempdir().unwrap();
+        let fifo = dir.path().join("out.csv");
+        let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+        if !made.is_ok_and(|s| s.success()) {
+            eprintln!("no mkfifo here: skipped");
+            return;
+        }
+        let reader = {
+            let fifo = fifo.clone();
+            std::thread::spawn(move || std::fs::read(fifo).unwrap())
+        };
+        write_bytes(&fifo, Overwrite::Replace, b"d,sigma\n").unwrap();
+        assert_eq!(reader.join().unwrap(), b"d,sigma\n");
+        let kind = std::fs::symlink_metadata(&fifo).unwrap().file_type();
+        assert!(kind.is_fifo(), "{kind:?}");
+        assert!(leftovers(dir.path()).is_empty());
+        check_new(&fifo, Overwrite::Refuse).unwrap();
+        let reader = {
+            let fifo = fifo.clone();
+            std::thread::spawn(move || std::fs::read(fifo).unwrap())
+        };
+        write_bytes(&fifo, Overwrite::Refuse, b"x").unwrap();
+        assert_eq!(reader.join().unwrap(), b"x");
+        assert!(std::fs::symlink_metadata(&fifo)
+            .unwrap()
+            .file_type()
+            .is_fifo());
     }
 
     #[test]

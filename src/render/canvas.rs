@@ -117,17 +117,14 @@ impl RgbImage {
 }
 
 /// Write `bytes` to `path` through a temporary file in the same directory,
-/// so a reader (the live view, a browser) never sees half a file.
+/// so a reader (the live view, a browser) never sees half a file
+/// ([`crate::io::atomic`]: synced, and a device or pipe written in place).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), RenderError> {
-    let err = |e: std::io::Error| RenderError::Write {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    };
-    let mut tmp = path.as_os_str().to_owned();
-    tmp.push(".tmp");
-    let tmp = std::path::PathBuf::from(tmp);
-    std::fs::write(&tmp, bytes).map_err(err)?;
-    std::fs::rename(&tmp, path).map_err(err)
+    Ok(crate::io::atomic::write_bytes(
+        path,
+        crate::io::atomic::Overwrite::Replace,
+        bytes,
+    )?)
 }
 
 /// Decode a PNG (8-bit RGB or RGBA) back to an [`RgbImage`] (for tests and
