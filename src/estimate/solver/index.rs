@@ -74,7 +74,7 @@ impl Solver {
         }
         // The level is fitted to the data as measured, against their own
         // noise (a level from an earlier look is fitted afresh).
-        self.judge_noise(None);
+        self.judge_noise(false);
         // Every mode takes the full sample: with half of it, `fast` once took
         // a few fits' local minima for a calibration error (a 1.4 % gain
         // that moved thicknesses by 5 σ on clean data).
@@ -160,8 +160,7 @@ impl Solver {
         // Pixels are solved on data corrected by the level, whose noise the
         // level scales: σ/g (a gain of 0.92 left 4 % of clean pixels
         // flagged when judged against the data's σ; one of 1.05 widened σ).
-        let level = (!self.level.is_identity()).then(|| self.level.clone());
-        self.judge_noise(level.as_ref());
+        self.judge_noise(true);
         // Where the fringes are weak the profile is biased; measured and
         // removed once the level is settled (a level test at the corrected
         // index would read the profile's own minimum as a misfit to fix).

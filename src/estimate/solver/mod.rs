@@ -1297,20 +1297,19 @@ impl Solver {
         if let Some(i) = &mut self.index {
             i.noise_sigma = typical;
         }
-        let level = (!self.level.is_identity()).then(|| self.level.clone());
-        self.judge_noise(level.as_ref());
+        self.judge_noise(true);
     }
 
-    /// Judge fits against the measured noise as `level` (none: the
-    /// identity) carries it. Memos that read the noise start afresh only
-    /// where that changes it.
-    fn judge_noise(&mut self, level: Option<&Level>) {
+    /// Judge fits against the measured noise, as the level in force
+    /// carries it where `under_level` (the identity leaves it as it is).
+    /// Memos that read the noise start afresh only where that changes it.
+    fn judge_noise(&mut self, under_level: bool) {
         let Some(raw) = &self.raw_noise else {
             return;
         };
-        let noise = match level {
-            Some(l) => raw.under_level(&l.gain, &l.offset),
-            None => raw.clone(),
+        let noise = match under_level {
+            true => raw.under_level(&self.level.gain, &self.level.offset),
+            false => raw.clone(),
         };
         if self.noise.as_ref() == Some(&noise) {
             return;
@@ -1359,8 +1358,7 @@ impl Solver {
         self.level_mode = mode;
         self.level_note = note;
         self.share_table = std::sync::OnceLock::new();
-        let level = (!self.level.is_identity()).then(|| self.level.clone());
-        self.judge_noise(level.as_ref());
+        self.judge_noise(true);
     }
 
     /// The shortest and longest band centre, nm.
