@@ -17,7 +17,8 @@
 //!   takes its bands from the cube header).
 //! - `[measurement]`: the instrument — `noise_sigma` (reflectance noise σ),
 //!   `reflectance_accuracy` (the reflectance scale's accuracy, a fraction
-//!   of R) and `level` (`auto`, `absolute`, `scaled`, `free`).
+//!   of R), `level` (`auto`, `absolute`, `scaled`, `free`) and
+//!   `band_shift` (`"auto"`, `"none"` or the filter's wavelength error in nm).
 //! - `[truth]`: the synthetic ground truth (size, film index, thickness and
 //!   angle fields, noise, seed) for `irid synth` and the synthetic camera.
 //!
@@ -178,6 +179,56 @@ pub struct MeasurementSpec {
     pub reflectance_accuracy: Option<f64>,
     /// `auto`, `absolute`, `scaled` or `free` (default `auto`).
     pub level: Option<String>,
+    /// The filter's wavelength calibration: `"auto"` (default: an
+    /// image-wide shift of every band centre fitted where the data need
+    /// it), `"none"`, or the shift in nm (the true centres are the
+    /// nominal ones plus it).
+    pub band_shift: Option<BandShiftSpec>,
+}
+
+/// `[measurement] band_shift` as written: a name or a number of nm.
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
+#[serde(untagged)]
+pub enum BandShiftSpec {
+    /// A shift in nm.
+    Nm(f64),
+    /// `"auto"` or `"none"`.
+    Name(String),
+}
+
+/// How the band centres are taken: as given, shifted by a known amount,
+/// or with an image-wide shift fitted where the data need it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum BandShift {
+    /// Fitted where the data show it (`estimate::solver::band_shift`).
+    Auto,
+    /// Known: every true centre is the nominal one plus this many nm (0:
+    /// the centres as given).
+    Given(f64),
+}
+
+/// The largest band shift a scene may give, nm: past it the header's
+/// wavelengths, not the filter's calibration, are wrong.
+pub const MAX_BAND_SHIFT_GIVEN_NM: f64 = 50.0;
+
+impl BandShiftSpec {
+    /// Resolve a written shift (`field` names it in errors).
+    pub fn resolve(&self) -> Result<BandShift, String> {
+        match self {
+            BandShiftSpec::Name(n) if n == "auto" => Ok(BandShift::Auto),
+            BandShiftSpec::Name(n) if n == "none" => Ok(BandShift::Given(0.0)),
+            BandShiftSpec::Name(n) => match n.trim().parse::<f64>() {
+                Ok(v) => BandShiftSpec::Nm(v).resolve(),
+                Err(_) => Err(format!("\"auto\", \"none\" or a shift in nm; not {n:?}")),
+            },
+            BandShiftSpec::Nm(v) if v.is_finite() && v.abs() <= MAX_BAND_SHIFT_GIVEN_NM => {
+                Ok(BandShift::Given(*v))
+            }
+            BandShiftSpec::Nm(v) => Err(format!(
+                "a shift within ±{MAX_BAND_SHIFT_GIVEN_NM} nm, not {v}"
+            )),
+        }
+    }
 }
 
 /// The `[angle]` section.
@@ -407,6 +458,8 @@ pub struct Scene {
     pub reflectance_accuracy: f64,
     /// How the instrument's level is modelled.
     pub level: LevelMode,
+    /// How the band centres are taken (the filter's wavelength calibration).
+    pub band_shift: BandShift,
 }
 
 /// Resolved synthetic truth.
@@ -548,6 +601,12 @@ impl Scene {
                 )
             })?,
         };
+        let band_shift = match &file.measurement.band_shift {
+            None => BandShift::Auto,
+            Some(b) => b
+                .resolve()
+                .map_err(|m| invalid("measurement.band_shift", m))?,
+        };
         let a = &file.angle;
         let angle = match (a.deg, &a.map) {
             (Some(_), Some(_)) => return Err(invalid("angle", "give `deg` or `map`, not both")),
@@ -605,6 +664,7 @@ impl Scene {
             noise_sigma,
             reflectance_accuracy,
             level,
+            band_shift,
         })
     }
 }

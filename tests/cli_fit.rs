@@ -215,6 +215,90 @@ fn fit_argument_errors() {
     );
 }
 
+/// A filter 2 nm off its calibration: the cube rendered at 402–702 nm,
+/// its header naming 400–700 nm. `auto` finds the shift (JSON, EXR
+/// attribute) and the thicknesses are right; bad `--band-shift` values
+/// are refused naming the option.
+#[test]
+fn fit_finds_a_filter_off_its_wavelength_calibration() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("shifted.toml");
+    std::fs::write(
+        &scene,
+        irid::scene::PAPER_CYLINDER
+            .replace("start_nm = 400", "start_nm = 402")
+            .replace("stop_nm = 700", "stop_nm = 702"),
+    )
+    .unwrap();
+    let cube = dir.path().join("cube.hdr");
+    ok(&["synth", "--scene", s(&scene), "--out", s(&cube)]);
+    let header = std::fs::read_to_string(&cube).unwrap();
+    let nominal: Vec<String> = (0..31).map(|k| (400 + 10 * k).to_string()).collect();
+    let start = header
+        .find("wavelength = {")
+        .expect("wavelengths in the header");
+    let end = start + header[start..].find('}').unwrap() + 1;
+    let fixed = format!(
+        "{}wavelength = {{{}}}{}",
+        &header[..start],
+        nominal.join(", "),
+        &header[end..]
+    );
+    std::fs::write(&cube, fixed).unwrap();
+    let maps_path = dir.path().join("maps.exr");
+    let out = ok(&[
+        "fit",
+        s(&cube),
+        "--scene",
+        s(&scene_file()),
+        "--out",
+        s(&maps_path),
+        "--json",
+    ]);
+    let j = summary(&out);
+    let (got, sigma) = (
+        j["band_shift_nm"].as_f64().unwrap(),
+        j["band_shift_sigma_nm"].as_f64().unwrap(),
+    );
+    assert!(sigma > 0.0 && (got - 2.0).abs() <= 3.0 * sigma, "{j}");
+    let maps = read_maps(&maps_path).unwrap();
+    assert!(
+        maps.meta
+            .quality
+            .iter()
+            .any(|(k, v)| k == "band_shift" && v.contains("fitted")),
+        "{:?}",
+        maps.meta.quality
+    );
+    // The header's wavelengths are kept as the cube named them.
+    assert_eq!(maps.meta.wavelengths_nm[0], 400.0);
+    let truth = read_channels(&dir.path().join("cube.truth.exr")).unwrap();
+    let t = truth.channel("thickness_nm").unwrap();
+    let errs: Vec<f64> = (0..t.len())
+        .filter(|&i| maps.valid[i] > 0.5)
+        .map(|i| (maps.thickness_nm[i] - t[i]).abs() as f64)
+        .collect();
+    assert!(errs.len() >= 1900, "{} valid", errs.len());
+    let mae = errs.iter().sum::<f64>() / errs.len() as f64;
+    assert!(mae <= 0.5, "mean |error| {mae} nm");
+    for bad in ["sideways", "60", "nan"] {
+        fails_with(
+            &[
+                "fit",
+                s(&cube),
+                "--scene",
+                s(&scene_file()),
+                "--out",
+                s(&maps_path),
+                "--force",
+                "--band-shift",
+                bad,
+            ],
+            &["--band-shift"],
+        );
+    }
+}
+
 fn summary(out: &Output) -> serde_json::Value {
     let text = String::from_utf8(out.stdout.clone()).unwrap();
     assert_eq!(text.lines().count(), 1, "{text}");
@@ -252,6 +336,10 @@ fn synth_then_fit_recovers_the_cylinder() {
     }
     assert_eq!(j["pixels"], 1960);
     assert_eq!(j["mode"], "balanced");
+    // A calibrated filter: no band shift taken, and the summary says why.
+    assert_eq!(j["band_shift_nm"], 0.0);
+    let note = j["band_shift_note"].as_str().unwrap();
+    assert!(note.starts_with("none"), "{note}");
     let n = j["n_film"].as_f64().unwrap();
     assert!((n - 1.37).abs() < 0.001, "n_film {n}");
     let maps = read_maps(&maps_path).unwrap();

@@ -145,6 +145,11 @@ pub struct SceneOverrides {
     /// offset and envelope: normalised intensities).
     #[arg(long, value_enum, value_name = "MODE")]
     pub level: Option<LevelMode>,
+    /// The filter's wavelength calibration: `auto` (an image-wide shift of
+    /// every band centre, fitted where the data show one), `none`, or the
+    /// shift in nm (true centre = nominal + shift).
+    #[arg(long, value_name = "auto|none|NM", allow_hyphen_values = true)]
+    pub band_shift: Option<String>,
     /// Thinnest film considered, nm (default 0).
     #[arg(long, value_name = "NM")]
     pub min_thickness_nm: Option<f64>,
@@ -203,6 +208,13 @@ impl SceneOverrides {
         }
         if let Some(l) = self.level {
             file.measurement.level = Some(l.name().into());
+        }
+        if let Some(b) = &self.band_shift {
+            let spec = crate::scene::BandShiftSpec::Name(b.clone());
+            if let Err(m) = spec.resolve() {
+                bail!("--band-shift: {m}");
+            }
+            file.measurement.band_shift = Some(spec);
         }
         if let Some(d) = self.min_thickness_nm {
             file.film.min_thickness_nm = Some(d);

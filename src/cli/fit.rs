@@ -130,6 +130,12 @@ pub struct Summary {
     pub level_offset: f64,
     /// What the level estimate found.
     pub level_note: String,
+    /// The band shift in force, nm (true centre = nominal + shift).
+    pub band_shift_nm: f64,
+    /// Its σ, nm (0: given or none).
+    pub band_shift_sigma_nm: f64,
+    /// How the band shift was found (empty: none asked for).
+    pub band_shift_note: String,
     /// The film-index note (twin resolved or not, search bound).
     pub n_film_note: String,
     /// The index twin could not be told apart: σ spans both branches.
@@ -481,6 +487,9 @@ pub fn run(a: &FitArgs) -> anyhow::Result<()> {
         level_gain: solver.level().0.mean().0,
         level_offset: solver.level().0.mean().1,
         level_note: solver.level().2.to_string(),
+        band_shift_nm: solver.band_shift().0,
+        band_shift_sigma_nm: solver.band_shift().1,
+        band_shift_note: solver.band_shift().2.to_string(),
         n_film_note: maps.meta.n_film_note.clone(),
         n_film_ambiguous: solver.film_index().is_some_and(|i| i.ambiguous),
         thickness_range_nm: {
@@ -534,7 +543,7 @@ fn human_summary(s: &Summary, maps: &ParamMaps, out: &std::path::Path) -> String
         text.push_str(&format!("\n  film index: {}", maps.meta.n_film_note));
     }
     text.push_str(&format!(
-        "\n  judged against noise σ = {:.2e} ({}){}; level {}{}; thickness {:.0}–{:.0} nm",
+        "\n  judged against noise σ = {:.2e} ({}){}; level {}{}; band shift {}; thickness {:.0}–{:.0} nm",
         s.noise_sigma,
         s.noise_source,
         if s.reflectance_accuracy > 0.0 {
@@ -550,6 +559,11 @@ fn human_summary(s: &Summary, maps: &ParamMaps, out: &std::path::Path) -> String
             String::new()
         } else {
             format!(": {}", s.level_note)
+        },
+        if s.band_shift_note.is_empty() {
+            "none"
+        } else {
+            &s.band_shift_note
         },
         s.thickness_range_nm[0],
         s.thickness_range_nm[1]

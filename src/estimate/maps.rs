@@ -141,6 +141,10 @@ pub const QUALITY_KEYS: [&str; 8] = [
     "fit_test",
 ];
 
+/// Keys of [`MapMeta::quality`] written only where they have something
+/// to say (after [`QUALITY_KEYS`]).
+pub const QUALITY_OPTIONAL_KEYS: [&str; 2] = ["level_note", "band_shift"];
+
 /// Metadata written beside the maps.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct MapMeta {

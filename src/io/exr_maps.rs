@@ -326,6 +326,7 @@ pub fn read_maps(path: &Path) -> Result<ParamMaps, IoError> {
         polarization: attr("polarization").unwrap_or_default().to_string(),
         quality: crate::estimate::maps::QUALITY_KEYS
             .iter()
+            .chain(&crate::estimate::maps::QUALITY_OPTIONAL_KEYS)
             .filter_map(|k| attr(k).map(|v| (k.to_string(), v.to_string())))
             .collect(),
     };

@@ -63,6 +63,8 @@ impl Solver {
     /// the index is known). The result is kept for later pixels and sweeps.
     pub fn estimate_film_index(&mut self, cube: &Cube) -> Result<IndexEstimate, EstimateError> {
         self.check_cube(cube)?;
+        // A shift fitted on an earlier image is fitted afresh.
+        self.reset_band_shift()?;
         // The noise level every fit is judged against comes first, and never
         // from the fits it judges: given, measured by the camera, or
         // estimated from the data without a model.
@@ -79,7 +81,7 @@ impl Solver {
         // a few fits' local minima for a calibration error (a 1.4 % gain
         // that moved thicknesses by 5 σ on clean data).
         let n_sample = INDEX_SAMPLE_PIXELS;
-        let sample = self.sample_pixels(cube, n_sample);
+        let mut sample = self.sample_pixels(cube, n_sample);
         if sample.is_empty() {
             return Err(EstimateError::FilmIndex(Self::why_no_sample(cube)));
         }
@@ -118,6 +120,13 @@ impl Solver {
                     self.set_noise(noise);
                 }
             }
+        }
+        // The filter's wavelength calibration, where the data show it
+        // (`band_shift.rs`): before the level, whose per-band gains would
+        // otherwise take up part of a shift's misfit.
+        if self.fit_band_shift(&sample, &est)? {
+            sample = self.sample_pixels(cube, n_sample);
+            est = self.index_for(&sample)?;
         }
         // The level: absolute unless asked, or (auto) unless the sample
         // shows a systematic misfit a gain and offset per band correct.
@@ -436,7 +445,7 @@ impl Solver {
     /// Summed residual of the sample under a prepared index: `(sse,
     /// observations, fitted parameters, pixels fitted)`; each pixel
     /// searched further where `pinned` ([`Job::sample_pinned`]).
-    fn sample_sse(
+    pub(super) fn sample_sse(
         &self,
         prep: &Prepared,
         sample: &[SamplePixel],

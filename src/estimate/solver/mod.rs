@@ -59,6 +59,7 @@
 mod alternatives;
 mod angle_grid;
 mod angle_map;
+mod band_shift;
 mod bands;
 mod closed_form;
 mod equivalents;
@@ -741,11 +742,25 @@ pub struct Solver {
     /// The band layout: bands by wavelength, the range in wavenumber,
     /// the parabola windows.
     table: BandTable,
+    /// The bands as the cube names them; [`Solver::bands`] are these
+    /// shifted by the band shift in force (`band_shift.rs`).
+    nominal_bands: Vec<Band>,
+    /// The largest optical thickness the fringe search covers, nm.
+    g_search: f64,
+    /// The band shift in force, its σ and how it was found.
+    shift: band_shift::ShiftState,
+    /// The shift profile's per-pixel χ² at each shift evaluated (only
+    /// while it is fitted).
+    shift_per_pixel: Vec<(f64, Vec<(f64, bool)>)>,
 }
 
 impl Solver {
     /// A solver for `scene` observed in `bands` (cube plane order).
     pub fn new(scene: &Scene, bands: &[Band], mode: Mode) -> Result<Solver, EstimateError> {
+        let nominal_bands = bands.to_vec();
+        let shift = band_shift::ShiftState::given(scene.band_shift);
+        let shifted = band_shift::shifted(bands, shift.nm);
+        let bands = &shifted[..];
         if bands.len() < 4 {
             return Err(EstimateError::Bands(format!(
                 "need at least 4 bands, got {}",
@@ -871,6 +886,10 @@ impl Solver {
             share_table: std::sync::OnceLock::new(),
             residual_noise_floor: false,
             table: BandTable::new(bands),
+            nominal_bands,
+            g_search,
+            shift,
+            shift_per_pixel: Vec::new(),
         };
         if let FilmKnowledge::Known(film) = &scene.film {
             let film = film.clone();

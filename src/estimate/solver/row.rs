@@ -399,8 +399,8 @@ impl Solver {
         let idx = self.index.clone();
         maps::MapMeta {
             mode: self.mode.name().into(),
-            wavelengths_nm: self.bands.iter().map(|b| b.center_nm).collect(),
-            fwhm_nm: self.bands.iter().map(|b| b.fwhm_nm).collect(),
+            wavelengths_nm: self.nominal_bands.iter().map(|b| b.center_nm).collect(),
+            fwhm_nm: self.nominal_bands.iter().map(|b| b.fwhm_nm).collect(),
             n_film: idx.as_ref().map_or(f64::NAN, |i| i.n),
             n_film_sigma: idx.as_ref().map_or(f64::NAN, |i| i.sigma),
             n_film_estimated: idx.as_ref().is_some_and(|i| i.estimated),
@@ -454,6 +454,9 @@ impl Solver {
         ];
         if !self.level_note.is_empty() {
             q.push(("level_note".into(), self.level_note.clone()));
+        }
+        if !self.shift.note.is_empty() {
+            q.push(("band_shift".into(), self.shift.note.clone()));
         }
         q
     }

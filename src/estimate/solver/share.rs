@@ -96,6 +96,7 @@ impl Solver {
         if est.is_valid() && self.calibration_suspect {
             *est = PixelEstimate::invalid(Reason::PoorFit);
         }
+        self.with_band_shift(est);
         let share = &self.level.share;
         if !est.is_valid() || share.is_empty() {
             return;
