@@ -90,6 +90,18 @@ impl ShiftState {
     }
 }
 
+/// What the shift's profile found.
+struct ShiftProfile {
+    /// The least point, nm.
+    best: f64,
+    /// χ² at no shift less χ² there.
+    dchi2: f64,
+    /// σ of the shift from the stencil's curvature (NaN: none upward).
+    sigma: f64,
+    /// The part of `dchi2` on pixels whose fit at `best` passes.
+    explained: f64,
+}
+
 /// `bands` with every centre moved by `nm`.
 pub(super) fn shifted(bands: &[Band], nm: f64) -> Vec<Band> {
     bands
@@ -150,14 +162,15 @@ impl Solver {
     }
 
     /// The sample's χ² (against the noise model's typical variance) with
-    /// the bands shifted by `nm` and the film `film`, each pixel refitted.
+    /// the bands shifted by `nm` and the film `film`, each pixel refitted;
+    /// and each pixel's, with whether it passes the χ² test.
     fn shift_cost(
         &mut self,
         nm: f64,
         film: &Dispersion,
         sample: &[SamplePixel],
         var: f64,
-    ) -> Result<f64, EstimateError> {
+    ) -> Result<(f64, Vec<(f64, bool)>), EstimateError> {
         use rayon::prelude::*;
         self.set_band_shift(nm);
         let prep = self.prepare_with(film, false)?;
@@ -182,9 +195,7 @@ impl Solver {
                 }
             })
             .collect();
-        let total = per.iter().map(|p| p.0).sum();
-        self.shift_per_pixel.push((nm, per));
-        Ok(total)
+        Ok((per.iter().map(|p| p.0).sum(), per))
     }
 
     /// `sample` with each pixel's fringe candidates found afresh on the
@@ -212,6 +223,8 @@ impl Solver {
         if !self.shift.auto || self.scene.level == LevelMode::Free || est.at_bound {
             return Ok(false);
         }
+        self.shift.sigma = 0.0;
+        self.shift.note.clear();
         let Some(var) = self
             .noise
             .as_ref()
@@ -227,61 +240,30 @@ impl Solver {
         let reach = MAX_AUTO_SHIFT_NM + PROBE_NM;
         let (lo, hi) = self.shift_bounds(&film);
         let bounds = (lo.max(-reach), hi.min(reach));
-        let mut pts: Vec<(f64, f64)> = Vec::with_capacity(MAX_EVALS);
-        for nm in first_probes(bounds) {
-            pts.push((nm, self.shift_cost(nm, &film, sample, var)?));
+        if bounds.1 - bounds.0 < 2.0 * PROBE_NM {
+            self.shift.note = format!(
+                "none (the media's tables leave the bands {:.1} to {:+.1} nm to move)",
+                bounds.0, bounds.1
+            );
+            return Ok(false);
         }
-        while pts.len() < MAX_EVALS {
-            let (next, done) = next_probe(&pts, bounds);
-            if done {
-                break;
+        let profile = match self.shift_profile(&film, sample, var, bounds) {
+            Ok(p) => p,
+            Err(e) => {
+                self.set_band_shift(0.0);
+                self.shift.note = format!("none (the profile failed: {e})");
+                return Ok(false);
             }
-            pts.push((next, self.shift_cost(next, &film, sample, var)?));
-        }
-        let c0 = pts[0].1;
-        let least = |pts: &[(f64, f64)]| {
-            *pts.iter()
-                .min_by(|a, b| a.1.total_cmp(&b.1))
-                .expect("three points")
         };
-        // The curvature from a close stencil about the least point (far
-        // from it a thick film's profile is no parabola: its pixels change
-        // fringe order), the least point moved to the stencil's vertex
-        // until that lies within a tenth of σ of it.
-        let mut curvature = f64::NAN;
-        if c0 - least(&pts).1 > SHIFT_DCHI2 {
-            for _ in 0..4 {
-                let (best, c_best) = least(&pts);
-                let h = STENCIL_NM;
-                let lo = (best - h).max(bounds.0);
-                let hi = (best + h).min(bounds.1);
-                if hi - lo < h {
-                    break;
-                }
-                let cl = self.shift_cost(lo, &film, sample, var)?;
-                let ch = self.shift_cost(hi, &film, sample, var)?;
-                pts.extend([(lo, cl), (hi, ch)]);
-                let Some((v, k)) = parabola([(lo, cl), (best, c_best), (hi, ch)]) else {
-                    break;
-                };
-                curvature = k;
-                if k <= 0.0 || k.is_nan() || (v - best).abs() < 0.1 * (2.0 / k).sqrt() {
-                    break;
-                }
-                let v = v.clamp(lo, hi);
-                pts.push((v, self.shift_cost(v, &film, sample, var)?));
-            }
-        }
-        let (best, c_best) = least(&pts);
-        tracing::debug!(?pts, "band shift profile (nm, χ²)");
-        let dchi2 = c0 - c_best;
-        let sigma = (2.0 / curvature).sqrt();
-        let explained = self.explained_drop(best);
-        self.shift_per_pixel.clear();
+        let ShiftProfile {
+            best,
+            dchi2,
+            sigma,
+            explained,
+        } = profile;
         let take = dchi2 > SHIFT_DCHI2
             && explained >= SHIFT_DCHI2.max(EXPLAINED_SHARE * dchi2)
             && best.abs() <= MAX_AUTO_SHIFT_NM
-            && curvature > 0.0
             && sigma.is_finite();
         if !take {
             self.set_band_shift(0.0);
@@ -341,27 +323,78 @@ impl Solver {
         Ok(true)
     }
 
-    /// The drop in χ² from no shift to `best` over the pixels it explains
-    /// (their fit at `best` passes the χ² test): a filter's shift moves
-    /// every pixel's fringes into place, while pixels the model cannot fit
-    /// at any shift (films past the range at grazing angles: on noise-free
-    /// data 35 of 389 pixels, none fitting, asked for −1.4 nm) move to
-    /// whatever shift suits their misfit.
-    fn explained_drop(&self, best: f64) -> f64 {
-        let at = |nm: f64| {
-            self.shift_per_pixel
-                .iter()
-                .find(|(x, _)| *x == nm)
-                .map(|(_, v)| v)
+    /// The sample's χ² profiled over the shift within `bounds`: 0 and a
+    /// probe either side, parabolic steps of at most two probes, then a
+    /// close stencil about the least point for the curvature.
+    fn shift_profile(
+        &mut self,
+        film: &Dispersion,
+        sample: &[SamplePixel],
+        var: f64,
+        bounds: (f64, f64),
+    ) -> Result<ShiftProfile, EstimateError> {
+        let mut per_pixel: Vec<(f64, Vec<(f64, bool)>)> = Vec::new();
+        let mut pts: Vec<(f64, f64)> = Vec::with_capacity(MAX_EVALS);
+        let mut eval = |s: &mut Solver, nm: f64| -> Result<f64, EstimateError> {
+            let (total, per) = s.shift_cost(nm, film, sample, var)?;
+            per_pixel.push((nm, per));
+            Ok(total)
         };
-        let (Some(c0), Some(cb)) = (at(0.0), at(best)) else {
-            return f64::NAN;
+        for nm in first_probes(bounds) {
+            pts.push((nm, eval(self, nm)?));
+        }
+        while pts.len() < MAX_EVALS {
+            let (next, done) = next_probe(&pts, bounds);
+            if done {
+                break;
+            }
+            pts.push((next, eval(self, next)?));
+        }
+        let c0 = pts[0].1;
+        let least = |pts: &[(f64, f64)]| {
+            *pts.iter()
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+                .expect("three points")
         };
-        c0.iter()
-            .zip(cb)
-            .filter(|(_, b)| b.1)
-            .map(|(a, b)| a.0 - b.0)
-            .sum()
+        // The curvature from a close stencil about the least point (far
+        // from it a thick film's profile is no parabola: its pixels change
+        // fringe order), the least point moved to the stencil's vertex
+        // until that lies within a tenth of σ of it.
+        let mut curvature = f64::NAN;
+        if c0 - least(&pts).1 > SHIFT_DCHI2 {
+            for _ in 0..4 {
+                let (best, c_best) = least(&pts);
+                let h = STENCIL_NM;
+                let lo = (best - h).max(bounds.0);
+                let hi = (best + h).min(bounds.1);
+                if hi - lo < h {
+                    break;
+                }
+                let (cl, ch) = (eval(self, lo)?, eval(self, hi)?);
+                pts.extend([(lo, cl), (hi, ch)]);
+                let Some((v, k)) = parabola([(lo, cl), (best, c_best), (hi, ch)]) else {
+                    break;
+                };
+                curvature = k;
+                if k <= 0.0 || k.is_nan() || (v - best).abs() < 0.1 * (2.0 / k).sqrt() {
+                    break;
+                }
+                let v = v.clamp(lo, hi);
+                pts.push((v, eval(self, v)?));
+            }
+        }
+        let (best, c_best) = least(&pts);
+        tracing::debug!(?pts, "band shift profile (nm, χ²)");
+        Ok(ShiftProfile {
+            best,
+            dchi2: c0 - c_best,
+            sigma: if curvature > 0.0 {
+                (2.0 / curvature).sqrt()
+            } else {
+                f64::NAN
+            },
+            explained: explained_drop(&per_pixel, best),
+        })
     }
 
     /// ∂ln d/∂Δ measured on `sample`: each pixel refitted at `at ± h`,
@@ -460,6 +493,24 @@ impl Solver {
     }
 }
 
+/// The drop in χ² from no shift to `best` over the pixels it explains
+/// (their fit at `best` passes the χ² test): a filter's shift moves
+/// every pixel's fringes into place, while pixels the model cannot fit
+/// at any shift (films past the range at grazing angles: on noise-free
+/// data 35 of 389 pixels, none fitting, asked for −1.4 nm) move to
+/// whatever shift suits their misfit.
+fn explained_drop(per_pixel: &[(f64, Vec<(f64, bool)>)], best: f64) -> f64 {
+    let at = |nm: f64| per_pixel.iter().find(|(x, _)| *x == nm).map(|(_, v)| v);
+    let (Some(c0), Some(cb)) = (at(0.0), at(best)) else {
+        return f64::NAN;
+    };
+    c0.iter()
+        .zip(cb)
+        .filter(|(_, b)| b.1)
+        .map(|(a, b)| a.0 - b.0)
+        .sum()
+}
+
 /// The three evaluated points nearest `x`, by shift.
 fn nearest_three(pts: &[(f64, f64)], x: f64) -> Option<[(f64, f64); 3]> {
     let mut v = pts.to_vec();
@@ -521,6 +572,18 @@ mod tests {
         assert!((v - 0.7).abs() < 1e-12, "{v}");
         assert!((k - 5.0).abs() < 1e-12, "{k}");
         assert!(parabola([(0.0, 1.0), (1.0, 2.0), (2.0, 3.0)]).is_none());
+    }
+
+    #[test]
+    fn only_pixels_the_shift_leaves_fitting_count_as_explained() {
+        // Three pixels: two fit at the shift (gains 5 and 3), one fits at
+        // neither (gain 100): 8 of the 108 explained.
+        let per = vec![
+            (0.0, vec![(20.0, false), (13.0, true), (500.0, false)]),
+            (1.5, vec![(15.0, true), (10.0, true), (400.0, false)]),
+        ];
+        assert_eq!(explained_drop(&per, 1.5), 8.0);
+        assert!(explained_drop(&per, 0.7).is_nan());
     }
 
     #[test]

@@ -749,9 +749,6 @@ pub struct Solver {
     g_search: f64,
     /// The band shift in force, its σ and how it was found.
     shift: band_shift::ShiftState,
-    /// The shift profile's per-pixel χ² at each shift evaluated (only
-    /// while it is fitted).
-    shift_per_pixel: Vec<(f64, Vec<(f64, bool)>)>,
 }
 
 impl Solver {
@@ -889,7 +886,6 @@ impl Solver {
             nominal_bands,
             g_search,
             shift,
-            shift_per_pixel: Vec::new(),
         };
         if let FilmKnowledge::Known(film) = &scene.film {
             let film = film.clone();
