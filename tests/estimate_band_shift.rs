@@ -163,16 +163,30 @@ fn a_hard_coat_shift_is_taken_only_where_the_angles_cannot_take_it_up() {
     let mut t = known.truth.clone().unwrap();
     t.angle_deg = irid::scene::Field::Constant(9.0);
     known.truth = Some(t);
-    let (cube, truth) = render_shifted(&known, 1.0);
-    let f = fit(&known, &cube, &truth, BandShift::Auto, Mode::Balanced);
-    let (got, sigma, _) = f.shift;
-    assert!(
-        (got - 1.0).abs() <= 3.0 * sigma.max(0.005),
-        "{got} ± {sigma}"
-    );
-    assert!(f.valid >= 0.6, "angle known: valid {}", f.valid);
-    assert!(f.wrong <= 0.01, "angle known: wrong {}", f.wrong);
-    let _ = f.maps;
+    // 1 nm is found. 2 nm on this small crop settles in a side basin of
+    // the many-fringed profile (1.74 nm) that the pixels do not fit, so
+    // none is taken and the misfit stays flagged; on 300 × 20 pixels it is
+    // found, +2.00 (README). Either way nothing is valid and wrong, and a
+    // shift taken carries a σ that covers (a ±0.25 nm stencil once left
+    // the vertex 0.02 nm, ~7 of its σ, off: 30 % within 2σ).
+    for nm in [1.0, 2.0] {
+        let (cube, truth) = render_shifted(&known, nm);
+        let f = fit(&known, &cube, &truth, BandShift::Auto, Mode::Balanced);
+        let (got, sigma, _) = f.shift;
+        assert!(f.wrong <= 0.01, "angle known, {nm} nm: wrong {}", f.wrong);
+        if nm == 1.0 || got != 0.0 {
+            assert!(
+                (got - nm).abs() <= 3.0 * sigma.max(0.002),
+                "{got} ± {sigma}"
+            );
+            assert!(f.valid >= 0.6, "angle known: valid {}", f.valid);
+            assert!(
+                (0.88..=0.995).contains(&f.coverage),
+                "angle known, {nm} nm: 2σ coverage {}",
+                f.coverage
+            );
+        }
+    }
 }
 
 /// A misfit that would take more than a filter's calibration error (8 nm)
