@@ -246,16 +246,7 @@ fn fit_finds_a_filter_off_its_wavelength_calibration() {
     );
     std::fs::write(&cube, fixed).unwrap();
     let maps_path = dir.path().join("maps.exr");
-    let out = ok(&[
-        "fit",
-        s(&cube),
-        "--scene",
-        s(&scene_file()),
-        "--out",
-        s(&maps_path),
-        "--json",
-    ]);
-    let j = summary(&out);
+    let j = fit_json(&cube, &maps_path, &[]);
     let (got, sigma) = (
         j["band_shift_nm"].as_f64().unwrap(),
         j["band_shift_sigma_nm"].as_f64().unwrap(),
@@ -272,14 +263,8 @@ fn fit_finds_a_filter_off_its_wavelength_calibration() {
     );
     // The header's wavelengths are kept as the cube named them.
     assert_eq!(maps.meta.wavelengths_nm[0], 400.0);
-    let truth = read_channels(&dir.path().join("cube.truth.exr")).unwrap();
-    let t = truth.channel("thickness_nm").unwrap();
-    let errs: Vec<f64> = (0..t.len())
-        .filter(|&i| maps.valid[i] > 0.5)
-        .map(|i| (maps.thickness_nm[i] - t[i]).abs() as f64)
-        .collect();
-    assert!(errs.len() >= 1900, "{} valid", errs.len());
-    let mae = errs.iter().sum::<f64>() / errs.len() as f64;
+    let (valid, mae) = valid_and_mean_error(&maps_path, &dir.path().join("cube.truth.exr"));
+    assert!(valid >= 1900, "{valid} valid");
     assert!(mae <= 0.5, "mean |error| {mae} nm");
     for bad in ["sideways", "60", "nan"] {
         fails_with(
@@ -299,6 +284,37 @@ fn fit_finds_a_filter_off_its_wavelength_calibration() {
     }
 }
 
+/// `irid fit CUBE --scene <the cylinder's> --out MAPS --json EXTRA…`, its
+/// JSON summary.
+fn fit_json(cube: &Path, maps: &Path, extra: &[&str]) -> serde_json::Value {
+    let scene = scene_file();
+    let mut args = vec![
+        "fit",
+        s(cube),
+        "--scene",
+        s(&scene),
+        "--out",
+        s(maps),
+        "--json",
+    ];
+    args.extend_from_slice(extra);
+    summary(&ok(&args))
+}
+
+/// The valid pixels of `maps` and their mean |Δd| against the truth
+/// `irid synth` wrote beside `cube` (`NAME.truth.exr`).
+fn valid_and_mean_error(maps: &Path, truth: &Path) -> (usize, f64) {
+    let maps = read_maps(maps).unwrap();
+    let truth = read_channels(truth).unwrap();
+    let t = truth.channel("thickness_nm").unwrap();
+    let errs: Vec<f64> = (0..t.len())
+        .filter(|&i| maps.valid[i] > 0.5)
+        .map(|i| (maps.thickness_nm[i] - t[i]).abs() as f64)
+        .collect();
+    let n = errs.len();
+    (n, errs.iter().sum::<f64>() / n.max(1) as f64)
+}
+
 fn summary(out: &Output) -> serde_json::Value {
     let text = String::from_utf8(out.stdout.clone()).unwrap();
     assert_eq!(text.lines().count(), 1, "{text}");
@@ -311,18 +327,7 @@ fn synth_then_fit_recovers_the_cylinder() {
     let cube = dir.path().join("cube.hdr");
     ok(&["synth", "--out", s(&cube)]);
     let maps_path = dir.path().join("maps.exr");
-    let out = ok(&[
-        "fit",
-        s(&cube),
-        "--scene",
-        s(&scene_file()),
-        "--out",
-        s(&maps_path),
-        "--json",
-        "--threads",
-        "2",
-    ]);
-    let j = summary(&out);
+    let j = fit_json(&cube, &maps_path, &["--threads", "2"]);
     for key in [
         "pixels",
         "valid_pixels",
@@ -345,17 +350,9 @@ fn synth_then_fit_recovers_the_cylinder() {
     let maps = read_maps(&maps_path).unwrap();
     assert_eq!(maps.meta.mode, "balanced");
     assert_eq!(maps.meta.wavelengths_nm.len(), 31);
-    let truth = read_channels(&dir.path().join("cube.truth.exr")).unwrap();
-    let t = truth.channel("thickness_nm").unwrap();
-    let (mut sum, mut k) = (0.0, 0);
-    for (i, &d) in maps.thickness_nm.iter().enumerate() {
-        if maps.valid[i] > 0.5 {
-            sum += (d - t[i]).abs() as f64;
-            k += 1;
-        }
-    }
-    assert!(k as f64 >= 0.9 * 1960.0, "{k} valid");
-    assert!(sum / k as f64 <= 0.5, "mean |error| {} nm", sum / k as f64);
+    let (valid, mae) = valid_and_mean_error(&maps_path, &dir.path().join("cube.truth.exr"));
+    assert!(valid as f64 >= 0.9 * 1960.0, "{valid} valid");
+    assert!(mae <= 0.5, "mean |error| {mae} nm");
 }
 
 #[test]
