@@ -70,6 +70,9 @@ pub(super) struct ShiftState {
     pub dlnd: f64,
     /// What the profile found (for summaries).
     pub note: String,
+    /// The last profile found a shift that lowers χ², but mostly on pixels
+    /// it leaves unfitted (worth a look again once a level is in force).
+    pub unexplained: bool,
 }
 
 impl ShiftState {
@@ -145,6 +148,18 @@ impl Solver {
         }
         self.set_band_shift(0.0);
         self.shift.sigma = 0.0;
+        if let FilmKnowledge::Known(d) = &self.scene.film {
+            let d = d.clone();
+            self.prepared = Some(self.prepare(&d)?);
+        }
+        Ok(())
+    }
+
+    /// Put back a shift state saved before a look that found nothing
+    /// (models of a known film re-prepared on its centres).
+    pub(super) fn restore_band_shift(&mut self, saved: ShiftState) -> Result<(), EstimateError> {
+        self.set_band_shift(saved.nm);
+        self.shift = saved;
         if let FilmKnowledge::Known(d) = &self.scene.film {
             let d = d.clone();
             self.prepared = Some(self.prepare(&d)?);
@@ -228,6 +243,7 @@ impl Solver {
         }
         self.shift.sigma = 0.0;
         self.shift.note.clear();
+        self.shift.unexplained = false;
         let Some(var) = self
             .noise
             .as_ref()
@@ -275,6 +291,7 @@ impl Solver {
                     "none (the misfit would take {best:+.1} nm, beyond a filter's calibration error of ±{MAX_AUTO_SHIFT_NM} nm)"
                 )
             } else if dchi2 > SHIFT_DCHI2 && explained < SHIFT_DCHI2.max(EXPLAINED_SHARE * dchi2) {
+                self.shift.unexplained = true;
                 format!(
                     "none (a shift of {best:+.2} nm would lower χ² by {dchi2:.0}, but only {:.0} of it on pixels it leaves fitting: the misfit of pixels no shift fits, not the filter's)",
                     explained.max(0.0)

@@ -50,6 +50,9 @@ pub(super) struct SamplePixel {
     pub(super) n_cands: [usize; 2],
 }
 
+/// How often the band shift is looked for again under a level.
+const MAX_SHIFT_LOOKS: usize = 3;
+
 /// Pairs of neighbouring pixels the image's fit is tested on.
 pub(super) const IMAGE_FIT_PAIRS: usize = 800;
 
@@ -128,41 +131,36 @@ impl Solver {
             sample = self.sample_pixels(cube, n_sample);
             est = self.index_for(&sample)?;
         }
-        // The level: absolute unless asked, or (auto) unless the sample
-        // shows a systematic misfit a gain and offset per band correct.
-        if self.scene.level != LevelMode::Free {
-            let est_small = est.clone();
-            // An image no larger than the index sample gets no second
-            // look: its first is final.
-            let look = if sample.len() < n_sample {
-                Look::Final
-            } else {
-                Look::First
-            };
-            if let Some(fitted) = self.fit_level(&sample, &est, look)? {
-                est = fitted;
-                // A level is in force. Its gain trades with each pixel's
-                // angle and with the index, so it is fitted again, with the
-                // index, on a sample four times larger (σ of the gain
-                // halves); clean images keep the small sample's cost.
-                let big = self.sample_pixels(cube, LEVEL_SAMPLE_PIXELS);
-                if big.len() > sample.len() {
-                    let nb = self.bands.len();
-                    // A hedge (a level the small sample only hints at, as
-                    // on most clean images) looks again with the index
-                    // refined about the small sample's absolute one; a
-                    // level the test established, with a new search.
-                    let hedged = self.level_hedge.is_some();
-                    self.set_level(Level::identity(nb), LevelMode::Absolute, String::new());
-                    let est_abs = if hedged {
-                        self.index_near(&big, &est_small)?
-                    } else {
-                        self.index_for(&big)?
-                    };
-                    est = match self.fit_level(&big, &est_abs, Look::Final)? {
-                        Some(fitted) => fitted,
-                        None => est_abs,
-                    };
+        est = self.level_stage(cube, &sample, est, n_sample)?;
+        // A shift refused before the level because the pixels fitted at no
+        // shift (a per-band gain error on top) is looked for again on the
+        // data the level corrects; found, the level is fitted afresh on
+        // the shifted bands.
+        // The level then takes up part of the shift (a per-band level
+        // ±6 % and 2 nm: the first look read 1.59 nm), so the two are
+        // fitted in turn until the shift settles within its σ.
+        if self.level_mode == LevelMode::Scaled && self.shift.unexplained {
+            for _ in 0..MAX_SHIFT_LOOKS {
+                let before = self.band_shift().0;
+                self.judge_noise(true);
+                let corrected = self.corrected_sample(&sample);
+                let saved = self.shift.clone();
+                if !self.fit_band_shift(&corrected, &est)? {
+                    if before != 0.0 {
+                        // This look found nothing new: the last one holds.
+                        self.restore_band_shift(saved)?;
+                    }
+                    break;
+                }
+                let nb = self.bands.len();
+                self.set_level(Level::identity(nb), LevelMode::Absolute, String::new());
+                self.judge_noise(false);
+                sample = self.sample_pixels(cube, n_sample);
+                est = self.index_for(&sample)?;
+                est = self.level_stage(cube, &sample, est, n_sample)?;
+                let (now, sigma, _) = self.band_shift();
+                if (now - before).abs() <= sigma || self.level_mode != LevelMode::Scaled {
+                    break;
                 }
             }
         }
@@ -212,6 +210,78 @@ impl Solver {
             }
         }
         Ok(est)
+    }
+
+    /// The level: absolute unless asked, or (auto) unless the sample
+    /// shows a systematic misfit a gain and offset per band correct;
+    /// where one is in force, fitted again with the index on a sample
+    /// four times larger. Returns the index found with it.
+    fn level_stage(
+        &mut self,
+        cube: &Cube,
+        sample: &[SamplePixel],
+        mut est: IndexEstimate,
+        n_sample: usize,
+    ) -> Result<IndexEstimate, EstimateError> {
+        if self.scene.level != LevelMode::Free {
+            let est_small = est.clone();
+            // An image no larger than the index sample gets no second
+            // look: its first is final.
+            let look = if sample.len() < n_sample {
+                Look::Final
+            } else {
+                Look::First
+            };
+            if let Some(fitted) = self.fit_level(sample, &est, look)? {
+                est = fitted;
+                // A level is in force. Its gain trades with each pixel's
+                // angle and with the index, so it is fitted again, with the
+                // index, on a sample four times larger (σ of the gain
+                // halves); clean images keep the small sample's cost.
+                let big = self.sample_pixels(cube, LEVEL_SAMPLE_PIXELS);
+                if big.len() > sample.len() {
+                    let nb = self.bands.len();
+                    // A hedge (a level the small sample only hints at, as
+                    // on most clean images) looks again with the index
+                    // refined about the small sample's absolute one; a
+                    // level the test established, with a new search.
+                    let hedged = self.level_hedge.is_some();
+                    self.set_level(Level::identity(nb), LevelMode::Absolute, String::new());
+                    let est_abs = if hedged {
+                        self.index_near(&big, &est_small)?
+                    } else {
+                        self.index_for(&big)?
+                    };
+                    est = match self.fit_level(&big, &est_abs, Look::Final)? {
+                        Some(fitted) => fitted,
+                        None => est_abs,
+                    };
+                }
+            }
+        }
+        Ok(est)
+    }
+
+    /// `sample` with each spectrum corrected by the level in force,
+    /// (y − o)/g, its fringe candidates found afresh.
+    fn corrected_sample(&self, sample: &[SamplePixel]) -> Vec<SamplePixel> {
+        let corrected: Vec<SamplePixel> = sample
+            .iter()
+            .map(|p| SamplePixel {
+                spectrum: p
+                    .spectrum
+                    .iter()
+                    .enumerate()
+                    .map(|(k, &v)| {
+                        let o = self.level.offset.get(k).copied().unwrap_or(0.0);
+                        let g = self.level.gain.get(k).copied().unwrap_or(1.0);
+                        (v - o) / g
+                    })
+                    .collect(),
+                ..p.clone()
+            })
+            .collect();
+        self.with_candidates(&corrected)
     }
 
     /// Why no pixel could be sampled: missing values, or values no
