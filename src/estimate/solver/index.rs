@@ -135,10 +135,9 @@ impl Solver {
         // A shift refused before the level because the pixels fitted at no
         // shift (a per-band gain error on top) is looked for again on the
         // data the level corrects; found, the level is fitted afresh on
-        // the shifted bands.
-        // The level then takes up part of the shift (a per-band level
-        // ±6 % and 2 nm: the first look read 1.59 nm), so the two are
-        // fitted in turn until the shift settles within its σ.
+        // the shifted bands. That level took up part of the shift (±6 %
+        // per band and 2 nm: the first look under it read 1.59 nm), so
+        // the two are fitted in turn until the shift settles within its σ.
         if self.level_mode == LevelMode::Scaled && self.shift.unexplained {
             for _ in 0..MAX_SHIFT_LOOKS {
                 let before = self.band_shift().0;
