@@ -264,3 +264,25 @@ fn a_given_shift_moves_thicknesses_as_the_phase_says() {
         "measured {median:.5}/nm against ⟨1/λ⟩ {expected:.5}/nm"
     );
 }
+
+/// `[measurement] band_shift` in a scene file: a name, a number, or an
+/// error naming the field.
+#[test]
+fn the_scene_file_names_the_band_shift() {
+    let with = |v: &str| {
+        irid::scene::PAPER_CYLINDER.replace(
+            "[light]",
+            &format!("[measurement]\nband_shift = {v}\n\n[light]"),
+        )
+    };
+    let parse = |v: &str| Scene::from_toml(&with(v), "<test>", Path::new("."));
+    assert_eq!(Scene::paper_cylinder().band_shift, BandShift::Auto);
+    assert_eq!(parse("\"auto\"").unwrap().band_shift, BandShift::Auto);
+    assert_eq!(parse("\"none\"").unwrap().band_shift, BandShift::Given(0.0));
+    assert_eq!(parse("-1.5").unwrap().band_shift, BandShift::Given(-1.5));
+    assert_eq!(parse("2").unwrap().band_shift, BandShift::Given(2.0));
+    for bad in ["\"sideways\"", "60.0", "true"] {
+        let e = parse(bad).expect_err(bad).to_string();
+        assert!(e.contains("band_shift"), "{bad}: {e}");
+    }
+}
