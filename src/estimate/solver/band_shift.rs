@@ -148,11 +148,7 @@ impl Solver {
         }
         self.set_band_shift(0.0);
         self.shift.sigma = 0.0;
-        if let FilmKnowledge::Known(d) = &self.scene.film {
-            let d = d.clone();
-            self.prepared = Some(self.prepare(&d)?);
-        }
-        Ok(())
+        self.prepare_known_film()
     }
 
     /// Put back a shift state saved before a look that found nothing
@@ -160,6 +156,12 @@ impl Solver {
     pub(super) fn restore_band_shift(&mut self, saved: ShiftState) -> Result<(), EstimateError> {
         self.set_band_shift(saved.nm);
         self.shift = saved;
+        self.prepare_known_film()
+    }
+
+    /// A known film's model and tables built again on the bands in force
+    /// (an unknown film's are built with its index).
+    fn prepare_known_film(&mut self) -> Result<(), EstimateError> {
         if let FilmKnowledge::Known(d) = &self.scene.film {
             let d = d.clone();
             self.prepared = Some(self.prepare(&d)?);
@@ -189,19 +191,13 @@ impl Solver {
         sample: &[SamplePixel],
         var: f64,
     ) -> Result<(f64, Vec<(f64, bool)>), EstimateError> {
-        use rayon::prelude::*;
-        self.set_band_shift(nm);
-        let prep = self.prepare_with(film, false)?;
-        // The fits start from fringe candidates found on these bands (the
-        // nominal ones' candidates put a 4 nm shift's minimum 0.08 nm off,
-        // 5 of its σ, on a hard coat).
-        let sample = self.with_candidates(sample);
+        let fits = self.fits_at(nm, film, sample)?;
         // Each pixel's χ² (capped as the index profile caps it) and
         // whether it passes the χ² test.
         let per: Vec<(f64, bool)> = sample
-            .par_iter()
-            .map_init(super::Scratch::default, |scratch, px| {
-                let (_, sse) = self.solve_with(&prep, super::Job::sample(px), scratch);
+            .iter()
+            .zip(&fits)
+            .map(|(px, &(_, sse))| {
                 if sse.is_finite() {
                     let p = if px.theta.is_some() { 1 } else { 2 };
                     let n = px.spectrum.iter().filter(|v| v.is_finite()).count();
@@ -214,6 +210,30 @@ impl Solver {
             })
             .collect();
         Ok((per.iter().map(|p| p.0).sum(), per))
+    }
+
+    /// Each sample pixel fitted with the bands shifted by `nm` and the
+    /// film `film`: its thickness and residual.
+    fn fits_at(
+        &mut self,
+        nm: f64,
+        film: &Dispersion,
+        sample: &[SamplePixel],
+    ) -> Result<Vec<(f64, f64)>, EstimateError> {
+        use rayon::prelude::*;
+        self.set_band_shift(nm);
+        let prep = self.prepare_with(film, false)?;
+        // The fits start from fringe candidates found on these bands (the
+        // nominal ones' candidates put a 4 nm shift's minimum 0.08 nm off,
+        // 5 of its σ, on a hard coat).
+        let sample = self.with_candidates(sample);
+        Ok(sample
+            .par_iter()
+            .map_init(super::Scratch::default, |scratch, px| {
+                let (est, sse) = self.solve_with(&prep, super::Job::sample(px), scratch);
+                (est.thickness_nm, sse)
+            })
+            .collect())
     }
 
     /// `sample` with each pixel's fringe candidates found afresh on the
@@ -338,10 +358,7 @@ impl Solver {
             dchi2,
             "band shift fitted"
         );
-        if let FilmKnowledge::Known(d) = &self.scene.film {
-            let d = d.clone();
-            self.prepared = Some(self.prepare(&d)?);
-        }
+        self.prepare_known_film()?;
         Ok(true)
     }
 
@@ -441,18 +458,14 @@ impl Solver {
         film: &Dispersion,
         sample: &[SamplePixel],
     ) -> Result<f64, EstimateError> {
-        use rayon::prelude::*;
         let mut d = [Vec::new(), Vec::new()];
         for (k, nm) in [at - h, at + h].into_iter().enumerate() {
-            self.set_band_shift(nm);
-            let prep = self.prepare_with(film, false)?;
-            let sample = self.with_candidates(sample);
-            d[k] = sample
-                .par_iter()
-                .map_init(super::Scratch::default, |scratch, px| {
-                    let (est, sse) = self.solve_with(&prep, super::Job::sample(px), scratch);
-                    if sse.is_finite() && est.thickness_nm > 0.0 {
-                        est.thickness_nm
+            d[k] = self
+                .fits_at(nm, film, sample)?
+                .into_iter()
+                .map(|(t, sse)| {
+                    if sse.is_finite() && t > 0.0 {
+                        t
                     } else {
                         f64::NAN
                     }

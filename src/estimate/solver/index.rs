@@ -271,11 +271,7 @@ impl Solver {
                     .spectrum
                     .iter()
                     .enumerate()
-                    .map(|(k, &v)| {
-                        let o = self.level.offset.get(k).copied().unwrap_or(0.0);
-                        let g = self.level.gain.get(k).copied().unwrap_or(1.0);
-                        (v - o) / g
-                    })
+                    .map(|(k, &v)| self.level.correct(k, v))
                     .collect(),
                 ..p.clone()
             })
