@@ -134,17 +134,20 @@ fn a_shift_under_a_per_band_gain_error_is_found_after_the_level() {
     assert!(f.coverage >= 0.88, "2σ coverage {}", f.coverage);
 }
 
-/// A thin coating (one fringe or none, the angle free) 3 nm off passes
-/// every test uncorrected with thicknesses valid and wrong; fitted, the
-/// shift removes them, in `fast` as in `balanced`.
+/// A thin coating (one fringe or none, the angle free) 3 nm off: before
+/// the shift was fitted it passed every pixel's test with 4 % of its
+/// thicknesses valid and wrong; uncorrected it is now flagged whole (its
+/// misfit follows the angle across the image: `level_across`). Fitted,
+/// the shift makes it valid and right, in `fast` as in `balanced`.
 #[test]
 fn a_thin_coating_read_3_nm_off_is_no_longer_valid_and_wrong() {
     let scene = bundled("thin-coating", 170, 20);
     let (cube, truth) = render_shifted(&scene, 3.0);
     let none = fit(&scene, &cube, &truth, BandShift::Given(0.0), Mode::Balanced);
     assert!(
-        none.wrong > 0.02,
-        "the uncorrected cube must show the harm: {}",
+        none.wrong > 0.02 || none.valid < 0.05,
+        "the uncorrected cube must be wrong or flagged: valid {}, wrong {}",
+        none.valid,
         none.wrong
     );
     for mode in [Mode::Fast, Mode::Balanced] {

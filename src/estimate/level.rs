@@ -496,6 +496,8 @@ pub struct LevelStep {
     pub extra_step: Vec<f64>,
     /// Their variances.
     pub extra_var: Vec<f64>,
+    /// Their covariance (`n_extra × n_extra`, row-major).
+    pub extra_cov: Vec<f64>,
 }
 
 /// One Gauss–Newton step for the level from the sample's current fits,
@@ -683,6 +685,10 @@ pub fn level_step(
         n_obs,
         extra_step: delta[m_level..].to_vec(),
         extra_var: (m_level..m).map(|j| inv[j * m + j]).collect(),
+        extra_cov: (m_level..m)
+            .flat_map(|j| (m_level..m).map(move |l| (j, l)))
+            .map(|(j, l)| inv[j * m + l])
+            .collect(),
     })
 }
 

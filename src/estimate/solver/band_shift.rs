@@ -242,8 +242,9 @@ impl Solver {
         use rayon::prelude::*;
         sample
             .par_iter()
-            .map_init(super::Scratch::default, |scratch, p| {
-                self.sample_pixel(p.spectrum.clone(), p.theta, scratch)
+            .map_init(super::Scratch::default, |scratch, p| SamplePixel {
+                site: p.site,
+                ..self.sample_pixel(p.spectrum.clone(), p.theta, scratch)
             })
             .collect()
     }

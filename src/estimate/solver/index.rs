@@ -48,6 +48,8 @@ pub(super) struct SamplePixel {
     /// Candidates for sign +1 (index 0) and −1 (index 1).
     pub(super) cands: [[Candidate; MAX_CANDIDATES]; 2],
     pub(super) n_cands: [usize; 2],
+    /// Where in the image it lies, `(x, y)` (None: not from an image).
+    pub(super) site: Option<(usize, usize)>,
 }
 
 /// How often the band shift is looked for again under a level.
@@ -185,7 +187,12 @@ impl Solver {
         self.set_film_index(est.clone())?;
         // The image's fit as a whole (`image_fit`), said once in the note
         // however often the index is estimated.
-        for tail in ["; the image's fit:", "; but neighbouring pixels share"] {
+        for tail in [
+            "; the image's fit:",
+            "; but neighbouring pixels share",
+            "; the level is one across",
+            "; but the level differs across",
+        ] {
             if let Some(i) = self.level_note.find(tail) {
                 self.level_note.truncate(i);
             }
@@ -208,6 +215,10 @@ impl Solver {
                 None => {}
             }
         }
+        // One level for the whole image (`level_across`): after the
+        // image's fit, which names a wrong polarisation or film where the
+        // neighbouring pixels show it.
+        self.test_level_across(cube);
         Ok(est)
     }
 
@@ -369,7 +380,7 @@ impl Solver {
     /// About `max` distinct pixels (at most every pixel of the cube) on a
     /// stratified lattice, those with complete enough spectra, with their
     /// known angles.
-    fn sample_pixels(&self, cube: &Cube, max: usize) -> Vec<SamplePixel> {
+    pub(super) fn sample_pixels(&self, cube: &Cube, max: usize) -> Vec<SamplePixel> {
         let mut scratch = Scratch::default();
         let mut spec = vec![0.0; cube.bands.len()];
         Self::sample_sites(cube, max)
@@ -439,7 +450,7 @@ impl Solver {
             && !self.dark(spec))
         .then(|| {
             let theta = self.scene.angle.known_at(x, y);
-            if search {
+            let mut p = if search {
                 self.sample_pixel(spec.to_vec(), theta, scratch)
             } else {
                 SamplePixel {
@@ -447,8 +458,11 @@ impl Solver {
                     theta,
                     cands: [[Candidate::default(); MAX_CANDIDATES]; 2],
                     n_cands: [0; 2],
+                    site: None,
                 }
-            }
+            };
+            p.site = Some((x, y));
+            p
         })
     }
 
@@ -504,6 +518,7 @@ impl Solver {
             theta,
             cands,
             n_cands,
+            site: None,
         }
     }
 

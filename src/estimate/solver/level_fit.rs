@@ -897,7 +897,7 @@ fn median_shift(a: &[LevelPixel], b: &[LevelPixel]) -> f64 {
 /// Whether a pixel's values fit the model under `level` as well as noise
 /// allows (its χ² below the 1e-4 upper quantile): the pixel is consistent
 /// with an image-wide level.
-fn pixel_chi2_passes(p: &LevelPixel, level: &Level, var: &[f64]) -> bool {
+pub(super) fn pixel_chi2_passes(p: &LevelPixel, level: &Level, var: &[f64]) -> bool {
     let (mut chi2, mut n) = (0.0, 0usize);
     for (k, (&y, &r)) in p.y.iter().zip(&p.r).enumerate() {
         if y.is_finite() && r.is_finite() {

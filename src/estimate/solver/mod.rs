@@ -68,6 +68,7 @@ mod fringes;
 mod image_fit;
 mod index;
 mod judge;
+mod level_across;
 mod level_fit;
 mod level_hedge;
 mod linalg;

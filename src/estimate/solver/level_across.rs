@@ -1,0 +1,347 @@
+//! Is the level one for the whole image? A white reference that did not
+//! fill the view, a lamp that lit one side more, stray light on part of
+//! the field: the calibration is then off on part of the image only. An
+//! image-wide level cannot correct that, and the pixels' own χ² tests do
+//! not see it either, since each pixel's thickness and angle absorb most
+//! of a gain error of a few percent (the paper's cylinder with its upper
+//! half 5 % high: 969 of 1 960 pixels valid and wrong, the image-wide
+//! test's Δχ² of 35 moving the thicknesses by 0.36 σ, too little to model).
+//!
+//! Run once the image-wide stage has settled (the index, the level, the
+//! band shift and their looks), on a fresh sample of
+//! [`super::LEVEL_SAMPLE_PIXELS`] refitted under them; only pixels whose
+//! own fit passes its χ² take part (a film past the range or a defect is
+//! no calibration). The other image-wide tests come first and name their
+//! cause where they can (a wrong polarisation or film: the level's thinner
+//! and thicker halves, the neighbouring pixels' shared misfit); a misfit
+//! that differs across the image for another reason (a model error whose
+//! size follows the angle or the thickness, as these vary across the
+//! image) is flagged here as well, with a note that says so.
+//!
+//! The test: one Gauss–Newton step of a gain and an offset (with the film
+//! index, where unknown) from the level in force, on each half of the
+//! index sample — split at its median column, then at its median row —
+//! with every pixel's thickness and angle eliminated
+//! ([`crate::estimate::level::level_step`]). Under one calibration both
+//! halves step alike; their difference, against the sum of the two
+//! steps' covariances, is χ² on two degrees of freedom. The step is
+//! linear about fits the sample already has, so the test costs no refit.
+
+use super::index::SamplePixel;
+use super::level_fit::pixel_chi2_passes;
+use super::{Solver, LEVEL_SAMPLE_PIXELS};
+use crate::estimate::level::{level_step, Level, LevelBasis, LevelMode, LevelPixel};
+use crate::estimate::Cube;
+
+/// Fewest pixels in each half.
+const MIN_PART_PIXELS: usize = 40;
+
+/// The χ² (two degrees of freedom) beyond which the halves' gain and
+/// offset differ too much for one calibration: 23 is p ≈ 1e-5 per split
+/// (2e-5 for the two); with the level's σ running up to ~1.2× narrow
+/// (README, "Over many images") it reads as 16, p ≈ 3e-4 per split.
+pub(super) const MAX_ACROSS_CHI2: f64 = 23.0;
+
+/// ... and it must matter: one level for both halves leaves each pixel's
+/// thickness off by its share of half the difference, which must exceed
+/// this many of its σ (median over the sample). A difference far below
+/// the pixels' precision is no reason to flag them: noise-free cubes,
+/// judged against the noise floor (1e-4) and pooled over 400 pixels, part
+/// their halves by a gain of 1e-4 (χ² 32 on a film index-matched to its
+/// substrate) that moves no thickness by a hundredth of its σ.
+pub(super) const MIN_ACROSS_SHIFT: f64 = 0.5;
+
+/// How the level differs across the image.
+#[derive(Clone, Debug, PartialEq)]
+pub(super) struct Across {
+    /// The split that differs most: "left and right" or "upper and lower".
+    pub split: &'static str,
+    /// The first half's gain less the second's, and its σ.
+    pub gain: (f64, f64),
+    /// The first half's offset less the second's, and its σ.
+    pub offset: (f64, f64),
+    /// χ² of the two differences jointly (two degrees of freedom).
+    pub chi2: f64,
+    /// How far one level for both halves moves the pixels' thicknesses,
+    /// in their σ (median): each by its fit's response to half the
+    /// difference.
+    pub shift: f64,
+}
+
+impl Across {
+    /// Whether the halves differ beyond one calibration, by enough to
+    /// matter.
+    pub fn differs(&self) -> bool {
+        self.chi2 > MAX_ACROSS_CHI2 && self.shift > MIN_ACROSS_SHIFT
+    }
+}
+
+impl Solver {
+    /// Whether the level in force is one for the whole image
+    /// ([`level_across`]), on a fresh sample of `cube` refitted under the
+    /// final index, level and band shift. Where it is not, every pixel is
+    /// flagged (`calibration_suspect`) and the note says why; where it is,
+    /// the note gives the test's χ². Nothing where an earlier test has
+    /// flagged the image already, under `free` (every pixel has its own
+    /// level), or without an independent noise level.
+    pub(super) fn test_level_across(&mut self, cube: &Cube) {
+        if self.calibration_suspect || self.scene.level == LevelMode::Free {
+            return;
+        }
+        let Some(noise) = self.raw_noise.clone().or_else(|| self.noise.clone()) else {
+            return;
+        };
+        let nb = self.bands.len();
+        let var: Vec<f64> = (0..nb).map(|k| noise.var(k, 0.05)).collect();
+        let wn: Vec<f64> = self.bands.iter().map(|b| 1.0 / b.center_nm).collect();
+        let sample = self.sample_pixels(cube, LEVEL_SAMPLE_PIXELS);
+        let level = self.level.clone();
+        let fits: Vec<LevelPixel> = self
+            .level_pixels(&sample, &level)
+            .into_iter()
+            .filter(|p| pixel_chi2_passes(p, &level, &var))
+            .collect();
+        let Some(a) = level_across(&sample, &fits, &level, &wn, &var) else {
+            return;
+        };
+        if a.differs() {
+            self.calibration_suspect = true;
+            self.level_note = format!(
+                "{}; but the level differs across the image (its {} halves' gain differs by {:+.4} ± {:.4} and offset by {:+.5} ± {:.5}: χ² = {:.0} on 2 degrees of freedom > {MAX_ACROSS_CHI2:.0}; one level for both would move thicknesses by {:.1} σ): a white reference that did not fill the view, light or stray light uneven over it, or a model error that follows the angle or the film across the image? every pixel flagged poor fit",
+                self.level_note, a.split, a.gain.0, a.gain.1, a.offset.0, a.offset.1, a.chi2, a.shift
+            );
+        } else {
+            self.level_note = format!(
+                "{}; the level is one across the image (its {} halves differ by χ² = {:.1} on 2 degrees of freedom, {:.2} σ in thickness)",
+                self.level_note, a.split, a.chi2, a.shift
+            );
+        }
+    }
+}
+
+/// The split of the sample's fitted pixels `fits` (ids into `sample`)
+/// whose halves' levels differ most, stepped from `level`; `wavenumber`
+/// and `var` as for [`level_step`]. None where no split leaves
+/// [`MIN_PART_PIXELS`] in each half or the pixels carry no image position.
+///
+/// Each split is one step of a gain and an offset shared by the image
+/// (with the film index, where unknown) and two more parameters: the
+/// first half's gain and offset less the second's, to which its measured
+/// values respond as `g·R` and 1 and the second half's not at all.
+/// Sharing the rest keeps the comparison as sharp as the data allow: two
+/// halves fitted apart each trade their gain with their own offset and
+/// index, and miss a 5 % gain on half the paper's cylinder. Gain and
+/// offset are tested jointly, as a partial error moves both (each half's
+/// pixels take part of a gain up in their angles and leave the rest
+/// looking like an offset).
+pub(super) fn level_across(
+    sample: &[SamplePixel],
+    fits: &[LevelPixel],
+    level: &Level,
+    wavenumber: &[f64],
+    var: &[f64],
+) -> Option<Across> {
+    let sites: Vec<(usize, usize)> = fits
+        .iter()
+        .map(|p| sample.get(p.id).and_then(|s| s.site))
+        .collect::<Option<_>>()?;
+    let mut worst: Option<Across> = None;
+    let mut px: Vec<LevelPixel> = fits.to_vec();
+    for (split, axis) in [("left and right", 0), ("upper and lower", 1)] {
+        let coord = |s: &(usize, usize)| if axis == 0 { s.0 } else { s.1 };
+        let mut c: Vec<usize> = sites.iter().map(coord).collect();
+        c.sort_unstable();
+        let Some(&median) = c.get(c.len() / 2) else {
+            continue;
+        };
+        let first = sites.iter().filter(|s| coord(s) < median).count();
+        if first < MIN_PART_PIXELS || sites.len() - first < MIN_PART_PIXELS {
+            continue;
+        }
+        for ((p, f), s) in px.iter_mut().zip(fits).zip(&sites) {
+            let inside = if coord(s) < median { 1.0 } else { 0.0 };
+            p.extra.truncate(f.extra.len());
+            p.extra.push(
+                (0..f.y.len())
+                    .map(|k| inside * level.gain[k] * f.r[k])
+                    .collect(),
+            );
+            p.extra.push(vec![inside; f.y.len()]);
+        }
+        let Some(step) = level_step(&px, level, LevelBasis::GainOffset, wavenumber, var) else {
+            continue;
+        };
+        let n = step.extra_step.len();
+        if n < 2 || step.extra_cov.len() != n * n {
+            continue;
+        }
+        let d = [step.extra_step[n - 2], step.extra_step[n - 1]];
+        let c = [
+            step.extra_cov[(n - 2) * n + n - 2],
+            step.extra_cov[(n - 2) * n + n - 1],
+            step.extra_cov[(n - 1) * n + n - 1],
+        ];
+        let det = c[0] * c[2] - c[1] * c[1];
+        if !(det > 0.0 && det.is_finite() && d.iter().all(|v| v.is_finite())) {
+            continue;
+        }
+        let chi2 = (d[0] * d[0] * c[2] - 2.0 * d[0] * d[1] * c[1] + d[1] * d[1] * c[0]) / det;
+        if worst.as_ref().is_none_or(|w| chi2 > w.chi2) {
+            let half = [0.5 * d[0], 0.5 * d[1]];
+            worst = Some(Across {
+                split,
+                gain: (d[0], c[0].sqrt()),
+                offset: (d[1], c[2].sqrt()),
+                chi2,
+                shift: median_shift(fits, level, half, var),
+            });
+        }
+    }
+    worst
+}
+
+/// The median over `fits` of |Δd|/σ_d, Δd each pixel's thickness response
+/// (its own fit, thickness and angle free, the rest held) to a gain
+/// `dg` and an offset `doff` on top of `level`.
+fn median_shift(fits: &[LevelPixel], level: &Level, [dg, doff]: [f64; 2], var: &[f64]) -> f64 {
+    let mut shifts: Vec<f64> = fits
+        .iter()
+        .filter_map(|p| {
+            let nl = p.jac.len().min(2);
+            if nl == 0 || p.sigma_d.is_nan() || p.sigma_d <= 0.0 {
+                return None;
+            }
+            // Normal matrix A of the pixel's own parameters, and the
+            // gradient of the misfit the level change leaves.
+            let (mut a, mut b) = ([[0.0f64; 2]; 2], [0.0f64; 2]);
+            for (k, (&y, &r)) in p.y.iter().zip(&p.r).enumerate() {
+                if !(y.is_finite() && r.is_finite()) {
+                    continue;
+                }
+                let (w, g) = (1.0 / var[k], level.gain[k]);
+                let e = dg * g * r + doff;
+                let j = [g * p.jac[0][k], if nl > 1 { g * p.jac[1][k] } else { 0.0 }];
+                for i in 0..nl {
+                    b[i] += w * j[i] * e;
+                    for l in 0..nl {
+                        a[i][l] += w * j[i] * j[l];
+                    }
+                }
+            }
+            let dd = if nl == 2 {
+                let det = a[0][0] * a[1][1] - a[0][1] * a[1][0];
+                (det > 0.0).then(|| (a[1][1] * b[0] - a[0][1] * b[1]) / det)?
+            } else {
+                (a[0][0] > 0.0).then(|| b[0] / a[0][0])?
+            };
+            let s = dd.abs() / p.sigma_d;
+            s.is_finite().then_some(s)
+        })
+        .collect();
+    if shifts.is_empty() {
+        return 0.0;
+    }
+    let mid = shifts.len() / 2;
+    *shifts.select_nth_unstable_by(mid, f64::total_cmp).1
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A two-band-parameter toy: pixels whose model is a sinusoid in the
+    /// bands with their own phase (a thickness), measured under a gain.
+    fn toy(
+        n: usize,
+        gain_of: impl Fn(usize) -> f64,
+        noise: &mut impl FnMut() -> f64,
+    ) -> Vec<LevelPixel> {
+        let nb = 21;
+        (0..n)
+            .map(|i| {
+                let phase = 0.37 * i as f64;
+                let r: Vec<f64> = (0..nb)
+                    .map(|k| 0.1 + 0.05 * (0.6 * k as f64 + phase).cos())
+                    .collect();
+                let dr: Vec<f64> = (0..nb)
+                    .map(|k| -0.05 * (0.6 * k as f64 + phase).sin())
+                    .collect();
+                let y = r.iter().map(|v| gain_of(i) * v + 0.001 * noise()).collect();
+                LevelPixel {
+                    y,
+                    r,
+                    jac: vec![dr],
+                    extra: vec![],
+                    id: i,
+                    d: 0.0,
+                    sigma_d: 0.0,
+                    theta: 0.0,
+                }
+            })
+            .collect()
+    }
+
+    fn sample_at(sites: impl Iterator<Item = (usize, usize)>) -> Vec<SamplePixel> {
+        sites
+            .map(|s| SamplePixel {
+                spectrum: vec![],
+                theta: None,
+                cands: Default::default(),
+                n_cands: [0; 2],
+                site: Some(s),
+            })
+            .collect()
+    }
+
+    fn normal(seed: u64) -> impl FnMut() -> f64 {
+        let mut s = seed;
+        move || {
+            // Box–Muller on a 64-bit LCG.
+            let mut u = || {
+                s = s
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                ((s >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+            };
+            (-2.0 * u().ln()).sqrt() * (std::f64::consts::TAU * u()).cos()
+        }
+    }
+
+    #[test]
+    fn a_gain_on_the_left_half_only_is_seen_and_one_gain_is_not() {
+        let nb = 21;
+        let (wn, var): (Vec<f64>, Vec<f64>) = (0..nb)
+            .map(|k| (1.0 / (400.0 + 10.0 * k as f64), 1e-6))
+            .unzip();
+        let (w, h) = (20, 10);
+        let sample = sample_at((0..w * h).map(|i| (i % w, i / w)));
+        let identity = Level::identity(nb);
+        // One gain everywhere (3 %): the larger of the two splits' χ²
+        // (two degrees of freedom each) stays within what two such draws
+        // give (13.8, p ≈ 2e-3) over 20 noise draws, and scatters as χ²₂
+        // does (mean 2; the larger of two, ~3).
+        let mut sum = 0.0;
+        for seed in 0..20 {
+            let fits = toy(w * h, |_| 1.03, &mut normal(seed));
+            let a = level_across(&sample, &fits, &identity, &wn, &var).expect("both splits");
+            assert!(a.chi2 < 13.8, "seed {seed}: {a:?}");
+            sum += a.chi2;
+        }
+        assert!((1.0..6.0).contains(&(sum / 20.0)), "mean χ² {}", sum / 20.0);
+        // 3 % on the left half only: the left-right split, far beyond,
+        // its gain difference measured to its σ.
+        let fits = toy(
+            w * h,
+            |i| if i % w < w / 2 { 1.03 } else { 1.0 },
+            &mut normal(1),
+        );
+        let a = level_across(&sample, &fits, &identity, &wn, &var).expect("both splits");
+        assert_eq!(a.split, "left and right");
+        assert!(a.chi2 > 10.0 * MAX_ACROSS_CHI2, "{a:?}");
+        assert!((a.gain.0 - 0.03).abs() < 4.0 * a.gain.1, "{a:?}");
+        // Without image positions, no test.
+        let mut anon = sample.clone();
+        anon.iter_mut().for_each(|p| p.site = None);
+        assert!(level_across(&anon, &fits, &identity, &wn, &var).is_none());
+    }
+}
