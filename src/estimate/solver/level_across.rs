@@ -18,14 +18,15 @@
 //! size follows the angle or the thickness, as these vary across the
 //! image) is flagged here as well, with a note that says so.
 //!
-//! The test: one Gauss–Newton step of a gain and an offset (with the film
-//! index, where unknown) from the level in force, on each half of the
-//! index sample — split at its median column, then at its median row —
-//! with every pixel's thickness and angle eliminated
-//! ([`crate::estimate::level::level_step`]). Under one calibration both
-//! halves step alike; their difference, against the sum of the two
-//! steps' covariances, is χ² on two degrees of freedom. The step is
-//! linear about fits the sample already has, so the test costs no refit.
+//! The test: for each split of the sample — at its median column, then at
+//! its median row — one Gauss–Newton step ([`level_step`]) of a gain and
+//! an offset shared by the image (with the film index, where unknown) and
+//! of the first half's gain and offset less the second's, every pixel's
+//! thickness and angle eliminated. Under one calibration the difference
+//! is zero; against its covariance it is χ² on two degrees of freedom.
+//! The halves differ where that is beyond [`MAX_ACROSS_CHI2`] and one
+//! level for both would move the thicknesses by more than
+//! [`MIN_ACROSS_SHIFT`] of their σ.
 
 use super::index::SamplePixel;
 use super::level_fit::pixel_chi2_passes;
@@ -45,10 +46,11 @@ pub(super) const MAX_ACROSS_CHI2: f64 = 23.0;
 /// ... and it must matter: one level for both halves leaves each pixel's
 /// thickness off by its share of half the difference, which must exceed
 /// this many of its σ (median over the sample). A difference far below
-/// the pixels' precision is no reason to flag them: noise-free cubes,
-/// judged against the noise floor (1e-4) and pooled over 400 pixels, part
-/// their halves by a gain of 1e-4 (χ² 32 on a film index-matched to its
-/// substrate) that moves no thickness by a hundredth of its σ.
+/// the pixels' precision is no reason to flag them: a noise-free cube,
+/// judged against the noise floor (1e-4) and pooled over its 435 sample
+/// pixels, parted its halves by a gain of 1e-4 (χ² 32, a film
+/// index-matched to its substrate at 61 bands, p light) that moves no
+/// thickness by a tenth of its σ.
 pub(super) const MIN_ACROSS_SHIFT: f64 = 0.5;
 
 /// How the level differs across the image.
@@ -249,8 +251,8 @@ fn median_shift(fits: &[LevelPixel], level: &Level, [dg, doff]: [f64; 2], var: &
 mod tests {
     use super::*;
 
-    /// A two-band-parameter toy: pixels whose model is a sinusoid in the
-    /// bands with their own phase (a thickness), measured under a gain.
+    /// A toy image: pixels whose model is a sinusoid over 21 bands with
+    /// their own phase (a thickness), measured under a gain and noise.
     fn toy(
         n: usize,
         gain_of: impl Fn(usize) -> f64,
