@@ -346,4 +346,67 @@ mod tests {
         anon.iter_mut().for_each(|p| p.site = None);
         assert!(level_across(&anon, &fits, &identity, &wn, &var).is_none());
     }
+
+    /// The shift's response, by Cramer's rule on each pixel's 2 × 2
+    /// normal matrix, against the least-squares refit of the pixel's
+    /// thickness and angle to the level change's misfit solved by
+    /// Cholesky (`solve_spd`), for one pixel at a time: the median of one
+    /// is that pixel's |Δd|/σ_d.
+    #[test]
+    fn the_shift_is_each_pixels_refit_to_the_level_change() {
+        let nb = 31;
+        let var: Vec<f64> = (0..nb)
+            .map(|k| 1e-6 * (1.0 + 0.3 * (k % 4) as f64))
+            .collect();
+        let mut level = Level::identity(nb);
+        level
+            .gain
+            .iter_mut()
+            .enumerate()
+            .for_each(|(k, g)| *g = 0.95 + 0.003 * k as f64);
+        for (i, (dg, doff)) in [(0.02, 0.0), (0.0, 0.003), (-0.015, 0.001)]
+            .into_iter()
+            .enumerate()
+        {
+            let ph = 0.7 * i as f64;
+            let r: Vec<f64> = (0..nb)
+                .map(|k| 0.08 + 0.04 * (0.5 * k as f64 + ph).cos())
+                .collect();
+            let jd: Vec<f64> = (0..nb)
+                .map(|k| -0.02 * (0.5 * k as f64 + ph).sin() * (1.0 + 0.01 * k as f64))
+                .collect();
+            let jt: Vec<f64> = (0..nb)
+                .map(|k| 0.01 + 0.002 * (0.3 * k as f64).cos())
+                .collect();
+            let p = LevelPixel {
+                y: r.clone(),
+                r: r.clone(),
+                jac: vec![jd.clone(), jt.clone()],
+                sigma_d: 0.5,
+                ..LevelPixel::default()
+            };
+            let got = median_shift(std::slice::from_ref(&p), &level, [dg, doff], &var);
+            // The misfit e_k = dg·g_k·R_k + doff, fitted by g_k·(J·Δ).
+            let mut a = vec![0.0; 4];
+            let mut b = vec![0.0; 2];
+            for k in 0..nb {
+                let g = level.gain[k];
+                let e = dg * g * r[k] + doff;
+                let j = [g * jd[k], g * jt[k]];
+                for u in 0..2 {
+                    b[u] += j[u] * e / var[k];
+                    for v in 0..2 {
+                        a[u * 2 + v] += j[u] * j[v] / var[k];
+                    }
+                }
+            }
+            let delta = crate::estimate::level::solve_spd(&a, 2, &b).expect("positive definite");
+            let want = delta[0].abs() / 0.5;
+            assert!(
+                (got - want).abs() <= 1e-9 * want.max(1.0),
+                "{i}: {got} against {want}"
+            );
+            assert!(want > 0.0);
+        }
+    }
 }
