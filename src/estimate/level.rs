@@ -266,7 +266,7 @@ impl LevelShare {
 /// The inverse of a pixel's local normal matrix `a` (symmetric), over its
 /// thickness and, where `two`, its angle (else the angle's row and column
 /// are zero), each diagonal raised by `ridge`; `None` where singular.
-fn local_inverse(a: [[f64; 2]; 2], two: bool, ridge: f64) -> Option<[[f64; 2]; 2]> {
+pub(crate) fn local_inverse(a: [[f64; 2]; 2], two: bool, ridge: f64) -> Option<[[f64; 2]; 2]> {
     let (p, q, r) = (a[0][0] + ridge, a[0][1], a[1][1] + ridge);
     if !two {
         return (p > 0.0).then(|| [[1.0 / p, 0.0], [0.0, 0.0]]);
@@ -276,7 +276,7 @@ fn local_inverse(a: [[f64; 2]; 2], two: bool, ridge: f64) -> Option<[[f64; 2]; 2
 }
 
 /// `m·v` for a 2 × 2 matrix.
-fn times(m: &[[f64; 2]; 2], v: [f64; 2]) -> [f64; 2] {
+pub(crate) fn times(m: &[[f64; 2]; 2], v: [f64; 2]) -> [f64; 2] {
     [
         m[0][0] * v[0] + m[0][1] * v[1],
         m[1][0] * v[0] + m[1][1] * v[1],

@@ -31,7 +31,9 @@
 use super::index::SamplePixel;
 use super::level_fit::pixel_chi2_passes;
 use super::{Solver, LEVEL_SAMPLE_PIXELS};
-use crate::estimate::level::{level_step, Level, LevelBasis, LevelMode, LevelPixel};
+use crate::estimate::level::{
+    level_step, local_inverse, times, Level, LevelBasis, LevelMode, LevelPixel,
+};
 use crate::estimate::Cube;
 
 /// Fewest pixels in each half.
@@ -93,9 +95,7 @@ impl Solver {
         let Some(noise) = self.raw_noise.clone().or_else(|| self.noise.clone()) else {
             return;
         };
-        let nb = self.bands.len();
-        let var: Vec<f64> = (0..nb).map(|k| noise.var(k, 0.05)).collect();
-        let wn: Vec<f64> = self.bands.iter().map(|b| 1.0 / b.center_nm).collect();
+        let (var, wn) = self.level_weights(&noise);
         let sample = self.sample_pixels(cube, LEVEL_SAMPLE_PIXELS);
         let level = self.level.clone();
         let fits: Vec<LevelPixel> = self
@@ -230,12 +230,7 @@ fn median_shift(fits: &[LevelPixel], level: &Level, [dg, doff]: [f64; 2], var: &
                     }
                 }
             }
-            let dd = if nl == 2 {
-                let det = a[0][0] * a[1][1] - a[0][1] * a[1][0];
-                (det > 0.0).then(|| (a[1][1] * b[0] - a[0][1] * b[1]) / det)?
-            } else {
-                (a[0][0] > 0.0).then(|| b[0] / a[0][0])?
-            };
+            let dd = times(&local_inverse(a, nl == 2, 0.0)?, b)[0];
             let s = dd.abs() / p.sigma_d;
             s.is_finite().then_some(s)
         })
@@ -347,8 +342,9 @@ mod tests {
         assert!(level_across(&anon, &fits, &identity, &wn, &var).is_none());
     }
 
-    /// The shift's response, by Cramer's rule on each pixel's 2 × 2
-    /// normal matrix, against the least-squares refit of the pixel's
+    /// The shift's response, from each pixel's 2 × 2 normal matrix
+    /// inverted in closed form (`local_inverse`, as the level step does),
+    /// against the least-squares refit of the pixel's
     /// thickness and angle to the level change's misfit solved by
     /// Cholesky (`solve_spd`), for one pixel at a time: the median of one
     /// is that pixel's |Δd|/σ_d.

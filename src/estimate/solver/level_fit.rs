@@ -13,6 +13,7 @@ use crate::estimate::level::{
     level_step, Level, LevelBasis, LevelMode, LevelPixel, AUTO_PROBABILITY, MAX_AUTO_GAIN_ERROR,
 };
 use crate::estimate::model::{FilmModel, ModelOut};
+use crate::estimate::noise::NoiseModel;
 use crate::estimate::quality::chi2_upper_quantile;
 use crate::estimate::{Cube, EstimateError};
 use crate::optics::dispersion::Dispersion;
@@ -57,6 +58,15 @@ const MIN_HALF_PIXELS: usize = 40;
 const MIN_PIXELS_PER_BAND_BASIS: usize = 50;
 
 impl Solver {
+    /// What a level step weighs each band by: the noise variance at a
+    /// reflectance of 0.05, and the band's wavenumber 1/λ (its smooth
+    /// basis's coordinate).
+    pub(super) fn level_weights(&self, noise: &NoiseModel) -> (Vec<f64>, Vec<f64>) {
+        let var = (0..self.bands.len()).map(|k| noise.var(k, 0.05)).collect();
+        let wn = self.bands.iter().map(|b| 1.0 / b.center_nm).collect();
+        (var, wn)
+    }
+
     /// Fit the image-wide level on the sample where the scene asks for it
     /// (`scaled`) or the data show it is needed (`auto`); on success the
     /// level is in force and the index (re-estimated on the corrected
@@ -72,8 +82,7 @@ impl Solver {
             return Ok(None);
         };
         let nb = self.bands.len();
-        let var: Vec<f64> = (0..nb).map(|k| noise.var(k, 0.05)).collect();
-        let wn: Vec<f64> = self.bands.iter().map(|b| 1.0 / b.center_nm).collect();
+        let (var, wn) = self.level_weights(&noise);
         let identity = Level::identity(nb);
         let unknown_index = matches!(self.scene.film, FilmKnowledge::Unknown { .. });
         // Only pixels a level can explain take part: a first smooth fit,
