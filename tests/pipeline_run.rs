@@ -95,12 +95,26 @@ fn single_thread_mode_is_bit_identical() {
     for (x, y) in a.maps.iter().zip(&b.maps) {
         assert_eq!(bits(x), bits(y));
     }
-    // And the threaded mode computes the same maps when nothing is dropped.
-    let mut r = rig(11, "ascending", false);
-    let mut sink = CollectSink::default();
-    r.go(false, &config(2, false), &mut sink, &AtomicBool::new(false))
-        .unwrap();
-    assert_eq!(bits(&sink.maps[1]), bits(&a.maps[1]));
+    // And the threaded mode computes the same maps from the same frames:
+    // its first sweep, and (lossless, as a replay: capture never holds the
+    // second sweep back for the first's set-up, so it takes the frames
+    // one thread takes) every sweep.
+    for lossless in [false, true] {
+        let mut r = rig(11, "ascending", false);
+        let mut sink = CollectSink::default();
+        let cfg = RunConfig {
+            lossless,
+            ..config(2, false)
+        };
+        let rep = r
+            .go(false, &cfg, &mut sink, &AtomicBool::new(false))
+            .unwrap();
+        assert_eq!(rep.frames_held > 0, !lossless, "{rep:?}");
+        let n = if lossless { 2 } else { 1 };
+        for (x, y) in sink.maps.iter().zip(&a.maps).take(n) {
+            assert_eq!(bits(x), bits(y));
+        }
+    }
 }
 
 /// `fast` with the extremum candidates tracked while bands arrive (and
@@ -301,6 +315,46 @@ fn a_known_film_is_judged_live() {
                 (wrong as f64) < 0.01 * total,
                 "n {n}: {wrong} valid pixels wrong of {valid} valid"
             );
+        }
+    }
+}
+
+/// The first sweep estimates the film index, the noise and the level
+/// (~0.5–1 s here, three or more ~0.25 s sweep periods): capture holds the
+/// second sweep back until that is done, so no sweep queues behind it to go
+/// stale or be dropped, and every later map is fresh (its latency the
+/// solve's few ms, not the set-up's). Frames read meanwhile are counted as
+/// held. In triggered mode (the controller cycles on its own) the sweeps
+/// that start meanwhile are skipped, not dropped; on one thread capture
+/// waits for the solve anyway.
+#[test]
+fn the_first_sweeps_set_up_holds_the_second_sweep_back() {
+    for (triggered, single) in [(false, false), (true, false), (false, true)] {
+        let mut r = rig(5, "ascending", triggered);
+        let mut sink = CollectSink::default();
+        let rep = r
+            .go(
+                triggered,
+                &config(4, single),
+                &mut sink,
+                &AtomicBool::new(false),
+            )
+            .unwrap();
+        let lat: Vec<f64> = sink.summaries.iter().map(|s| s.latency_ms).collect();
+        eprintln!("triggered {triggered}, single {single}: {rep:?}, latencies {lat:?} ms");
+        if single {
+            assert_eq!(rep.frames_held, 0, "{rep:?}");
+            continue;
+        }
+        assert_eq!(rep.sweeps_completed, 4, "{rep:?}");
+        assert_eq!(rep.sweeps_dropped, 0, "{rep:?}");
+        assert!(rep.frames_held > 0, "{rep:?}");
+        // The set-up is in the first sweep's latency only.
+        for &l in &lat[1..] {
+            assert!(l < 0.5 * lat[0], "latencies {lat:?} ms");
+        }
+        for m in &sink.maps {
+            assert!(thickness_error(m, &r.truth).0 < MEAN_ERR_NM);
         }
     }
 }

@@ -266,7 +266,7 @@ fn replay_sink(args: &ReplayArgs) -> anyhow::Result<CliSink> {
         json: args.json,
         png: args.png,
         live: None,
-        pace: (0, None),
+        pace: super::run::Pace::default(),
     })
 }
 

@@ -193,9 +193,9 @@ pub(crate) struct CliSink {
     pub png: bool,
     /// The live page, fed the latest finished map.
     pub live: Option<super::serve::LiveView>,
-    /// Sweeps finished, and when the first and the last of them had their
-    /// last band frame (the finish less the sweep's latency).
-    pub pace: (u64, Option<(std::time::Instant, std::time::Instant)>),
+    /// When the mapped sweeps had their last band frame (the finish less
+    /// the sweep's latency).
+    pub pace: Pace,
 }
 
 impl CliSink {
@@ -206,22 +206,40 @@ impl CliSink {
     /// the frames, not at the finished maps: the first sweep also
     /// estimates the film index, the noise and the level, and the sweeps
     /// queued behind it then finish in a burst (the 3-sweep demo read "a
-    /// sweep every 4 ms"). A pipeline falling behind shows in the latency.
+    /// sweep every 4 ms"). From the second sweep on where three or more
+    /// were mapped: capture holds the second sweep back until the first
+    /// sweep's set-up is done, so the first interval is the set-up's. A
+    /// pipeline falling behind shows in the latency.
     pub fn sweep_period(&self) -> Option<std::time::Duration> {
-        let (n, Some((first, last))) = self.pace else {
-            return None;
+        let p = &self.pace;
+        let (from, intervals) = match (p.n, p.first, p.second) {
+            (3.., _, Some(second)) => (second, p.n - 2),
+            (2, Some(first), _) => (first, 1),
+            _ => return None,
         };
-        (n >= 2).then(|| (last - first) / (n - 1) as u32)
+        Some((p.last? - from) / intervals as u32)
     }
 
     /// One more sweep mapped, its last band frame `at`.
     fn note_pace(&mut self, at: std::time::Instant) {
-        let (n, times) = self.pace;
-        self.pace = match times {
-            None => (n + 1, Some((at, at))),
-            Some((first, _)) => (n + 1, Some((first, at))),
-        };
+        let p = &mut self.pace;
+        match p.n {
+            0 => p.first = Some(at),
+            1 => p.second = Some(at),
+            _ => {}
+        }
+        p.last = Some(at);
+        p.n += 1;
     }
+}
+
+/// The mapped sweeps' last band frames: how many, the first two, the last.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Pace {
+    n: u64,
+    first: Option<std::time::Instant>,
+    second: Option<std::time::Instant>,
+    last: Option<std::time::Instant>,
 }
 
 /// When a sweep that finished `now`, `latency_ms` after its last band
@@ -396,7 +414,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             .as_deref()
             .map(super::serve::LiveView::start)
             .transpose()?,
-        pace: (0, None),
+        pace: Pace::default(),
     };
     if let Some(l) = &sink.live {
         eprintln!("irid: live view at http://{}/", l.addr);
@@ -441,8 +459,16 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
                 p.as_secs_f64() * 1e3
             )
         });
+        let held = if report.frames_held > 0 {
+            format!(
+                ", {} while the first sweep's film index, noise and level were estimated",
+                report.frames_held
+            )
+        } else {
+            String::new()
+        };
         eprintln!(
-            "irid: {} sweeps mapped, {} dropped; {} frames read, {} discarded while settling, {} lost or refused{pace}{}",
+            "irid: {} sweeps mapped, {} dropped; {} frames read, {} discarded while settling{held}, {} lost or refused{pace}{}",
             report.sweeps_completed,
             report.sweeps_dropped,
             report.frames_total,
@@ -482,10 +508,12 @@ mod tests {
         assert_eq!(fast.time_scale, 2.0);
     }
 
-    /// The pace is taken at the sweeps' last band frames: three sweeps
-    /// acquired 450 ms apart whose maps finish in a burst (the first
-    /// estimating the index, the others queued behind it) read 450 ms,
-    /// not the burst's few; a latency that is no duration counts as none.
+    /// The pace is taken at the sweeps' last band frames: sweeps acquired
+    /// 450 ms apart whose maps finish in a burst (the first estimating the
+    /// index, the others queued behind it) read 450 ms, not the burst's
+    /// few; a latency that is no duration counts as none. With three or
+    /// more, from the second: a first sweep whose set-up held the second
+    /// back 1 s does not stretch it; with two, their interval.
     #[test]
     fn the_pace_is_kept_at_the_frames_not_at_the_finished_maps() {
         use std::time::{Duration, Instant};
@@ -496,7 +524,7 @@ mod tests {
             json: false,
             png: false,
             live: None,
-            pace: (0, None),
+            pace: Pace::default(),
         };
         assert_eq!(sink.sweep_period(), None);
         // Acquired at 0, 450 and 900 ms; finished at 1 100, 1 104, 1 108.
@@ -508,6 +536,26 @@ mod tests {
             p.abs_diff(Duration::from_millis(450)) < Duration::from_millis(1),
             "{p:?}"
         );
+        let held = |acquired: &[u64]| {
+            let mut sink = CliSink {
+                out: None,
+                json: false,
+                png: false,
+                live: None,
+                pace: Pace::default(),
+            };
+            for &ms in acquired {
+                sink.note_pace(finish(ms));
+            }
+            sink.sweep_period()
+        };
+        // Acquired at 0, then (held back 1 s) 1 300, 1 610 and 1 920 ms.
+        assert_eq!(
+            held(&[0, 1300, 1610, 1920]),
+            Some(Duration::from_millis(310))
+        );
+        assert_eq!(held(&[0, 1300]), Some(Duration::from_millis(1300)));
+        assert_eq!(held(&[0]), None);
         for odd in [f64::NAN, -5.0, f64::INFINITY] {
             assert_eq!(last_frame_at(finish(10), odd), finish(10), "{odd}");
         }

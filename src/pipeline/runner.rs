@@ -222,6 +222,9 @@ pub struct RunReport {
     /// controller (stepped mode; taken while the filter moved, so of no
     /// use, and not counted in `frames_dropped`).
     pub frames_lost_tuning: u64,
+    /// Frames read while capture held the second sweep back until the
+    /// first sweep's set-up (film index, noise, level) was done.
+    pub frames_held: u64,
     /// Whether the run was stopped early.
     pub stopped: bool,
 }
@@ -233,6 +236,13 @@ struct Counters {
     frames_settling: AtomicU64,
     frames_total: AtomicU64,
     frames_lost_tuning: AtomicU64,
+    frames_held: AtomicU64,
+    /// Raised before the run where the first sweep must establish the film
+    /// index, the noise or the level, lowered by solve when that is done:
+    /// meanwhile capture holds the second sweep back (stepped mode), so the
+    /// sweeps that would queue behind the set-up are never taken, and the
+    /// first sweep after it is fresh.
+    setup_hold: AtomicBool,
 }
 
 /// A tuner that notes whether it was called (capture then knows a gap in
@@ -266,6 +276,11 @@ enum Packet {
     Abandoned {
         sweep: u64,
     },
+    /// A sweep not taken while the first sweep's set-up was done
+    /// (triggered mode): not wanted, and not a drop.
+    Skipped {
+        sweep: u64,
+    },
     End,
 }
 
@@ -285,6 +300,8 @@ struct Capture<'a> {
     fault: Option<StageFault>,
     handled: u64,
     tap: Option<&'a mut dyn CaptureTap>,
+    /// The sweep in progress was skipped for the set-up (triggered mode).
+    skipping: bool,
 }
 
 enum Step {
@@ -306,6 +323,9 @@ impl Capture<'_> {
                 recycle(b);
             }
             return Ok(Step::Done);
+        }
+        if self.counters.setup_hold.load(Ordering::Acquire) && self.seq.at_sweep_start() {
+            return self.hold(buf, recycle);
         }
         let pooled = buf.is_some();
         let format = self.spare.meta.format;
@@ -359,6 +379,27 @@ impl Capture<'_> {
                 self.after_tune = tuner.tuned;
                 let v = v?;
                 debug_assert!(filled || v == Verdict::Discard(Discard::Settling));
+                if let Verdict::Accept { sweep, .. } = v {
+                    self.skipping = false;
+                    if sweep > 0 && self.counters.setup_hold.load(Ordering::Acquire) {
+                        // Triggered mode: the controller cycles on its own,
+                        // so a sweep that starts during the set-up is not
+                        // taken (the stepped sequence is held instead).
+                        let s = self.seq.skip_sweep(self.tuner, m.timestamp_ns)?;
+                        self.skipping = true;
+                        self.counters.frames_held.fetch_add(1, Ordering::Relaxed);
+                        if let Some(t) = self.tap.as_deref_mut() {
+                            t.on_frame(&frame, Some(Verdict::Discard(Discard::Held)));
+                        }
+                        emit(Packet::Skipped { sweep: s });
+                        if pooled {
+                            recycle(frame);
+                        } else {
+                            self.spare = frame;
+                        }
+                        return Ok(Step::Continue);
+                    }
+                }
                 if let Some(t) = tap {
                     let paired = pooled || !matches!(v, Verdict::Accept { .. });
                     t.on_frame(&frame, paired.then_some(v));
@@ -388,7 +429,10 @@ impl Capture<'_> {
                     Verdict::Discard(Discard::Bad | Discard::Stale) => {
                         self.counters.frames_dropped.fetch_add(1, Ordering::Relaxed);
                     }
-                    Verdict::Discard(Discard::Abandoned | Discard::Done) => {}
+                    Verdict::Discard(Discard::Abandoned) if self.skipping => {
+                        self.counters.frames_held.fetch_add(1, Ordering::Relaxed);
+                    }
+                    Verdict::Discard(Discard::Abandoned | Discard::Done | Discard::Held) => {}
                 }
                 Ok(Step::Continue)
             }
@@ -398,6 +442,61 @@ impl Capture<'_> {
                 Ok(Step::Continue)
             }
             // A recording's end ends the run normally.
+            Err(CameraError::Ended) => Ok(Step::Done),
+            Err(e) => Err(RunError::Camera(e)),
+        };
+        if pooled {
+            recycle(frame);
+        } else {
+            self.spare = frame;
+        }
+        result
+    }
+}
+
+impl Capture<'_> {
+    /// Read one frame and discard it as held: the camera keeps running (its
+    /// driver's queue never overflows) and no pixel is copied. The filter
+    /// waits, settled, on the next sweep's first band, so the first frame
+    /// read after the hold starts that sweep. A recording keeps a held
+    /// frame's metadata and verdict, not its pixels: a replay never sees
+    /// it, and pairs the next frame as the live run did.
+    fn hold(
+        &mut self,
+        buf: Option<Frame>,
+        recycle: &mut dyn FnMut(Frame),
+    ) -> Result<Step, RunError> {
+        let pooled = buf.is_some();
+        let format = self.spare.meta.format;
+        let mut frame = buf
+            .unwrap_or_else(|| std::mem::replace(&mut self.spare, Frame::with_size(0, 0, format)));
+        let got = self
+            .source
+            .next_frame_if(&mut frame, self.timeout, &mut |_| false);
+        self.counters.frames_total.fetch_add(1, Ordering::Relaxed);
+        let result = match got {
+            Ok(_) => {
+                let m = frame.meta;
+                if let Some(last) = self.last_seq {
+                    if m.seq > last + 1 {
+                        // Lost while held: of no use either way.
+                        self.counters
+                            .frames_held
+                            .fetch_add(m.seq - last - 1, Ordering::Relaxed);
+                    }
+                }
+                self.last_seq = Some(self.last_seq.map_or(m.seq, |l| l.max(m.seq)));
+                self.counters.frames_held.fetch_add(1, Ordering::Relaxed);
+                if let Some(t) = self.tap.as_deref_mut() {
+                    t.on_frame(&frame, Some(Verdict::Discard(Discard::Held)));
+                }
+                Ok(Step::Continue)
+            }
+            Err(CameraError::BadFrame { seq, message }) => {
+                tracing::warn!(seq, %message, "bad frame");
+                self.counters.frames_dropped.fetch_add(1, Ordering::Relaxed);
+                Ok(Step::Continue)
+            }
             Err(CameraError::Ended) => Ok(Step::Done),
             Err(e) => Err(RunError::Camera(e)),
         };
@@ -488,6 +587,10 @@ impl Ingest {
                 } else {
                     self.counters.sweeps_dropped.fetch_add(1, Ordering::Relaxed);
                 }
+                self.floor = Some(self.floor.map_or(sweep, |f| f.max(sweep)));
+                return None;
+            }
+            Packet::Skipped { sweep } => {
                 self.floor = Some(self.floor.map_or(sweep, |f| f.max(sweep)));
                 return None;
             }
@@ -600,6 +703,9 @@ impl Solve {
             }
             self.index_tried = true;
         }
+        // The set-up is done (or failed, and is tried again on the next
+        // sweep without holding capture back): the next sweep may start.
+        self.counters.setup_hold.store(false, Ordering::Release);
         // Pixels are solved on data corrected by the image-wide level, when
         // one is in force (`scaled`, or `auto` that chose it).
         let cube = if self.solver.level().0.is_identity() {
@@ -741,7 +847,22 @@ pub fn run_tapped(
             Some(t) => Some(t),
             None => None,
         },
+        skipping: false,
     };
+    // The first sweep's set-up (film index, noise, level) takes several
+    // sweep periods on a large image: capture holds the second sweep back
+    // until it is done, instead of queueing and then dropping the sweeps
+    // behind it (in triggered mode, where the controller cycles on its
+    // own, the sweeps that start meanwhile are skipped). Not where a replay
+    // (lossless) reads as fast as it can, nor on one thread (capture waits
+    // for the solve anyway).
+    let needs_setup = solver
+        .film_index()
+        .is_none_or(|i| !i.noise_sigma.is_finite());
+    counters.setup_hold.store(
+        needs_setup && !cfg.lossless && !cfg.single_thread,
+        Ordering::Release,
+    );
     let tracker = Tracker::new(w, h, &setup.bands).track_extrema(cfg.track_extrema);
     let n_sweep_bufs = cfg.sweep_buffers.max(1);
     let sweep_bufs: Vec<SweepBuf> = (0..n_sweep_bufs).map(|_| tracker.new_sweep_buf()).collect();
@@ -801,6 +922,7 @@ pub fn run_tapped(
         frames_settling: counters.frames_settling.load(Ordering::Relaxed),
         frames_total: counters.frames_total.load(Ordering::Relaxed),
         frames_lost_tuning: counters.frames_lost_tuning.load(Ordering::Relaxed),
+        frames_held: counters.frames_held.load(Ordering::Relaxed),
         stopped,
     })
 }

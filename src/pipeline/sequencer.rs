@@ -249,6 +249,9 @@ pub enum Discard {
     Bad,
     /// Beyond the requested number of sweeps.
     Done,
+    /// Read while capture held the next sweep back (the first sweep's
+    /// set-up: film index, noise and level; stepped mode).
+    Held,
 }
 
 /// The sequencer's verdict on one frame.
@@ -372,6 +375,31 @@ impl Sequencer {
             (SeqMode::Stepped, Some(n)) => self.sweep >= n,
             (SeqMode::Triggered, Some(n)) => self.next_slot >= n * self.order.len() as u64,
         }
+    }
+
+    /// Whether the next accepted frame would start a sweep after the first
+    /// (stepped mode): where capture may hold the sequence back.
+    pub fn at_sweep_start(&self) -> bool {
+        self.mode == SeqMode::Stepped
+            && self.started
+            && self.pos == 0
+            && self.sweep > 0
+            && !self.finished()
+    }
+
+    /// Skip the sweep in progress (triggered mode, while the pipeline's
+    /// set-up is done): like [`Sequencer::abandon_sweep`], but the sweep
+    /// does not count toward the requested number.
+    pub fn skip_sweep(
+        &mut self,
+        tuner: &mut dyn BandTuner,
+        now_ns: u64,
+    ) -> Result<u64, SequencerError> {
+        let s = self.abandon_sweep(tuner, now_ns)?;
+        if let Some(n) = self.sweeps.as_mut() {
+            *n += 1;
+        }
+        Ok(s)
     }
 
     /// Give up the sweep in progress (processing fell behind): its frames

@@ -279,8 +279,9 @@ pub fn ircal_bytes(cal: &Calibration) -> Vec<u8> {
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum SeqEvent {
     /// The verdict on one frame: `accept` (with sweep and band), or why it
-    /// was discarded: `settling`, `stale`, `abandoned`, `bad`, `done`, or
-    /// `pool_empty` (paired, but processing was behind and the sweep was
+    /// was discarded: `settling`, `stale`, `abandoned`, `bad`, `done`,
+    /// `held` (capture held the next sweep back while the first sweep's
+    /// film index was estimated), or `pool_empty` (paired, but processing was behind and the sweep was
     /// given up).
     Frame {
         /// Frame sequence number.
@@ -349,7 +350,7 @@ pub fn json_schema(topic: &str) -> &'static str {
             r#"{"type":"object","title":"irid.Session","required":["irid_version","scene","bands_nm","order","seq_mode","width","height","format"],"properties":{"irid_version":{"type":"string"},"started_unix_s":{"type":"integer"},"command":{"type":"string"},"scene":{"type":"object"},"scene_base":{"type":"string"},"bands_nm":{"type":"array","items":{"type":"number"}},"fwhm_nm":{"type":"array","items":{"type":"number"}},"order":{"type":"array","items":{"type":"integer"}},"seq_mode":{"enum":["stepped","triggered"]},"mode":{"type":"string"},"camera_id":{"type":"string"},"width":{"type":"integer"},"height":{"type":"integer"},"format":{"enum":["grey8","y10","y12","y16"]},"exposure_us":{"type":"integer"},"gain":{"type":"number"},"filter":{"type":"string"},"sweeps":{"type":["integer","null"]}}}"#
         }
         TOPIC_SEQUENCER => {
-            r#"{"type":"object","title":"irid.SequencerEvent","required":["kind"],"properties":{"kind":{"enum":["frame","missing","abandoned"]},"seq":{"type":"integer"},"verdict":{"enum":["accept","settling","stale","abandoned","bad","done","pool_empty"]},"sweep":{"type":"integer"},"band":{"type":"integer"}}}"#
+            r#"{"type":"object","title":"irid.SequencerEvent","required":["kind"],"properties":{"kind":{"enum":["frame","missing","abandoned"]},"seq":{"type":"integer"},"verdict":{"enum":["accept","settling","stale","abandoned","bad","done","held","pool_empty"]},"sweep":{"type":"integer"},"band":{"type":"integer"}}}"#
         }
         TOPIC_LINE => {
             r#"{"type":"object","title":"irid.LineConfig","required":["web_toml","motion","geometry"],"properties":{"web_toml":{"type":"string"},"web_path":{"type":"string"},"recipe_toml":{"type":["string","null"]},"recipe_path":{"type":["string","null"]},"motion":{"type":"object"},"geometry":{"type":"object"},"nominal_speed_rows_per_s":{"type":"number"},"allow_over_speed":{"type":"boolean"},"warmup_rows":{"type":"integer"},"segment_rows":{"type":"integer"},"lanes":{"type":"integer"},"frames_per_sweep_unit":{"type":"integer"}}}"#

@@ -98,6 +98,8 @@ enum Msg {
     Frame(Frame, Option<Verdict>),
     /// No buffer: metadata and verdict only.
     FrameDropped(crate::device::camera::FrameMeta, Option<Verdict>),
+    /// A frame read while capture held the sweep back: its verdict only.
+    Held(crate::device::camera::FrameMeta),
     Missing {
         sweep: u64,
         band: usize,
@@ -325,6 +327,12 @@ fn send_event(tx: &Sender<Msg>, shared: &Shared, m: Msg) {
 
 impl CaptureTap for RecordTap {
     fn on_frame(&mut self, frame: &Frame, verdict: Option<Verdict>) {
+        if verdict == Some(Verdict::Discard(Discard::Held)) {
+            // Read while capture held the sweep back: its pixels were
+            // never read, and a replay must not see it as a frame.
+            send_event(&self.tx, &self.shared, Msg::Held(frame.meta));
+            return;
+        }
         let pixels = frame.pixels().ok();
         let buf = match (pixels, self.free.try_recv()) {
             (Some(px), Ok(mut b)) => {
@@ -414,6 +422,7 @@ fn verdict_event(seq: u64, v: Option<Verdict>) -> SeqEvent {
                 Discard::Abandoned => "abandoned",
                 Discard::Bad => "bad",
                 Discard::Done => "done",
+                Discard::Held => "held",
             },
             None,
             None,
@@ -499,6 +508,15 @@ impl Out {
                 self.write_json(TOPIC_RECORDER, t, &RecorderEvent::Dropped { seq: meta.seq })?;
                 self.write_json(TOPIC_SEQUENCER, t, &verdict_event(meta.seq, v))?;
                 sweep_end(&v)
+            }
+            Msg::Held(meta) => {
+                let v = Some(Verdict::Discard(Discard::Held));
+                self.write_json(
+                    TOPIC_SEQUENCER,
+                    meta.timestamp_ns,
+                    &verdict_event(meta.seq, v),
+                )?;
+                false
             }
             Msg::Missing { sweep, band } => {
                 self.write_json(TOPIC_SEQUENCER, 0, &SeqEvent::Missing { sweep, band })?;
