@@ -153,6 +153,13 @@ pub struct SyntheticConfig {
     /// When pacing, run the clock this many times faster than the wall
     /// (to match an emulated controller running faster than a real unit).
     pub speed: f64,
+    /// When pacing, the frames the driver keeps for a reader that is late
+    /// (a V4L2 queue of buffers): an older frame is lost, as a real camera
+    /// loses it, and shows as a gap in the frame counter. 0 keeps every
+    /// frame (an unbounded queue: a reader that fell behind — during the
+    /// calibration, say — then reads seconds-old frames, and the rig seems
+    /// to step faster than its filter settles while it catches up).
+    pub queue_frames: u32,
 }
 
 impl Default for SyntheticConfig {
@@ -164,6 +171,7 @@ impl Default for SyntheticConfig {
             noise_pool: false,
             realtime: false,
             speed: 1.0,
+            queue_frames: 8,
         }
     }
 }
@@ -264,6 +272,52 @@ impl SyntheticCamera {
     }
 
     /// Counts for a blend of band `a` (weight 1 − α) and band `b` (α).
+    /// Frame `seq` into `out` (its first `n` samples rendered only where
+    /// `wanted` says so): the trigger's filter command, the metadata, and
+    /// the noise stream advanced as if rendered.
+    fn produce(
+        &mut self,
+        seq: u64,
+        out: &mut Frame,
+        n: usize,
+        wanted: &mut dyn FnMut(&super::FrameMeta) -> bool,
+    ) -> bool {
+        let s = &self.cfg.sensor;
+        let t0 = seq * s.frame_period_ns;
+        let exposure_ns = u64::from(s.exposure_us) * 1000;
+        let mut trigger = None;
+        if let Some(palette) = &self.cfg.trigger_palette {
+            if !palette.is_empty() {
+                let b = palette[(seq % palette.len() as u64) as usize];
+                let nm = self.bands.get(b).map_or(0.0, |b| b.center_nm);
+                self.filter.tune(nm, t0, 0);
+                trigger = Some(seq);
+            }
+        }
+        let tr = self.filter.get();
+        // The camera integrates over the exposure; the blend at mid-exposure
+        // is a fair stand-in for the integral of a smooth transition.
+        let alpha = tr.progress(t0 + exposure_ns / 2);
+        let (a, b) = (self.band_of(tr.from_nm), self.band_of(tr.to_nm));
+        let s = &self.cfg.sensor;
+        out.meta = super::FrameMeta {
+            seq,
+            timestamp_ns: t0,
+            exposure_us: s.exposure_us,
+            gain: 1.0,
+            format: s.format,
+            width: self.width,
+            height: self.height,
+            trigger,
+            encoder: None,
+        };
+        let want = wanted(&out.meta);
+        // The noise stream advances as if the frame were rendered, so
+        // skipping one changes no other frame.
+        self.render_counts(a, b, alpha, &mut out.data[..n], want);
+        want
+    }
+
     fn render_counts(
         &mut self,
         a: Option<usize>,
@@ -472,57 +526,36 @@ impl FrameSource for SyntheticCamera {
                 need: n,
             });
         }
-        let seq = self.seq;
-        self.seq += 1;
-        let s = &self.cfg.sensor;
-        let t0 = seq * s.frame_period_ns;
+        let mut seq = self.seq;
         if self.cfg.realtime {
+            let period = self.cfg.sensor.frame_period_ns.max(1);
             let (start, v0) = *self
                 .started
-                .get_or_insert_with(|| (std::time::Instant::now(), t0));
+                .get_or_insert_with(|| (std::time::Instant::now(), seq * period));
             let speed = if self.cfg.speed > 0.0 {
                 self.cfg.speed
             } else {
                 1.0
             };
-            let due = start + Duration::from_secs_f64((t0 - v0) as f64 / 1e9 / speed);
+            // Frames older than the driver's queue are lost.
+            let q = u64::from(self.cfg.queue_frames);
+            if q > 0 {
+                let device_ns = (start.elapsed().as_secs_f64() * speed * 1e9) as u64;
+                let newest = (v0 + device_ns) / period;
+                while seq + q <= newest {
+                    self.seq = seq + 1;
+                    self.produce(seq, out, n, &mut |_| false);
+                    seq += 1;
+                }
+            }
+            let due = start + Duration::from_secs_f64((seq * period - v0) as f64 / 1e9 / speed);
             let now = std::time::Instant::now();
             if due > now {
                 std::thread::sleep(due - now);
             }
         }
-        let exposure_ns = u64::from(s.exposure_us) * 1000;
-        let mut trigger = None;
-        if let Some(palette) = &self.cfg.trigger_palette {
-            if !palette.is_empty() {
-                let b = palette[(seq % palette.len() as u64) as usize];
-                let nm = self.bands.get(b).map_or(0.0, |b| b.center_nm);
-                self.filter.tune(nm, t0, 0);
-                trigger = Some(seq);
-            }
-        }
-        let tr = self.filter.get();
-        // The camera integrates over the exposure; the blend at mid-exposure
-        // is a fair stand-in for the integral of a smooth transition.
-        let alpha = tr.progress(t0 + exposure_ns / 2);
-        let (a, b) = (self.band_of(tr.from_nm), self.band_of(tr.to_nm));
-        let s = &self.cfg.sensor;
-        out.meta = super::FrameMeta {
-            seq,
-            timestamp_ns: t0,
-            exposure_us: s.exposure_us,
-            gain: 1.0,
-            format: s.format,
-            width: self.width,
-            height: self.height,
-            trigger,
-            encoder: None,
-        };
-        let want = wanted(&out.meta);
-        // The noise stream advances as if the frame were rendered, so
-        // skipping one changes no other frame.
-        self.render_counts(a, b, alpha, &mut out.data[..n], want);
-        Ok(want)
+        self.seq = seq + 1;
+        Ok(self.produce(seq, out, n, wanted))
     }
 
     fn set_exposure(&mut self, exposure_us: u32) -> Result<u32, CameraError> {
@@ -649,6 +682,57 @@ mod tests {
                     assert_eq!(fs.data, fa.data, "pool {pool}, frame {k}");
                 }
             }
+        }
+    }
+
+    /// A reader late by more than the driver's queue loses the older
+    /// frames, as a real camera does: the next frame read is one of the
+    /// newest `queue_frames`, the counter shows the gap, and that frame is
+    /// the very frame a reader that took every one got (the noise stream
+    /// advances over the lost ones). With no bound (0), nothing is lost.
+    #[test]
+    fn a_late_reader_loses_the_frames_past_the_queue() {
+        for (queue, pool) in [(4u32, true), (4, false), (0, true)] {
+            let sensor = SensorModel {
+                exposure_us: 500,
+                frame_period_ns: 1_000_000,
+                ..SensorModel::default()
+            };
+            let cfg = SyntheticConfig {
+                sensor,
+                noise_pool: pool,
+                queue_frames: queue,
+                ..Default::default()
+            };
+            let mut live = cam(SyntheticConfig {
+                realtime: true,
+                ..cfg.clone()
+            });
+            let mut all = cam(cfg);
+            let nm = live.bands()[3].center_nm;
+            live.filter_view().tune(nm, 0, 0);
+            all.filter_view().tune(nm, 0, 0);
+            let info = live.info();
+            let mut f = Frame::with_size(info.width, info.height, info.format);
+            let mut g = f.clone();
+            live.next_frame(&mut f, Duration::ZERO).unwrap();
+            assert_eq!(f.meta.seq, 0);
+            // 40 frame periods late.
+            std::thread::sleep(Duration::from_millis(40));
+            live.next_frame(&mut f, Duration::ZERO).unwrap();
+            let seq = f.meta.seq;
+            if queue == 0 {
+                assert_eq!(seq, 1);
+            } else {
+                // Due at 40 ms or later: within the newest four of them
+                // (a slow machine may read later still, never earlier).
+                assert!(seq >= 40 - u64::from(queue), "seq {seq}");
+            }
+            for _ in 0..=seq {
+                all.next_frame(&mut g, Duration::ZERO).unwrap();
+            }
+            assert_eq!(g.meta, f.meta);
+            assert_eq!(g.data, f.data, "queue {queue}, pool {pool}");
         }
     }
 
