@@ -519,13 +519,14 @@ mod tests {
         use std::time::{Duration, Instant};
         let t0 = Instant::now();
         let finish = |ms: u64| t0 + Duration::from_millis(ms);
-        let mut sink = CliSink {
+        let new_sink = || CliSink {
             out: None,
             json: false,
             png: false,
             live: None,
             pace: Pace::default(),
         };
+        let mut sink = new_sink();
         assert_eq!(sink.sweep_period(), None);
         // Acquired at 0, 450 and 900 ms; finished at 1 100, 1 104, 1 108.
         for (done, latency) in [(1100, 1100.0), (1104, 654.0), (1108, 208.0)] {
@@ -537,13 +538,7 @@ mod tests {
             "{p:?}"
         );
         let held = |acquired: &[u64]| {
-            let mut sink = CliSink {
-                out: None,
-                json: false,
-                png: false,
-                live: None,
-                pace: Pace::default(),
-            };
+            let mut sink = new_sink();
             for &ms in acquired {
                 sink.note_pace(finish(ms));
             }

@@ -392,11 +392,7 @@ impl Capture<'_> {
                             t.on_frame(&frame, Some(Verdict::Discard(Discard::Held)));
                         }
                         emit(Packet::Skipped { sweep: s });
-                        if pooled {
-                            recycle(frame);
-                        } else {
-                            self.spare = frame;
-                        }
+                        self.give_back(pooled, frame, recycle);
                         return Ok(Step::Continue);
                     }
                 }
@@ -436,25 +432,35 @@ impl Capture<'_> {
                 }
                 Ok(Step::Continue)
             }
-            Err(CameraError::BadFrame { seq, message }) => {
+            Err(e) => self.read_failed(e),
+        };
+        self.give_back(pooled, frame, recycle);
+        result
+    }
+
+    /// A failed read: a bad frame is counted and skipped, a recording's
+    /// end ends the run normally, anything else is the camera's error.
+    fn read_failed(&self, e: CameraError) -> Result<Step, RunError> {
+        match e {
+            CameraError::BadFrame { seq, message } => {
                 tracing::warn!(seq, %message, "bad frame");
                 self.counters.frames_dropped.fetch_add(1, Ordering::Relaxed);
                 Ok(Step::Continue)
             }
-            // A recording's end ends the run normally.
-            Err(CameraError::Ended) => Ok(Step::Done),
-            Err(e) => Err(RunError::Camera(e)),
-        };
+            CameraError::Ended => Ok(Step::Done),
+            e => Err(RunError::Camera(e)),
+        }
+    }
+
+    /// A frame not passed on: back to the pool, or kept as the spare.
+    fn give_back(&mut self, pooled: bool, frame: Frame, recycle: &mut dyn FnMut(Frame)) {
         if pooled {
             recycle(frame);
         } else {
             self.spare = frame;
         }
-        result
     }
-}
 
-impl Capture<'_> {
     /// Read one frame and discard it as held: the camera keeps running (its
     /// driver's queue never overflows) and no pixel is copied. The filter
     /// waits, settled, on the next sweep's first band, so the first frame
@@ -492,19 +498,9 @@ impl Capture<'_> {
                 }
                 Ok(Step::Continue)
             }
-            Err(CameraError::BadFrame { seq, message }) => {
-                tracing::warn!(seq, %message, "bad frame");
-                self.counters.frames_dropped.fetch_add(1, Ordering::Relaxed);
-                Ok(Step::Continue)
-            }
-            Err(CameraError::Ended) => Ok(Step::Done),
-            Err(e) => Err(RunError::Camera(e)),
+            Err(e) => self.read_failed(e),
         };
-        if pooled {
-            recycle(frame);
-        } else {
-            self.spare = frame;
-        }
+        self.give_back(pooled, frame, recycle);
         result
     }
 }
