@@ -729,6 +729,11 @@ pub struct Solver {
     /// `absolute` was asked for, but the image shows a correctable
     /// calibration error: every pixel is flagged.
     calibration_suspect: bool,
+    /// The optical thicknesses (`d·q2_mid(θ)`) the index stage's last
+    /// sample of fits spans, where nearly all of it fitted: `fast`'s
+    /// angle bins tabulate about it instead of the whole resolved range
+    /// ([`Solver::angle_bins`]).
+    sample_g: Option<(f64, f64)>,
     /// The model one small step up in the film index, where the index is
     /// estimated jointly with the level: each pixel's derivative with
     /// respect to it carries the index's share of the level's covariance.
@@ -880,6 +885,7 @@ impl Solver {
             level_note: String::new(),
             level_hedge: None,
             calibration_suspect: false,
+            sample_g: None,
             index_step: None,
             share_table: std::sync::OnceLock::new(),
             residual_noise_floor: false,
@@ -1155,6 +1161,24 @@ impl Solver {
             d_max: self.d_max,
             g_hi: 1.05 * self.g_max.0,
             g_reach: self.run_reach(1.0),
+        };
+        // Tabulated about the films the image's sample shows (its thickest
+        // optical thickness and as much again, at least two orders
+        // more), not the whole resolved range: a pixel past a table is
+        // not explained there and takes the angle-free fit, which searches
+        // the whole range. On the 150–350 nm dispersive film each of its
+        // ~100 bins had tabulated 0–3 µm and walked to 6 µm.
+        let range = match self.sample_g {
+            Some((_, g)) => {
+                let lam_max = self.bands.iter().map(|b| b.center_nm).fold(0.0, f64::max);
+                let g = g + (0.5 * g).max(lam_max);
+                table::BinRange {
+                    g_hi: range.g_hi.min(g),
+                    g_reach: range.g_reach.map(|r| r.min(g)),
+                    ..range
+                }
+            }
+            None => range,
         };
         let hi = search.1.min(PI / 2.0 - 1e-9);
         let tol = if noise.is_finite() {
