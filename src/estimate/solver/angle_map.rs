@@ -412,9 +412,17 @@ impl Solver {
                     }
                     // Off the grid, past the tables' budget, or not
                     // explained at the line's angle: the free fit.
-                    _ => {
+                    other => {
+                        // Started where the table left it, moved to the
+                        // line's angle: a pixel the χ² test failed by a
+                        // little (the noise's tail) is refined there and
+                        // judged, without the search a gross misfit (an
+                        // edge, a defect, another order) still gets.
+                        let d0 = scratch.last_fit_d * scale;
+                        let start = (other.is_some() && d0.is_finite()).then_some((d0, t));
                         scratch.last_fit_d = f64::NAN;
-                        let o = self.solve_pixel(pixel, None, scratch);
+                        let effort = super::Effort::of(self.mode);
+                        let o = self.solve_pixel_with(pixel, None, scratch, effort, start);
                         failed_run = if o.is_valid() { 0 } else { failed_run + 1 };
                         o
                     }
