@@ -323,7 +323,8 @@ impl Solver {
                 scratch.warm = start;
                 scratch.warm_before = None;
             }
-            let o = self.solve_pixel(pixel, None, scratch);
+            let effort = super::Effort::of(self.mode);
+            let o = self.solve_pixel_with(pixel, None, scratch, effort, start);
             scratch.note_warm(&o);
             if o.is_valid() {
                 let (t, st) = (o.theta_deg.to_radians(), o.sigma_theta_deg.to_radians());
