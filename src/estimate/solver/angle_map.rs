@@ -323,8 +323,7 @@ impl Solver {
                 scratch.warm = start;
                 scratch.warm_before = None;
             }
-            let effort = super::Effort::of(self.mode);
-            let o = self.solve_pixel_with(pixel, None, scratch, effort, start);
+            let o = self.solve_pixel(pixel, None, scratch);
             scratch.note_warm(&o);
             if o.is_valid() {
                 let (t, st) = (o.theta_deg.to_radians(), o.sigma_theta_deg.to_radians());
