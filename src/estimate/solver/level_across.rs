@@ -123,7 +123,7 @@ impl Solver {
 }
 
 impl Solver {
-    /// Keep the optical thicknesses `fits` span (of a sample of `n`
+    /// Keep the largest optical thickness of `fits` (of a sample of `n`
     /// pixels) for `fast`'s angle bins, where nearly all of the sample
     /// fitted (at least 100 pixels and 98 %: films past the resolved range
     /// or out of the model leave the bins their whole range).
@@ -135,15 +135,15 @@ impl Solver {
         if fits.len() < 100 || (fits.len() as f64) < 0.98 * n as f64 {
             return;
         }
-        let (mut lo, mut hi) = (f64::INFINITY, 0f64);
+        let mut hi = 0f64;
         for p in fits {
             let g = p.d * prep.model.q2_mid(p.theta);
             if !g.is_finite() {
                 return;
             }
-            (lo, hi) = (lo.min(g), hi.max(g));
+            hi = hi.max(g);
         }
-        self.sample_g = Some((lo, hi));
+        self.sample_g = Some(hi);
     }
 }
 
@@ -492,10 +492,10 @@ mod tests {
         add_noise(&mut cube.data, 0.001, 7);
         let mut solver = Solver::new(&scene, &bands, Mode::Fast).unwrap();
         solver.estimate_film_index(&cube).unwrap();
-        let (_, g_hi) = solver.sample_g.expect("the sample fitted");
+        let g_hi = solver.sample_g.expect("the sample fitted");
         let prep = solver.prepared.as_ref().unwrap();
         let g_patch = 1600.0 * prep.model.q2_mid(40f64.to_radians());
-        let g_bins = g_hi + (0.5 * g_hi).max(560.0);
+        let g_bins = super::super::bins_g_limit(g_hi, 560.0);
         // The sample saw the cylinder's films, not the patches: the bins
         // stop short of them.
         assert!(

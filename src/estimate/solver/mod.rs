@@ -143,6 +143,13 @@ pub struct IndexEstimate {
     pub branches: Option<[f64; 2]>,
 }
 
+/// The optical thickness `fast`'s angle bins tabulate to, for a sample
+/// whose films reach `g`: as much again, and at least two orders at the
+/// longest wavelength `lam_max` (one order is λ/2 in `g`).
+fn bins_g_limit(g: f64, lam_max: f64) -> f64 {
+    g + (0.5 * g).max(lam_max)
+}
+
 /// Pixels in a row whose closed form served nothing before `fast`'s row
 /// path stops looking for one.
 const CLOSED_FORM_SKIP_AFTER: u32 = 4;
@@ -729,11 +736,11 @@ pub struct Solver {
     /// `absolute` was asked for, but the image shows a correctable
     /// calibration error: every pixel is flagged.
     calibration_suspect: bool,
-    /// The optical thicknesses (`d·q2_mid(θ)`) the index stage's last
-    /// sample of fits spans, where nearly all of it fitted: `fast`'s
-    /// angle bins tabulate about it instead of the whole resolved range
-    /// ([`Solver::angle_bins`]).
-    sample_g: Option<(f64, f64)>,
+    /// The largest optical thickness (`d·q2_mid(θ)`) of the index stage's
+    /// last sample of fits, where nearly all of it fitted: `fast`'s angle
+    /// bins tabulate up to [`bins_g_limit`] of it instead of the whole
+    /// resolved range ([`Solver::angle_bins`]).
+    sample_g: Option<f64>,
     /// The model one small step up in the film index, where the index is
     /// estimated jointly with the level: each pixel's derivative with
     /// respect to it carries the index's share of the level's covariance.
@@ -1169,9 +1176,9 @@ impl Solver {
         // the whole range. On the 150–350 nm dispersive film each of its
         // ~100 bins had tabulated 0–3 µm and walked to 6 µm.
         let range = match self.sample_g {
-            Some((_, g)) => {
+            Some(g) => {
                 let lam_max = self.bands.iter().map(|b| b.center_nm).fold(0.0, f64::max);
-                let g = g + (0.5 * g).max(lam_max);
+                let g = bins_g_limit(g, lam_max);
                 table::BinRange {
                     g_hi: range.g_hi.min(g),
                     g_reach: range.g_reach.map(|r| r.min(g)),
