@@ -239,9 +239,9 @@ struct Counters {
     frames_held: AtomicU64,
     /// Raised before the run where the first sweep must establish the film
     /// index, the noise or the level, lowered by solve when that is done:
-    /// meanwhile capture holds the second sweep back (stepped mode), so the
-    /// sweeps that would queue behind the set-up are never taken, and the
-    /// first sweep after it is fresh.
+    /// meanwhile capture holds the second sweep back (stepped mode) or
+    /// skips the sweeps that start (triggered), so none queues behind the
+    /// set-up, and the first sweep after it is fresh.
     setup_hold: AtomicBool,
 }
 
@@ -327,11 +327,7 @@ impl Capture<'_> {
         if self.counters.setup_hold.load(Ordering::Acquire) && self.seq.at_sweep_start() {
             return self.hold(buf, recycle);
         }
-        let pooled = buf.is_some();
-        let format = self.spare.meta.format;
-        // An empty Vec does not allocate.
-        let mut frame = buf
-            .unwrap_or_else(|| std::mem::replace(&mut self.spare, Frame::with_size(0, 0, format)));
+        let (pooled, mut frame) = self.take_frame(buf);
         let _span = tracing::info_span!("capture.frame").entered();
         StageFault::check(self.fault, Stage::Capture, &mut self.handled);
         // A frame the sequencer will discard as exposed while the filter
@@ -452,6 +448,14 @@ impl Capture<'_> {
         }
     }
 
+    /// The frame to read into: `buf` from the pool (true), or the spare.
+    fn take_frame(&mut self, buf: Option<Frame>) -> (bool, Frame) {
+        let format = self.spare.meta.format;
+        // An empty Vec does not allocate.
+        let spare = || std::mem::replace(&mut self.spare, Frame::with_size(0, 0, format));
+        (buf.is_some(), buf.unwrap_or_else(spare))
+    }
+
     /// A frame not passed on: back to the pool, or kept as the spare.
     fn give_back(&mut self, pooled: bool, frame: Frame, recycle: &mut dyn FnMut(Frame)) {
         if pooled {
@@ -472,10 +476,7 @@ impl Capture<'_> {
         buf: Option<Frame>,
         recycle: &mut dyn FnMut(Frame),
     ) -> Result<Step, RunError> {
-        let pooled = buf.is_some();
-        let format = self.spare.meta.format;
-        let mut frame = buf
-            .unwrap_or_else(|| std::mem::replace(&mut self.spare, Frame::with_size(0, 0, format)));
+        let (pooled, mut frame) = self.take_frame(buf);
         let got = self
             .source
             .next_frame_if(&mut frame, self.timeout, &mut |_| false);

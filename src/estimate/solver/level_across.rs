@@ -89,6 +89,8 @@ impl Solver {
     /// flagged the image already, under `free` (every pixel has its own
     /// level), or without an independent noise level.
     pub(super) fn test_level_across(&mut self, cube: &Cube) {
+        // A range from an earlier estimate says nothing of this image.
+        self.sample_g = None;
         if self.calibration_suspect || self.scene.level == LevelMode::Free {
             return;
         }
@@ -128,7 +130,6 @@ impl Solver {
     /// fitted (at least 100 pixels and 98 %: films past the resolved range
     /// or out of the model leave the bins their whole range).
     fn note_sample_g(&mut self, n: usize, fits: &[LevelPixel]) {
-        self.sample_g = None;
         let Some(prep) = self.prepared.as_ref() else {
             return;
         };
