@@ -108,6 +108,41 @@ fn a_calibration_off_on_part_of_the_view_flags_every_pixel() {
     }
 }
 
+/// A stripe of the view off — dust on the white reference, a lamp's
+/// fall-off at one edge — covers too little of either half for the
+/// halves' test: columns 40–59 of 140 at 0.94 left 98 of 1 960 pixels
+/// valid and wrong (χ² 22 of 23), columns 0–19 at 1.05 196 (χ² 26, but
+/// half the difference moved the thicknesses by 0.29 σ where the stripe's
+/// own pixels move by ~4 σ). A window an eighth or a quarter of the view
+/// wide names the stripe and flags the image.
+#[test]
+fn a_stripe_of_the_view_off_flags_every_pixel() {
+    let stripes: [(&str, std::ops::Range<usize>, f64); 2] = [
+        ("columns 40–59 × 0.94", 40..60, 0.94),
+        ("columns 0–19 × 1.05", 0..20, 1.05),
+    ];
+    for (label, cols, g) in stripes {
+        for seed in [1, 2] {
+            let s = scene("paper-cylinder", seed);
+            let (mut cube, _) = render(&s);
+            miscalibrate(
+                &mut cube,
+                &|x, _| if cols.contains(&x) { g } else { 1.0 },
+                0.0,
+            );
+            let (maps, solver) = fit(&s, &cube);
+            let note = solver.level().2.to_string();
+            eprintln!("{label} seed {seed}: {note}");
+            assert_eq!(valid(&maps), 0, "{label} seed {seed}: {note}");
+            // Named as a window of columns, not as the halves.
+            assert!(
+                note.contains("differs across the image (the gain of its columns"),
+                "{label} seed {seed}: {note}"
+            );
+        }
+    }
+}
+
 #[test]
 fn one_calibration_for_the_whole_image_passes_the_halves_test() {
     // Clean, a gain the whole image shares and stray light: the halves

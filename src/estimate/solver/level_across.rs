@@ -18,15 +18,18 @@
 //! size follows the angle or the thickness, as these vary across the
 //! image) is flagged here as well, with a note that says so.
 //!
-//! The test: for each split of the sample — at its median column, then at
-//! its median row — one Gauss–Newton step ([`level_step`]) of a gain and
-//! an offset shared by the image (with the film index, where unknown) and
-//! of the first half's gain and offset less the second's, every pixel's
-//! thickness and angle eliminated. Under one calibration the difference
-//! is zero; against its covariance it is χ² on two degrees of freedom.
-//! The halves differ where that is beyond [`MAX_ACROSS_CHI2`] and one
-//! level for both would move the thicknesses by more than
-//! [`MIN_ACROSS_SHIFT`] of their σ.
+//! The test: for each way of parting the sample — its halves at the
+//! median column and at the median row, then windows an eighth and a
+//! quarter of it wide along each axis (a white reference with a stripe of
+//! dust, a lamp's fall-off at one edge) — one Gauss–Newton step
+//! ([`level_step`]) of a gain and an offset shared by the image (with the
+//! film index, where unknown) and of the part's gain and offset less the
+//! rest's, every pixel's thickness and angle eliminated. Under one
+//! calibration the difference is zero; against its covariance it is χ²
+//! on two degrees of freedom. The parts differ where that is beyond
+//! [`MAX_ACROSS_CHI2`] (the halves) or [`MAX_WINDOW_CHI2`] (a window, of
+//! up to 30 tried) and one level for both would move the thicknesses by
+//! more than [`MIN_ACROSS_SHIFT`] of their σ.
 
 use super::index::SamplePixel;
 use super::level_fit::pixel_chi2_passes;
@@ -45,6 +48,15 @@ const MIN_PART_PIXELS: usize = 40;
 /// (README, "Over many images") it reads as 16, p ≈ 3e-4 per split.
 pub(super) const MAX_ACROSS_CHI2: f64 = 23.0;
 
+/// The χ² beyond which a window's gain and offset differ from the rest's:
+/// at most [`WINDOW_STEPS`] + ([`WINDOW_STEPS`] − 1) windows along each
+/// axis, 30 tests, and 2·ln(30 / 1e-5) ≈ 30 keeps them together at
+/// p ≈ 1e-5 per image, as the halves.
+pub(super) const MAX_WINDOW_CHI2: f64 = 30.0;
+
+/// The windows' steps along an axis: its eighths.
+const WINDOW_STEPS: usize = 8;
+
 /// ... and it must matter: one level for both halves leaves each pixel's
 /// thickness off by its share of half the difference, which must exceed
 /// this many of its σ (median over the sample). A difference far below
@@ -58,17 +70,22 @@ pub(super) const MIN_ACROSS_SHIFT: f64 = 0.5;
 /// How the level differs across the image.
 #[derive(Clone, Debug, PartialEq)]
 pub(super) struct Across {
-    /// The split that differs most: "left and right" or "upper and lower".
-    pub split: &'static str,
-    /// The first half's gain less the second's, and its σ.
+    /// The parts that differ most, named: "left and right halves",
+    /// "columns 40–59 and the rest".
+    pub split: String,
+    /// The first part's gain less the second's, and its σ.
     pub gain: (f64, f64),
-    /// The first half's offset less the second's, and its σ.
+    /// The first part's offset less the second's, and its σ.
     pub offset: (f64, f64),
     /// χ² of the two differences jointly (two degrees of freedom).
     pub chi2: f64,
-    /// How far one level for both halves moves the pixels' thicknesses,
-    /// in their σ (median): each by its fit's response to half the
-    /// difference.
+    /// The χ² beyond which they differ: [`MAX_ACROSS_CHI2`] for the
+    /// halves, [`MAX_WINDOW_CHI2`] for a window.
+    pub limit: f64,
+    /// How far one level for both parts moves the pixels' thicknesses,
+    /// in their σ (median): the halves' pixels each by its fit's response
+    /// to half the difference; a window's by their response to their
+    /// share of it (one less the window's fraction of the sample).
     pub shift: f64,
 }
 
@@ -76,7 +93,7 @@ impl Across {
     /// Whether the halves differ beyond one calibration, by enough to
     /// matter.
     pub fn differs(&self) -> bool {
-        self.chi2 > MAX_ACROSS_CHI2 && self.shift > MIN_ACROSS_SHIFT
+        self.chi2 > self.limit && self.shift > MIN_ACROSS_SHIFT
     }
 }
 
@@ -112,13 +129,13 @@ impl Solver {
         if a.differs() {
             self.calibration_suspect = true;
             self.level_note = format!(
-                "{}; but the level differs across the image (its {} halves' gain differs by {:+.4} ± {:.4} and offset by {:+.5} ± {:.5}: χ² = {:.0} on 2 degrees of freedom > {MAX_ACROSS_CHI2:.0}; one level for both would move thicknesses by {:.1} σ): a white reference that did not fill the view, light or stray light uneven over it, or a model error that follows the angle or the film across the image? every pixel flagged poor fit",
-                self.level_note, a.split, a.gain.0, a.gain.1, a.offset.0, a.offset.1, a.chi2, a.shift
+                "{}; but the level differs across the image (the gain of its {} differs by {:+.4} ± {:.4} and the offset by {:+.5} ± {:.5}: χ² = {:.0} on 2 degrees of freedom > {:.0}; one level for both would move thicknesses by {:.1} σ): a white reference that did not fill the view, light or stray light uneven over it, or a model error that follows the angle or the film across the image? every pixel flagged poor fit",
+                self.level_note, a.split, a.gain.0, a.gain.1, a.offset.0, a.offset.1, a.chi2, a.limit, a.shift
             );
         } else {
             self.level_note = format!(
-                "{}; the level is one across the image (its {} halves differ by χ² = {:.1} on 2 degrees of freedom, {:.2} σ in thickness)",
-                self.level_note, a.split, a.chi2, a.shift
+                "{}; the level is one across the image (its {} differ by χ² = {:.1} on 2 degrees of freedom, limit {:.0}; {:.2} σ in thickness)",
+                self.level_note, a.split, a.chi2, a.limit, a.shift
             );
         }
     }
@@ -148,21 +165,114 @@ impl Solver {
     }
 }
 
-/// The split of the sample's fitted pixels `fits` (ids into `sample`)
-/// whose halves' levels differ most, stepped from `level`; `wavenumber`
-/// and `var` as for [`level_step`]. None where no split leaves
-/// [`MIN_PART_PIXELS`] in each half or the pixels carry no image position.
+/// One way of parting the sample: the pixels whose column (axis 0) or row
+/// (axis 1) lies in `lo..hi`, against the rest.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Part {
+    axis: usize,
+    lo: usize,
+    hi: usize,
+    /// The split at the median: the image's halves.
+    halves: bool,
+}
+
+impl Part {
+    /// The two parts, named for the note.
+    fn name(&self) -> String {
+        match (self.halves, self.axis) {
+            (true, 0) => "left and right halves".into(),
+            (true, _) => "upper and lower halves".into(),
+            (false, axis) => format!(
+                "{} {}–{} and the rest",
+                if axis == 0 { "columns" } else { "rows" },
+                self.lo,
+                self.hi - 1
+            ),
+        }
+    }
+
+    /// The χ² beyond which its parts differ.
+    fn limit(&self) -> f64 {
+        if self.halves {
+            MAX_ACROSS_CHI2
+        } else {
+            MAX_WINDOW_CHI2
+        }
+    }
+}
+
+/// The ways of parting `sites` tried: along each axis, the halves at the
+/// median, then windows an eighth and a quarter of the sample wide (at its
+/// eighths), each with at least [`MIN_PART_PIXELS`] inside and out.
+fn parts(sites: &[(usize, usize)]) -> Vec<Part> {
+    let mut parts = Vec::new();
+    for axis in [0, 1] {
+        let mut c: Vec<usize> = sites
+            .iter()
+            .map(|s| if axis == 0 { s.0 } else { s.1 })
+            .collect();
+        c.sort_unstable();
+        let (Some(&first), Some(&last)) = (c.first(), c.last()) else {
+            continue;
+        };
+        let count =
+            |lo: usize, hi: usize| c.partition_point(|&v| v < hi) - c.partition_point(|&v| v < lo);
+        let fits = |lo: usize, hi: usize| {
+            let inside = count(lo, hi);
+            inside >= MIN_PART_PIXELS && c.len() - inside >= MIN_PART_PIXELS
+        };
+        let median = c[c.len() / 2];
+        if fits(first, median) {
+            parts.push(Part {
+                axis,
+                lo: first,
+                hi: median,
+                halves: true,
+            });
+        }
+        // The eighths' bounds, the last one past the sample's end.
+        let mut bounds: Vec<usize> = (0..WINDOW_STEPS)
+            .map(|i| c[i * c.len() / WINDOW_STEPS])
+            .collect();
+        bounds.push(last + 1);
+        bounds.dedup();
+        for width in [1, 2] {
+            for i in 0..bounds.len().saturating_sub(width) {
+                let (lo, hi) = (bounds[i], bounds[i + width]);
+                let halves = (lo == first && hi == median) || (lo == median && hi == last + 1);
+                let part = Part {
+                    axis,
+                    lo,
+                    hi,
+                    halves: false,
+                };
+                if !halves && fits(lo, hi) && !parts.contains(&part) {
+                    parts.push(part);
+                }
+            }
+        }
+    }
+    parts
+}
+
+/// The part of the sample's fitted pixels `fits` (ids into `sample`)
+/// whose level differs most from the rest's ([`parts`]: the halves, and
+/// windows an eighth and a quarter of the sample wide), stepped from
+/// `level`; `wavenumber` and `var` as for [`level_step`]. Where any part
+/// differs ([`Across::differs`]), the one furthest past its limit; else
+/// the one nearest to it. None where no part leaves [`MIN_PART_PIXELS`]
+/// on each side or the pixels carry no image position.
 ///
-/// Each split is one step of a gain and an offset shared by the image
+/// Each part is one step of a gain and an offset shared by the image
 /// (with the film index, where unknown) and two more parameters: the
-/// first half's gain and offset less the second's, to which its measured
-/// values respond as `g·R` and 1 and the second half's not at all.
-/// Sharing the rest keeps the comparison as sharp as the data allow: two
-/// halves fitted apart each trade their gain with their own offset and
-/// index, and miss a 5 % gain on half the paper's cylinder. Gain and
-/// offset are tested jointly, as a partial error moves both (each half's
-/// pixels take part of a gain up in their angles and leave the rest
-/// looking like an offset).
+/// part's gain and offset less the rest's, to which its measured values
+/// respond as `g·R` and 1 and the rest's not at all. Sharing the rest
+/// keeps the comparison as sharp as the data allow: two halves fitted
+/// apart each trade their gain with their own offset and index, and miss
+/// a 5 % gain on half the paper's cylinder. Gain and offset are tested
+/// jointly, as a partial error moves both (each part's pixels take part
+/// of a gain up in their angles and leave the rest looking like an
+/// offset).
 pub(super) fn level_across(
     sample: &[SamplePixel],
     fits: &[LevelPixel],
@@ -176,19 +286,13 @@ pub(super) fn level_across(
         .collect::<Option<_>>()?;
     let mut worst: Option<Across> = None;
     let mut px: Vec<LevelPixel> = fits.to_vec();
-    for (split, axis) in [("left and right", 0), ("upper and lower", 1)] {
-        let coord = |s: &(usize, usize)| if axis == 0 { s.0 } else { s.1 };
-        let mut c: Vec<usize> = sites.iter().map(coord).collect();
-        c.sort_unstable();
-        let Some(&median) = c.get(c.len() / 2) else {
-            continue;
+    for part in parts(&sites) {
+        let inside = |s: &(usize, usize)| {
+            let c = if part.axis == 0 { s.0 } else { s.1 };
+            (part.lo..part.hi).contains(&c)
         };
-        let first = sites.iter().filter(|s| coord(s) < median).count();
-        if first < MIN_PART_PIXELS || sites.len() - first < MIN_PART_PIXELS {
-            continue;
-        }
         for ((p, f), s) in px.iter_mut().zip(fits).zip(&sites) {
-            let inside = if coord(s) < median { 1.0 } else { 0.0 };
+            let inside = if inside(s) { 1.0 } else { 0.0 };
             p.extra.truncate(f.extra.len());
             p.extra.push(
                 (0..f.y.len())
@@ -215,15 +319,32 @@ pub(super) fn level_across(
             continue;
         }
         let chi2 = (d[0] * d[0] * c[2] - 2.0 * d[0] * d[1] * c[1] + d[1] * d[1] * c[0]) / det;
-        if worst.as_ref().is_none_or(|w| chi2 > w.chi2) {
-            let half = [0.5 * d[0], 0.5 * d[1]];
-            worst = Some(Across {
-                split,
-                gain: (d[0], c[0].sqrt()),
-                offset: (d[1], c[2].sqrt()),
-                chi2,
-                shift: median_shift(fits, level, half, var),
-            });
+        // One level for both leaves each side off by its share of the
+        // difference: the halves each by half of it; a window, which
+        // weighs little in the level, by nearly all of it.
+        let shift = if part.halves {
+            median_shift(fits.iter(), level, [0.5 * d[0], 0.5 * d[1]], var)
+        } else {
+            let within: Vec<&LevelPixel> = fits
+                .iter()
+                .zip(&sites)
+                .filter(|(_, s)| inside(s))
+                .map(|(p, _)| p)
+                .collect();
+            let share = 1.0 - within.len() as f64 / fits.len() as f64;
+            median_shift(within, level, [share * d[0], share * d[1]], var)
+        };
+        let a = Across {
+            split: part.name(),
+            gain: (d[0], c[0].sqrt()),
+            offset: (d[1], c[2].sqrt()),
+            chi2,
+            limit: part.limit(),
+            shift,
+        };
+        let key = |a: &Across| (a.differs(), a.chi2 / a.limit);
+        if worst.as_ref().is_none_or(|w| key(&a) > key(w)) {
+            worst = Some(a);
         }
     }
     worst
@@ -232,9 +353,14 @@ pub(super) fn level_across(
 /// The median over `fits` of |Δd|/σ_d, Δd each pixel's thickness response
 /// (its own fit, thickness and angle free, the rest held) to a gain
 /// `dg` and an offset `doff` on top of `level`.
-fn median_shift(fits: &[LevelPixel], level: &Level, [dg, doff]: [f64; 2], var: &[f64]) -> f64 {
+fn median_shift<'a>(
+    fits: impl IntoIterator<Item = &'a LevelPixel>,
+    level: &Level,
+    [dg, doff]: [f64; 2],
+    var: &[f64],
+) -> f64 {
     let mut shifts: Vec<f64> = fits
-        .iter()
+        .into_iter()
         .filter_map(|p| {
             let nl = p.jac.len().min(2);
             if nl == 0 || p.sigma_d.is_nan() || p.sigma_d <= 0.0 {
@@ -291,6 +417,8 @@ mod tests {
                     .map(|k| -0.05 * (0.6 * k as f64 + phase).sin())
                     .collect();
                 let y = r.iter().map(|v| gain_of(i) * v + 0.001 * noise()).collect();
+                // The phase's σ at the noise's variance of 1e-6.
+                let sigma_d = 1e-3 / dr.iter().map(|v| v * v).sum::<f64>().sqrt();
                 LevelPixel {
                     y,
                     r,
@@ -298,7 +426,7 @@ mod tests {
                     extra: vec![],
                     id: i,
                     d: 0.0,
-                    sigma_d: 0.0,
+                    sigma_d,
                     theta: 0.0,
                 }
             })
@@ -332,7 +460,7 @@ mod tests {
     }
 
     #[test]
-    fn a_gain_on_the_left_half_only_is_seen_and_one_gain_is_not() {
+    fn a_gain_on_half_or_a_strip_only_is_seen_and_one_gain_is_not() {
         let nb = 21;
         let (wn, var): (Vec<f64>, Vec<f64>) = (0..nb)
             .map(|k| (1.0 / (400.0 + 10.0 * k as f64), 1e-6))
@@ -340,18 +468,23 @@ mod tests {
         let (w, h) = (20, 10);
         let sample = sample_at((0..w * h).map(|i| (i % w, i / w)));
         let identity = Level::identity(nb);
-        // One gain everywhere (3 %): the larger of the two splits' χ²
-        // (two degrees of freedom each) stays within what two such draws
-        // give (13.8, p ≈ 2e-3) over 20 noise draws, and scatters as χ²₂
-        // does (mean 2; the larger of two, ~3).
+        // One gain everywhere (3 %): no part's χ² (two degrees of freedom
+        // each, p ≈ 1e-5 at the halves' limit and 3e-7 at a window's)
+        // reaches its limit over 20 noise draws, and the largest scatters
+        // as the largest of the ~16 parts' χ²₂ does (mean 2 for one draw,
+        // ~6.8 for 16 independent ones; less, as the parts overlap).
         let mut sum = 0.0;
         for seed in 0..20 {
             let fits = toy(w * h, |_| 1.03, &mut normal(seed));
             let a = level_across(&sample, &fits, &identity, &wn, &var).expect("both splits");
-            assert!(a.chi2 < 13.8, "seed {seed}: {a:?}");
+            assert!(a.chi2 < a.limit && !a.differs(), "seed {seed}: {a:?}");
             sum += a.chi2;
         }
-        assert!((1.0..6.0).contains(&(sum / 20.0)), "mean χ² {}", sum / 20.0);
+        assert!(
+            (2.0..12.0).contains(&(sum / 20.0)),
+            "mean χ² {}",
+            sum / 20.0
+        );
         // 3 % on the left half only: the left-right split, far beyond,
         // its gain difference measured to its σ.
         let fits = toy(
@@ -360,9 +493,23 @@ mod tests {
             &mut normal(1),
         );
         let a = level_across(&sample, &fits, &identity, &wn, &var).expect("both splits");
-        assert_eq!(a.split, "left and right");
+        assert_eq!(a.split, "left and right halves");
         assert!(a.chi2 > 10.0 * MAX_ACROSS_CHI2, "{a:?}");
         assert!((a.gain.0 - 0.03).abs() < 4.0 * a.gain.1, "{a:?}");
+        // 4 % on the first quarter of the columns: a window's test, far
+        // beyond its limit, and the window named. (Whether it matters is
+        // the thicknesses' business: a toy's gain is nearly orthogonal to
+        // its phase, and moves it by a few hundredths of its σ.)
+        let fits = toy(
+            w * h,
+            |i| if i % w < 5 { 1.04 } else { 1.0 },
+            &mut normal(2),
+        );
+        let a = level_across(&sample, &fits, &identity, &wn, &var).expect("both splits");
+        assert_eq!(a.split, "columns 0–4 and the rest");
+        assert!(a.chi2 > 10.0 * MAX_WINDOW_CHI2, "{a:?}");
+        assert!(a.shift > 0.0 && a.shift < MIN_ACROSS_SHIFT, "{a:?}");
+        assert!((a.gain.0 - 0.04).abs() < 4.0 * a.gain.1, "{a:?}");
         // Without image positions, no test.
         let mut anon = sample.clone();
         anon.iter_mut().for_each(|p| p.site = None);
@@ -408,7 +555,7 @@ mod tests {
                 sigma_d: 0.5,
                 ..LevelPixel::default()
             };
-            let got = median_shift(std::slice::from_ref(&p), &level, [dg, doff], &var);
+            let got = median_shift([&p], &level, [dg, doff], &var);
             // The misfit e_k = dg·g_k·R_k + doff, fitted by g_k·(J·Δ).
             let mut a = vec![0.0; 4];
             let mut b = vec![0.0; 2];
