@@ -37,6 +37,7 @@ use super::{Solver, LEVEL_SAMPLE_PIXELS};
 use crate::estimate::level::{
     level_step, local_inverse, times, Level, LevelBasis, LevelMode, LevelPixel,
 };
+use crate::estimate::noise::SIGMA_FLOOR;
 use crate::estimate::Cube;
 
 /// Fewest pixels in each half.
@@ -53,6 +54,14 @@ pub(super) const MAX_ACROSS_CHI2: f64 = 23.0;
 /// axis, 30 tests, and 2·ln(30 / 1e-5) ≈ 30 keeps them together at
 /// p ≈ 1e-5 per image, as the halves.
 pub(super) const MAX_WINDOW_CHI2: f64 = 30.0;
+
+/// The σ of a pixel's fringe phase (rad) above which it takes no part in
+/// the windows: a nonlinear fit's bias in the residual grows as its σ
+/// squared and adds up over a window's pixels. The paper's cylinder's
+/// pixels at σ_R = 0.001 know theirs to ~0.013, the thin coating's to
+/// ~0.035 (0.18 at the 99th percentile); at σ_R = 0.01 the thin coating's
+/// lie at 0.13–0.23, where a gain of −0.31 parted its thinnest films.
+const MAX_WINDOW_PHASE_SIGMA: f64 = 0.1;
 
 /// The windows' steps along an axis: its eighths.
 const WINDOW_STEPS: usize = 8;
@@ -87,13 +96,20 @@ pub(super) struct Across {
     /// to half the difference; a window's by their response to their
     /// share of it (one less the window's fraction of the sample).
     pub shift: f64,
+    /// The difference in reflectance over the part's pixels (RMS of
+    /// `Δg·g_k·R_k + Δo`); a window's must exceed the noise floor
+    /// ([`SIGMA_FLOOR`]): less is no calibration error any pixel could
+    /// show (a noise-free film index-matched to its substrate in p light
+    /// parted its thinnest films by a gain of 1e-4, χ² 38). Unbounded for
+    /// the halves.
+    pub size: f64,
 }
 
 impl Across {
     /// Whether the halves differ beyond one calibration, by enough to
     /// matter.
     pub fn differs(&self) -> bool {
-        self.chi2 > self.limit && self.shift > MIN_ACROSS_SHIFT
+        self.chi2 > self.limit && self.shift > MIN_ACROSS_SHIFT && self.size > SIGMA_FLOOR
     }
 }
 
@@ -123,7 +139,8 @@ impl Solver {
             .into_iter()
             .filter(|p| pixel_chi2_passes(p, &level, &var))
             .collect();
-        let Some(a) = level_across(&sample, &fits, &level, &wn, &var) else {
+        let linear = self.linear_over_sigma(&fits);
+        let Some(a) = level_across(&sample, &fits, &linear, &level, &wn, &var) else {
             return;
         };
         if a.differs() {
@@ -165,6 +182,23 @@ impl Solver {
     }
 }
 
+impl Solver {
+    /// Which of `fits` may take part in the windows: those whose fringe
+    /// phase the fit knows to [`MAX_WINDOW_PHASE_SIGMA`] (4π·q₂·σ_d / λ at
+    /// the bands' middle), so that their model is nearly linear over their
+    /// own σ.
+    fn linear_over_sigma(&self, fits: &[LevelPixel]) -> Vec<bool> {
+        let Some(prep) = self.prepared.as_ref() else {
+            return vec![false; fits.len()];
+        };
+        let (lo, hi) = self.band_span();
+        let k = 4.0 * std::f64::consts::PI / (0.5 * (lo + hi));
+        fits.iter()
+            .map(|p| k * prep.model.q2_mid(p.theta) * p.sigma_d <= MAX_WINDOW_PHASE_SIGMA)
+            .collect()
+    }
+}
+
 /// One way of parting the sample: the pixels whose column (axis 0) or row
 /// (axis 1) lies in `lo..hi`, against the rest.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -202,9 +236,10 @@ impl Part {
 }
 
 /// The ways of parting `sites` tried: along each axis, the halves at the
-/// median, then windows an eighth and a quarter of the sample wide (at its
-/// eighths), each with at least [`MIN_PART_PIXELS`] inside and out.
-fn parts(sites: &[(usize, usize)]) -> Vec<Part> {
+/// median (`halves`), or windows an eighth and a quarter of the sample
+/// wide (at its eighths; not `halves`), each with at least
+/// [`MIN_PART_PIXELS`] inside and out.
+fn parts(sites: &[(usize, usize)], halves: bool) -> Vec<Part> {
     let mut parts = Vec::new();
     for axis in [0, 1] {
         let mut c: Vec<usize> = sites
@@ -222,13 +257,16 @@ fn parts(sites: &[(usize, usize)]) -> Vec<Part> {
             inside >= MIN_PART_PIXELS && c.len() - inside >= MIN_PART_PIXELS
         };
         let median = c[c.len() / 2];
-        if fits(first, median) {
-            parts.push(Part {
-                axis,
-                lo: first,
-                hi: median,
-                halves: true,
-            });
+        if halves {
+            if fits(first, median) {
+                parts.push(Part {
+                    axis,
+                    lo: first,
+                    hi: median,
+                    halves: true,
+                });
+            }
+            continue;
         }
         // The eighths' bounds, the last one past the sample's end.
         let mut bounds: Vec<usize> = (0..WINDOW_STEPS)
@@ -239,14 +277,14 @@ fn parts(sites: &[(usize, usize)]) -> Vec<Part> {
         for width in [1, 2] {
             for i in 0..bounds.len().saturating_sub(width) {
                 let (lo, hi) = (bounds[i], bounds[i + width]);
-                let halves = (lo == first && hi == median) || (lo == median && hi == last + 1);
+                let half = (lo == first && hi == median) || (lo == median && hi == last + 1);
                 let part = Part {
                     axis,
                     lo,
                     hi,
                     halves: false,
                 };
-                if !halves && fits(lo, hi) && !parts.contains(&part) {
+                if !half && fits(lo, hi) && !parts.contains(&part) {
                     parts.push(part);
                 }
             }
@@ -258,10 +296,16 @@ fn parts(sites: &[(usize, usize)]) -> Vec<Part> {
 /// The part of the sample's fitted pixels `fits` (ids into `sample`)
 /// whose level differs most from the rest's ([`parts`]: the halves, and
 /// windows an eighth and a quarter of the sample wide), stepped from
-/// `level`; `wavenumber` and `var` as for [`level_step`]. Where any part
-/// differs ([`Across::differs`]), the one furthest past its limit; else
-/// the one nearest to it. None where no part leaves [`MIN_PART_PIXELS`]
-/// on each side or the pixels carry no image position.
+/// `level`; `wavenumber` and `var` as for [`level_step`]. The halves are
+/// tried on every pixel of `fits`, the windows on those marked `linear`
+/// only: pixels whose model is nearly linear over their own σ (a window
+/// is small, and the bias a nonlinear fit leaves in each pixel's residual
+/// adds up over it: a thin coating at σ_R = 0.01, phases known to ~0.16
+/// rad, parted its thinnest eighth from the rest by a gain of −0.31 ±
+/// 0.03 with no calibration error at all). Where any part differs
+/// ([`Across::differs`]), the one furthest past its limit; else the one
+/// nearest to it. None where no part leaves [`MIN_PART_PIXELS`] on each
+/// side or the pixels carry no image position.
 ///
 /// Each part is one step of a gain and an offset shared by the image
 /// (with the film index, where unknown) and two more parameters: the
@@ -276,6 +320,7 @@ fn parts(sites: &[(usize, usize)]) -> Vec<Part> {
 pub(super) fn level_across(
     sample: &[SamplePixel],
     fits: &[LevelPixel],
+    linear: &[bool],
     level: &Level,
     wavenumber: &[f64],
     var: &[f64],
@@ -284,76 +329,117 @@ pub(super) fn level_across(
         .iter()
         .map(|p| sample.get(p.id).and_then(|s| s.site))
         .collect::<Option<_>>()?;
+    let keep = |i: &usize| linear.get(*i).copied().unwrap_or(false);
+    let lin: Vec<usize> = (0..fits.len()).filter(keep).collect();
+    let lin_fits: Vec<LevelPixel> = lin.iter().map(|&i| fits[i].clone()).collect();
+    let lin_sites: Vec<(usize, usize)> = lin.iter().map(|&i| sites[i]).collect();
     let mut worst: Option<Across> = None;
-    let mut px: Vec<LevelPixel> = fits.to_vec();
-    for part in parts(&sites) {
-        let inside = |s: &(usize, usize)| {
-            let c = if part.axis == 0 { s.0 } else { s.1 };
-            (part.lo..part.hi).contains(&c)
-        };
-        for ((p, f), s) in px.iter_mut().zip(fits).zip(&sites) {
+    for (fits, sites, halves) in [(fits, &sites, true), (&lin_fits[..], &lin_sites, false)] {
+        for part in parts(sites, halves) {
+            let Some(a) = part_across(part, fits, sites, level, wavenumber, var) else {
+                continue;
+            };
+            let key = |a: &Across| (a.differs(), a.chi2 / a.limit);
+            if worst.as_ref().is_none_or(|w| key(&a) > key(w)) {
+                worst = Some(a);
+            }
+        }
+    }
+    worst
+}
+
+/// One part's step against the rest ([`level_across`]).
+fn part_across(
+    part: Part,
+    fits: &[LevelPixel],
+    sites: &[(usize, usize)],
+    level: &Level,
+    wavenumber: &[f64],
+    var: &[f64],
+) -> Option<Across> {
+    let inside = |s: &(usize, usize)| {
+        let c = if part.axis == 0 { s.0 } else { s.1 };
+        (part.lo..part.hi).contains(&c)
+    };
+    let px: Vec<LevelPixel> = fits
+        .iter()
+        .zip(sites)
+        .map(|(f, s)| {
             let inside = if inside(s) { 1.0 } else { 0.0 };
-            p.extra.truncate(f.extra.len());
+            let mut p = f.clone();
             p.extra.push(
                 (0..f.y.len())
                     .map(|k| inside * level.gain[k] * f.r[k])
                     .collect(),
             );
             p.extra.push(vec![inside; f.y.len()]);
-        }
-        let Some(step) = level_step(&px, level, LevelBasis::GainOffset, wavenumber, var) else {
-            continue;
-        };
-        let n = step.extra_step.len();
-        if n < 2 || step.extra_cov.len() != n * n {
-            continue;
-        }
-        let d = [step.extra_step[n - 2], step.extra_step[n - 1]];
-        let c = [
-            step.extra_cov[(n - 2) * n + n - 2],
-            step.extra_cov[(n - 2) * n + n - 1],
-            step.extra_cov[(n - 1) * n + n - 1],
-        ];
-        let det = c[0] * c[2] - c[1] * c[1];
-        if !(det > 0.0 && det.is_finite() && d.iter().all(|v| v.is_finite())) {
-            continue;
-        }
-        let chi2 = (d[0] * d[0] * c[2] - 2.0 * d[0] * d[1] * c[1] + d[1] * d[1] * c[0]) / det;
-        // One level for both leaves each side off by its share of the
-        // difference: the halves each by half of it; a window, which
-        // weighs little in the level, by nearly all of it.
-        let shift = if part.halves {
-            median_shift(fits.iter(), level, [0.5 * d[0], 0.5 * d[1]], var)
-        } else {
-            let within: Vec<&LevelPixel> = fits
-                .iter()
-                .zip(&sites)
-                .filter(|(_, s)| inside(s))
-                .map(|(p, _)| p)
-                .collect();
-            let share = 1.0 - within.len() as f64 / fits.len() as f64;
-            median_shift(within, level, [share * d[0], share * d[1]], var)
-        };
-        let a = Across {
-            split: part.name(),
-            gain: (d[0], c[0].sqrt()),
-            offset: (d[1], c[2].sqrt()),
-            chi2,
-            limit: part.limit(),
-            shift,
-        };
-        let key = |a: &Across| (a.differs(), a.chi2 / a.limit);
-        if worst.as_ref().is_none_or(|w| key(&a) > key(w)) {
-            worst = Some(a);
-        }
+            p
+        })
+        .collect();
+    let step = level_step(&px, level, LevelBasis::GainOffset, wavenumber, var)?;
+    let n = step.extra_step.len();
+    if n < 2 || step.extra_cov.len() != n * n {
+        return None;
     }
-    worst
+    let d = [step.extra_step[n - 2], step.extra_step[n - 1]];
+    let c = [
+        step.extra_cov[(n - 2) * n + n - 2],
+        step.extra_cov[(n - 2) * n + n - 1],
+        step.extra_cov[(n - 1) * n + n - 1],
+    ];
+    let det = c[0] * c[2] - c[1] * c[1];
+    if !(det > 0.0 && det.is_finite() && d.iter().all(|v| v.is_finite())) {
+        return None;
+    }
+    let chi2 = (d[0] * d[0] * c[2] - 2.0 * d[0] * d[1] * c[1] + d[1] * d[1] * c[0]) / det;
+    let within: Vec<&LevelPixel> = fits
+        .iter()
+        .zip(sites)
+        .filter(|(_, s)| inside(s))
+        .map(|(p, _)| p)
+        .collect();
+    // One level for both leaves each side off by its share of the
+    // difference: the halves each by half of it; a window, which weighs
+    // little in the level, by nearly all of it.
+    let (shift, size) = if part.halves {
+        let shift = median_shift(fits, level, [0.5 * d[0], 0.5 * d[1]], var);
+        (shift, f64::INFINITY)
+    } else {
+        let share = 1.0 - within.len() as f64 / fits.len() as f64;
+        let shift = median_shift(
+            within.iter().copied(),
+            level,
+            [share * d[0], share * d[1]],
+            var,
+        );
+        // The difference in reflectance over the window's pixels (RMS).
+        let (mut sum, mut count) = (0.0, 0usize);
+        for p in &within {
+            for (k, r) in p.r.iter().enumerate() {
+                let e = d[0] * level.gain[k] * r + d[1];
+                if e.is_finite() {
+                    sum += e * e;
+                    count += 1;
+                }
+            }
+        }
+        (shift, (sum / count.max(1) as f64).sqrt())
+    };
+    Some(Across {
+        split: part.name(),
+        gain: (d[0], c[0].sqrt()),
+        offset: (d[1], c[2].sqrt()),
+        chi2,
+        limit: part.limit(),
+        shift,
+        size,
+    })
 }
 
 /// The median over `fits` of |Δd|/σ_d, Δd each pixel's thickness response
 /// (its own fit, thickness and angle free, the rest held) to a gain
 /// `dg` and an offset `doff` on top of `level`.
-fn median_shift<'a>(
+pub(super) fn median_shift<'a>(
     fits: impl IntoIterator<Item = &'a LevelPixel>,
     level: &Level,
     [dg, doff]: [f64; 2],
@@ -468,6 +554,7 @@ mod tests {
         let (w, h) = (20, 10);
         let sample = sample_at((0..w * h).map(|i| (i % w, i / w)));
         let identity = Level::identity(nb);
+        let all_linear = vec![true; w * h];
         // One gain everywhere (3 %): no part's χ² (two degrees of freedom
         // each, p ≈ 1e-5 at the halves' limit and 3e-7 at a window's)
         // reaches its limit over 20 noise draws, and the largest scatters
@@ -476,7 +563,8 @@ mod tests {
         let mut sum = 0.0;
         for seed in 0..20 {
             let fits = toy(w * h, |_| 1.03, &mut normal(seed));
-            let a = level_across(&sample, &fits, &identity, &wn, &var).expect("both splits");
+            let a = level_across(&sample, &fits, &all_linear, &identity, &wn, &var)
+                .expect("both splits");
             assert!(a.chi2 < a.limit && !a.differs(), "seed {seed}: {a:?}");
             sum += a.chi2;
         }
@@ -492,7 +580,8 @@ mod tests {
             |i| if i % w < w / 2 { 1.03 } else { 1.0 },
             &mut normal(1),
         );
-        let a = level_across(&sample, &fits, &identity, &wn, &var).expect("both splits");
+        let a =
+            level_across(&sample, &fits, &all_linear, &identity, &wn, &var).expect("both splits");
         assert_eq!(a.split, "left and right halves");
         assert!(a.chi2 > 10.0 * MAX_ACROSS_CHI2, "{a:?}");
         assert!((a.gain.0 - 0.03).abs() < 4.0 * a.gain.1, "{a:?}");
@@ -505,7 +594,8 @@ mod tests {
             |i| if i % w < 5 { 1.04 } else { 1.0 },
             &mut normal(2),
         );
-        let a = level_across(&sample, &fits, &identity, &wn, &var).expect("both splits");
+        let a =
+            level_across(&sample, &fits, &all_linear, &identity, &wn, &var).expect("both splits");
         assert_eq!(a.split, "columns 0–4 and the rest");
         assert!(a.chi2 > 10.0 * MAX_WINDOW_CHI2, "{a:?}");
         assert!(a.shift > 0.0 && a.shift < MIN_ACROSS_SHIFT, "{a:?}");
@@ -513,7 +603,7 @@ mod tests {
         // Without image positions, no test.
         let mut anon = sample.clone();
         anon.iter_mut().for_each(|p| p.site = None);
-        assert!(level_across(&anon, &fits, &identity, &wn, &var).is_none());
+        assert!(level_across(&anon, &fits, &all_linear, &identity, &wn, &var).is_none());
     }
 
     /// The shift's response, from each pixel's 2 × 2 normal matrix
