@@ -269,6 +269,9 @@ impl SweepSink for CliSink {
         if self.json {
             println!("{}", s.json());
         } else {
+            if let Some(why) = &s.relook {
+                eprintln!("irid: sweep {}: estimated again: {why}", s.sweep);
+            }
             println!("{}", s.line());
         }
         Ok(())
@@ -461,14 +464,18 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         });
         let held = if report.frames_held > 0 {
             format!(
-                ", {} while the first sweep's film index, noise and level were estimated",
+                ", {} while the film index, noise and level were estimated",
                 report.frames_held
             )
         } else {
             String::new()
         };
+        let relooks = match report.relooks {
+            0 => String::new(),
+            n => format!("; estimated again on {n} sweeps (the level moved or poor fits rose)"),
+        };
         eprintln!(
-            "irid: {} sweeps mapped, {} dropped; {} frames read, {} discarded while settling{held}, {} lost or refused{pace}{}",
+            "irid: {} sweeps mapped, {} dropped; {} frames read, {} discarded while settling{held}, {} lost or refused{pace}{relooks}{}",
             report.sweeps_completed,
             report.sweeps_dropped,
             report.frames_total,

@@ -59,6 +59,11 @@ pub struct SweepSummary {
     pub noise_source: String,
     /// The level in force (`absolute`, `scaled`, …).
     pub level: String,
+    /// Why the film index, noise, level and band shift were estimated
+    /// again on this sweep (the level had moved, or poor fits rose), and
+    /// what they came to; absent where they were kept.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub relook: Option<String>,
 }
 
 /// Over `maps`: how many pixels are valid (as [`ParamMaps::valid_count`]

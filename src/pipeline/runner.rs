@@ -223,8 +223,12 @@ pub struct RunReport {
     /// use, and not counted in `frames_dropped`).
     pub frames_lost_tuning: u64,
     /// Frames read while capture held the second sweep back until the
-    /// first sweep's set-up (film index, noise, level) was done.
+    /// first sweep's set-up (film index, noise, level) was done, or a
+    /// later sweep's look again ([`RunReport::relooks`]).
     pub frames_held: u64,
+    /// Sweeps on which the film index, noise, level and band shift were
+    /// estimated again because the level had moved or poor fits rose.
+    pub relooks: u64,
     /// Whether the run was stopped early.
     pub stopped: bool,
 }
@@ -237,6 +241,7 @@ struct Counters {
     frames_total: AtomicU64,
     frames_lost_tuning: AtomicU64,
     frames_held: AtomicU64,
+    relooks: AtomicU64,
     /// Raised before the run where the first sweep must establish the film
     /// index, the noise or the level, lowered by solve when that is done:
     /// meanwhile capture holds the second sweep back (stepped mode) or
@@ -664,6 +669,70 @@ struct Solve {
     reported_sweeps: u64,
     fault: Option<StageFault>,
     handled: u64,
+    /// Whether the look again on a later sweep may hold capture back
+    /// (threaded, not lossless: as the first sweep's set-up).
+    hold_allowed: bool,
+    drift: Drift,
+}
+
+/// When to look at the image-wide estimates again on a live run
+/// ([`Solver::level_drift`], and the sweep's poor fits).
+#[derive(Debug)]
+struct Drift {
+    /// The poor-fit fraction of the first sweep solved after the last
+    /// look: what this scene shows under its calibration.
+    baseline: Option<f64>,
+    /// The last sweep's poor fits rose beyond [`POOR_ROSE`] of it.
+    poor_rose: bool,
+    /// The last sweep's poor-fit fraction.
+    last: f64,
+    /// Sweeps to pass before the next check.
+    wait: u64,
+    /// One more than the sweeps to wait after a look before the next
+    /// check: 1 after a check that passed, doubling with every look the
+    /// next check does not clear, up to [`MAX_RELOOK_WAIT`], so a change no
+    /// look can model costs a look now and then, not every sweep.
+    backoff: u64,
+}
+
+/// The poor fits have risen where their fraction exceeds this many times
+/// the baseline's, and [`MIN_POOR_FRACTION`] (a filter's pass bands
+/// drifting moves every pixel's fringes; the χ² test flags ~1 % of clean
+/// pixels).
+const POOR_ROSE: f64 = 3.0;
+const MIN_POOR_FRACTION: f64 = 0.05;
+const MAX_RELOOK_WAIT: u64 = 64;
+
+impl Drift {
+    fn new() -> Drift {
+        Drift {
+            baseline: None,
+            poor_rose: false,
+            last: 0.0,
+            wait: 0,
+            backoff: 1,
+        }
+    }
+
+    /// Note a solved sweep's maps: its poor fits among its judged pixels.
+    fn note(&mut self, maps: &ParamMaps) {
+        let poor_code = crate::estimate::Reason::PoorFit as u8 as f32;
+        let (mut poor, mut judged) = (0usize, 0usize);
+        for (&v, &r) in maps.valid.iter().zip(&maps.reason) {
+            let p = r == poor_code;
+            poor += usize::from(p);
+            judged += usize::from(p || v > 0.5);
+        }
+        if judged == 0 {
+            return;
+        }
+        let f = poor as f64 / judged as f64;
+        self.last = f;
+        match self.baseline {
+            None => self.baseline = Some(f),
+            Some(b) => self.poor_rose = f > MIN_POOR_FRACTION.max(POOR_ROSE * b),
+        }
+    }
 }
 
 impl Solve {
@@ -680,11 +749,11 @@ impl Solve {
         // The film index where unknown, and in every case the noise level
         // and the image-wide level the fits are judged against (a known
         // film still needs them: without, no pixel would be judged).
-        if self
+        let set_up = self
             .solver
             .film_index()
-            .is_none_or(|i| !i.noise_sigma.is_finite())
-        {
+            .is_none_or(|i| !i.noise_sigma.is_finite());
+        if set_up {
             let _s = tracing::info_span!("solve.index").entered();
             match self.solver.estimate_film_index(cube) {
                 Ok(est) => {
@@ -703,6 +772,11 @@ impl Solve {
         // The set-up is done (or failed, and is tried again on the next
         // sweep without holding capture back): the next sweep may start.
         self.counters.setup_hold.store(false, Ordering::Release);
+        let relook = if set_up {
+            None
+        } else {
+            self.look_again(cube, buf.sweep)
+        };
         // Pixels are solved on data corrected by the image-wide level, when
         // one is in force (`scaled`, or `auto` that chose it).
         let cube = if self.solver.level().0.is_identity() {
@@ -764,7 +838,72 @@ impl Solve {
         s.sweeps_dropped = sd - self.reported_sweeps;
         (self.reported_frames, self.reported_sweeps) = (fd, sd);
         s.missing_bands = buf.missing();
+        s.relook = relook;
+        self.drift.note(maps);
         s
+    }
+
+    /// On a sweep after the set-up: where the level has moved since it was
+    /// estimated ([`Solver::level_drift`]) or the last sweep's poor fits
+    /// rose (a filter's pass bands drifting), estimate the film index,
+    /// noise, level and band shift again on this sweep before solving it,
+    /// holding capture back meanwhile as for the set-up. Returns why, and
+    /// what they came to.
+    fn look_again(&mut self, cube: &Cube, sweep: u64) -> Option<String> {
+        self.solver.film_index()?;
+        if self.drift.wait > 0 {
+            self.drift.wait -= 1;
+            return None;
+        }
+        let why = if self.drift.poor_rose {
+            format!(
+                "poor fits rose to {:.1} % of the judged pixels (from {:.1} % after the last look)",
+                100.0 * self.drift.last,
+                100.0 * self.drift.baseline.unwrap_or(0.0)
+            )
+        } else {
+            let _s = tracing::info_span!("solve.drift").entered();
+            match self.solver.level_drift(cube) {
+                Some(d) if d.moved() => format!("the level moved: {}", d.describe()),
+                _ => {
+                    self.drift.backoff = 1;
+                    return None;
+                }
+            }
+        };
+        if self.hold_allowed {
+            self.counters.setup_hold.store(true, Ordering::Release);
+        }
+        let looked = {
+            let _s = tracing::info_span!("solve.relook").entered();
+            self.solver
+                .estimate_film_index(cube)
+                .and_then(|est| self.solver.set_film_index(est))
+        };
+        self.counters.setup_hold.store(false, Ordering::Release);
+        self.counters.relooks.fetch_add(1, Ordering::Relaxed);
+        self.drift.baseline = None;
+        self.drift.poor_rose = false;
+        // The next sweep is checked again (the change may have straddled
+        // this one, whose level then fits neither side of it); a check that
+        // fires again waits longer before its look.
+        self.drift.wait = self.drift.backoff - 1;
+        self.drift.backoff = (2 * self.drift.backoff).min(MAX_RELOOK_WAIT);
+        let outcome = match looked {
+            Ok(()) => {
+                let (level, mode, _) = self.solver.level();
+                let (g, o) = level.mean();
+                let n = self.solver.film_index().map_or(f64::NAN, |i| i.n);
+                format!(
+                    "now n = {n:.4}, level {} (mean gain {g:.4}, offset {o:+.5}), band shift {:+.2} nm",
+                    mode.name(),
+                    self.solver.band_shift().0
+                )
+            }
+            Err(e) => format!("not estimated ({e}); the earlier estimates kept"),
+        };
+        tracing::info!(sweep, %why, %outcome, "image-wide estimates looked at again");
+        Some(format!("{why}; {outcome}"))
     }
 }
 
@@ -889,6 +1028,8 @@ pub fn run_tapped(
         reported_sweeps: 0,
         fault: cfg.fault,
         handled: 0,
+        hold_allowed: !cfg.lossless && !cfg.single_thread,
+        drift: Drift::new(),
     };
     let n_bands = setup.order.len();
     let (completed, stopped) = if cfg.single_thread {
@@ -920,6 +1061,7 @@ pub fn run_tapped(
         frames_total: counters.frames_total.load(Ordering::Relaxed),
         frames_lost_tuning: counters.frames_lost_tuning.load(Ordering::Relaxed),
         frames_held: counters.frames_held.load(Ordering::Relaxed),
+        relooks: counters.relooks.load(Ordering::Relaxed),
         stopped,
     })
 }

@@ -176,6 +176,34 @@ impl Default for SyntheticConfig {
     }
 }
 
+/// The light changing during a run, after the calibration's references
+/// were taken (a lamp dimming as it ages or warms, a lamp replaced): from
+/// `after_frames` frames after it is set ([`SyntheticCamera::set_lamp`])
+/// the light moves linearly, over `over_frames` frames (0: at once), to
+/// `factor` times what it was, and stays there.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LampChange {
+    /// Frames before the change begins.
+    pub after_frames: u64,
+    /// Frames it takes.
+    pub over_frames: u64,
+    /// The light after it, relative to before.
+    pub factor: f64,
+}
+
+impl LampChange {
+    /// The light `frames` frames after the change was set.
+    pub fn light_at(&self, frames: u64) -> f64 {
+        let Some(into) = frames.checked_sub(self.after_frames) else {
+            return 1.0;
+        };
+        if into >= self.over_frames {
+            return self.factor;
+        }
+        1.0 + (self.factor - 1.0) * into as f64 / self.over_frames as f64
+    }
+}
+
 /// The synthetic camera.
 pub struct SyntheticCamera {
     bands: Vec<Band>,
@@ -195,6 +223,8 @@ pub struct SyntheticCamera {
     seq: u64,
     /// Wall time and virtual time of the first paced frame.
     started: Option<(std::time::Instant, u64)>,
+    /// A change of the light, and the frame it was set at.
+    lamp: Option<(u64, LampChange)>,
 }
 
 impl SyntheticCamera {
@@ -227,6 +257,7 @@ impl SyntheticCamera {
             target: Target::Scene,
             seq: 0,
             started: None,
+            lamp: None,
         };
         if cam.cfg.noise_pool {
             cam.pool = normal_pool(&mut cam.rng, 2 * n);
@@ -250,6 +281,12 @@ impl SyntheticCamera {
     pub fn set_speed(&mut self, speed: f64) {
         self.cfg.speed = speed;
         self.started = None;
+    }
+
+    /// Change the light from the next frame on (None: the light stays as
+    /// it is now).
+    pub fn set_lamp(&mut self, change: Option<LampChange>) {
+        self.lamp = change.map(|c| (self.seq, c));
     }
 
     /// The bands the camera knows how to render.
@@ -314,7 +351,10 @@ impl SyntheticCamera {
         let want = wanted(&out.meta);
         // The noise stream advances as if the frame were rendered, so
         // skipping one changes no other frame.
-        self.render_counts(a, b, alpha, &mut out.data[..n], want);
+        let light = self
+            .lamp
+            .map_or(1.0, |(set, c)| c.light_at(seq.saturating_sub(set)));
+        self.render_counts(a, b, alpha, light, &mut out.data[..n], want);
         want
     }
 
@@ -323,11 +363,12 @@ impl SyntheticCamera {
         a: Option<usize>,
         b: Option<usize>,
         alpha: f64,
+        light: f64,
         out: &mut [u16],
         render: bool,
     ) {
         let s = &self.cfg.sensor;
-        let k = s.counts_per_us * f64::from(s.exposure_us);
+        let k = light * s.counts_per_us * f64::from(s.exposure_us);
         let gain_of = |band: Option<usize>| {
             band.map_or(0.0, |i| k * lctf_transmission(self.bands[i].center_nm))
         };

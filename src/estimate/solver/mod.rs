@@ -69,6 +69,8 @@ mod image_fit;
 mod index;
 mod judge;
 mod level_across;
+mod level_drift;
+pub use level_drift::{LevelDrift, DRIFT_SAMPLE_PIXELS, MAX_DRIFT_CHI2, MAX_DRIFT_CHI2_ONE};
 mod level_fit;
 mod level_hedge;
 mod linalg;
