@@ -472,7 +472,9 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         };
         let relooks = match report.relooks {
             0 => String::new(),
-            n => format!("; estimated again on {n} sweeps (the level moved or poor fits rose)"),
+            n => {
+                format!("; estimated again on {n} sweeps (the calibration moved or poor fits rose)")
+            }
         };
         eprintln!(
             "irid: {} sweeps mapped, {} dropped; {} frames read, {} discarded while settling{held}, {} lost or refused{pace}{relooks}{}",

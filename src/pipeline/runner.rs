@@ -864,7 +864,7 @@ impl Solve {
         } else {
             let _s = tracing::info_span!("solve.drift").entered();
             match self.solver.level_drift(cube) {
-                Some(d) if d.moved() => format!("the level moved: {}", d.describe()),
+                Some(d) if d.moved() => format!("the calibration moved: {}", d.describe()),
                 _ => {
                     self.drift.backoff = 1;
                     return None;

@@ -204,6 +204,15 @@ impl LampChange {
     }
 }
 
+/// How a frame sees the scene: the light relative to the calibration's
+/// ([`LampChange`]), and whether through the drifted filter
+/// ([`SyntheticCamera::drift_filter`]).
+#[derive(Clone, Copy)]
+struct Lit {
+    light: f64,
+    drifted: bool,
+}
+
 /// The synthetic camera.
 pub struct SyntheticCamera {
     bands: Vec<Band>,
@@ -225,6 +234,11 @@ pub struct SyntheticCamera {
     started: Option<(std::time::Instant, u64)>,
     /// A change of the light, and the frame it was set at.
     lamp: Option<(u64, LampChange)>,
+    /// The scene, to render the bands again where the filter drifts.
+    scene: Scene,
+    /// Planes rendered at the filter's drifted centres, and the first
+    /// frame that sees them.
+    drifted: Option<(u64, Vec<Vec<f32>>)>,
 }
 
 impl SyntheticCamera {
@@ -258,6 +272,8 @@ impl SyntheticCamera {
             seq: 0,
             started: None,
             lamp: None,
+            scene: scene.clone(),
+            drifted: None,
         };
         if cam.cfg.noise_pool {
             cam.pool = normal_pool(&mut cam.rng, 2 * n);
@@ -287,6 +303,27 @@ impl SyntheticCamera {
     /// it is now).
     pub fn set_lamp(&mut self, change: Option<LampChange>) {
         self.lamp = change.map(|c| (self.seq, c));
+    }
+
+    /// The filter's pass bands drift (with temperature, say) by `shift_nm`
+    /// from `after_frames` frames on: each band's frames are rendered at
+    /// its centre plus the shift, while the controller and the headers
+    /// still name the nominal one.
+    pub fn drift_filter(&mut self, after_frames: u64, shift_nm: f64) -> Result<(), SynthError> {
+        let r = Renderer::new(&self.scene)?;
+        let n = r.width() * r.height();
+        let mut planes = Vec::with_capacity(self.bands.len());
+        for b in &self.bands {
+            let moved = Band {
+                center_nm: b.center_nm + shift_nm,
+                ..*b
+            };
+            let mut p = vec![0.0f32; n];
+            r.render_band(&moved, &mut p)?;
+            planes.push(p);
+        }
+        self.drifted = Some((self.seq + after_frames, planes));
+        Ok(())
     }
 
     /// The bands the camera knows how to render.
@@ -354,7 +391,9 @@ impl SyntheticCamera {
         let light = self
             .lamp
             .map_or(1.0, |(set, c)| c.light_at(seq.saturating_sub(set)));
-        self.render_counts(a, b, alpha, light, &mut out.data[..n], want);
+        let drifted = self.drifted.as_ref().is_some_and(|(from, _)| seq >= *from);
+        let scene = Lit { light, drifted };
+        self.render_counts(a, b, alpha, scene, &mut out.data[..n], want);
         want
     }
 
@@ -363,7 +402,7 @@ impl SyntheticCamera {
         a: Option<usize>,
         b: Option<usize>,
         alpha: f64,
-        light: f64,
+        Lit { light, drifted }: Lit,
         out: &mut [u16],
         render: bool,
     ) {
@@ -393,7 +432,11 @@ impl SyntheticCamera {
         };
         // A missing band contributes nothing (its gain is zero), so the
         // other band's plane stands in for it.
-        let plane = |band: Option<usize>| band.map(|i| &self.planes[i][..n]);
+        let set = match &self.drifted {
+            Some((_, planes)) if drifted => planes,
+            _ => &self.planes,
+        };
+        let plane = |band: Option<usize>| band.map(|i| &set[i][..n]);
         let planes = match (white, plane(a).or(plane(b)), plane(b).or(plane(a))) {
             (None, Some(pa), Some(pb)) => Ok((pa, pb)),
             (w, _, _) => Err(w.map_or(0.0, |w| ga * w + gb * w)),

@@ -1,28 +1,30 @@
-//! Has the level moved since it was estimated? A live run estimates the
-//! film index, the noise, the level and the filter's band shift on its
-//! first sweep and keeps them; a lamp that dims or brightens, stray light
-//! that comes and goes, a white reference that no longer matches the
-//! light — all after that — leave every later sweep off by a gain or an
-//! offset. Where each pixel's angle is free, its thickness and angle take
-//! most of a few percent of gain up and its own χ² test passes (the
-//! paper's cylinder with its white reference 5 % high read 5.7 nm off, all
-//! valid, before the level was estimated at all), so the pixels' tests do
-//! not show it; a gain shared by many pixels does.
+//! Has the calibration moved since it was estimated? A live run
+//! estimates the film index, the noise, the level and the filter's band
+//! shift on its first sweep and keeps them; a lamp that dims or
+//! brightens, stray light that comes and goes, a white reference that no
+//! longer matches the light, a liquid-crystal filter whose pass bands
+//! drift as it warms — all after that — leave every later sweep off by a
+//! gain, an offset or a shift of the band centres. Where each pixel's
+//! angle is free, its thickness and angle take most of such a change up
+//! and its own χ² test passes (the paper's cylinder with its white
+//! reference 5 % high read 5.7 nm off, all valid, before the level was
+//! estimated at all), so the pixels' tests do not show it; a change
+//! shared by many pixels does.
 //!
 //! The look ([`Solver::level_drift`]): a sample of [`DRIFT_SAMPLE_PIXELS`]
-//! of the sweep, each pixel fitted under the level in force, and one
-//! Gauss–Newton step each of a gain, of an offset, and of both on top of
-//! it, shared by the sample, every pixel's thickness and angle eliminated
-//! and the film index held where it was estimated (it was estimated with
-//! the level; held, it pins the gain tighter). Under the same calibration
-//! each step is zero; against its covariance it is χ² on one or two
-//! degrees of freedom. The level has moved where one is beyond its limit
-//! ([`MAX_DRIFT_CHI2_ONE`], [`MAX_DRIFT_CHI2`]) and the step would move the
-//! sample's thicknesses by more than [`MIN_ACROSS_SHIFT`] of their σ. On
-//! the paper's cylinder a 256-pixel look measures a gain to ±0.5 %: 3 %
-//! is seen on every sweep. The caller then estimates
-//! everything again (the live runner: on the same sweep, before solving
-//! it).
+//! of the sweep, each pixel fitted under the estimates in force, and one
+//! Gauss–Newton step each of a gain, of an offset, of both, and of a shift
+//! of every band centre (with one gain) on top of them, shared by the
+//! sample, every pixel's thickness and angle eliminated and the film index
+//! held where it was estimated (it was estimated with the level; held, it
+//! pins the gain tighter). Under the same calibration each step is zero;
+//! against its covariance it is χ² on one or two degrees of freedom. The
+//! calibration has moved where one is beyond its limit
+//! ([`MAX_DRIFT_CHI2_ONE`], [`MAX_DRIFT_CHI2`]) and the step would move
+//! the sample's thicknesses by more than [`MIN_ACROSS_SHIFT`] of their σ.
+//! On the paper's cylinder a 256-pixel look measures a gain to ±0.5 % and
+//! a band shift to ±0.1 nm. The caller then estimates everything again
+//! (the live runner: on the same sweep, before solving it).
 
 use super::level_across::{median_shift, MIN_ACROSS_SHIFT};
 use super::Solver;
@@ -52,6 +54,8 @@ pub struct LevelDrift {
     pub gain: (f64, f64),
     /// The offset it asks for on top, and its σ.
     pub offset: (f64, f64),
+    /// The shift of the filter's band centres it asks for, nm, and its σ.
+    pub band_shift: (f64, f64),
     /// χ² of the look that stands out most: the gain alone, the offset
     /// alone (one degree of freedom each; the other then reads 0 ± 0), or
     /// the two jointly (two).
@@ -71,18 +75,37 @@ impl LevelDrift {
         self.chi2 > self.limit && self.shift > MIN_ACROSS_SHIFT
     }
 
-    /// One line for a log or a summary.
+    /// One line for a log or a summary: what the look measured, on top
+    /// of the estimates in force.
     pub fn describe(&self) -> String {
+        let what = if self.band_shift.1 > 0.0 {
+            format!(
+                "the filter's band centres {:+.2} ± {:.2} nm",
+                self.band_shift.0, self.band_shift.1
+            )
+        } else {
+            let mut parts = Vec::new();
+            if self.gain.1 > 0.0 {
+                parts.push(format!("gain {:+.4} ± {:.4}", self.gain.0, self.gain.1));
+            }
+            if self.offset.1 > 0.0 {
+                parts.push(format!(
+                    "offset {:+.5} ± {:.5}",
+                    self.offset.0, self.offset.1
+                ));
+            }
+            parts.join(", ")
+        };
         format!(
-            "gain {:+.4} ± {:.4}, offset {:+.5} ± {:.5} on top of the level in force: χ² = {:.1} (limit {:.1}), {:.2} σ in thickness over {} pixels",
-            self.gain.0, self.gain.1, self.offset.0, self.offset.1, self.chi2, self.limit, self.shift, self.pixels
+            "{what} on top of those in force: χ² = {:.1} (limit {:.1}), {:.2} σ in thickness over {} pixels",
+            self.chi2, self.limit, self.shift, self.pixels
         )
     }
 }
 
 impl Solver {
-    /// How far the level in force is from the one `cube` shows (see the
-    /// module's header). None before the image-wide stage has run, under
+    /// How far the level and band centres in force are from those `cube`
+    /// shows (see the module's header). None before the image-wide stage has run, under
     /// `free` (every pixel has its own level), without a noise level, or
     /// where too few sample pixels fit.
     pub fn level_drift(&self, cube: &Cube) -> Option<LevelDrift> {
@@ -95,7 +118,7 @@ impl Solver {
         let mut fits = self.level_pixels(&sample, &self.level);
         // The film index held where it was estimated.
         fits.iter_mut().for_each(|p| p.extra.clear());
-        fits.retain(|p| p.d.is_finite() && p.sigma_d > 0.0);
+        fits.retain(|p| p.d.is_finite() && p.sigma_d > 0.0 && !p.jac.is_empty());
         if fits.len() < DRIFT_SAMPLE_PIXELS / 4 {
             return None;
         }
@@ -150,14 +173,60 @@ impl Solver {
         // `median_shift` takes the gain relative to the level's.
         let g = self.level.gain.iter().sum::<f64>() / self.level.gain.len().max(1) as f64;
         let shift = median_shift(&fits, &self.level, [d[0] / g, d[1]], &var);
-        Some(LevelDrift {
+        let level_look = LevelDrift {
             gain: (d[0], sd[0]),
             offset: (d[1], sd[1]),
+            band_shift: (0.0, 0.0),
             chi2,
             limit,
             shift,
             pixels: fits.len(),
-        })
+        };
+        // The filter's centres moved: each band's fringe phase 4π·n·d·cos θ/λ
+        // moves as a thickness change of −d·Δ/λ_k would, so its response is
+        // −(d/λ_k)·∂R_k/∂d (the film's dispersion and the interfaces'
+        // change over a nanometre neglected), fitted with one gain.
+        let with_shift: Vec<_> = fits
+            .iter()
+            .map(|p| {
+                let mut q = p.clone();
+                q.extra = vec![(0..p.r.len())
+                    .map(|k| -self.level.gain[k] * p.d * wn[k] * p.jac[0][k])
+                    .collect()];
+                q
+            })
+            .collect();
+        let band_look =
+            level_step(&with_shift, &self.level, LevelBasis::Gain, &wn, &var).and_then(|step| {
+                let (ds, vs) = (*step.extra_step.first()?, *step.extra_var.first()?);
+                let chi2 = ds * ds / vs;
+                // The thicknesses take up the shift's mean phase, ~d·Δ·⟨1/λ⟩.
+                let mean_wn = wn.iter().sum::<f64>() / wn.len().max(1) as f64;
+                let mut moved: Vec<f64> = fits
+                    .iter()
+                    .map(|p| (p.d * ds * mean_wn).abs() / p.sigma_d)
+                    .filter(|v| v.is_finite())
+                    .collect();
+                if moved.is_empty() {
+                    return None;
+                }
+                let mid = moved.len() / 2;
+                let shift = *moved.select_nth_unstable_by(mid, f64::total_cmp).1;
+                (chi2.is_finite() && vs > 0.0).then_some(LevelDrift {
+                    gain: (0.0, 0.0),
+                    offset: (0.0, 0.0),
+                    band_shift: (ds, vs.sqrt()),
+                    chi2,
+                    limit: MAX_DRIFT_CHI2_ONE,
+                    shift,
+                    pixels: fits.len(),
+                })
+            });
+        let look = match band_look {
+            Some(b) if b.chi2 / b.limit > level_look.chi2 / level_look.limit => b,
+            _ => level_look,
+        };
+        Some(look)
     }
 }
 
@@ -169,8 +238,8 @@ mod tests {
     /// On the paper's cylinder (film index and angles free), the level
     /// estimated on one image holds on another of the same scene with
     /// fresh noise (over eight draws χ² stays below its limit), and a gain
-    /// of −3 % or an offset of +0.003 on top is seen, measured to within
-    /// four of its σ.
+    /// of −3 %, an offset of +0.003 or the filter's centres 2 nm off is
+    /// seen, measured to within four of its σ.
     #[test]
     fn a_gain_or_offset_since_the_level_was_estimated_is_seen() {
         let scene = crate::scene::Scene::paper_cylinder();
@@ -205,5 +274,23 @@ mod tests {
                 "{d:?}"
             );
         }
+        // The filter's centres 2 nm off (rendered there, read as nominal):
+        // seen as a band shift, measured to within four of its σ.
+        let moved: Vec<_> = bands
+            .iter()
+            .map(|b| crate::optics::band::Band {
+                center_nm: b.center_nm + 2.0,
+                ..*b
+            })
+            .collect();
+        let mut next = Renderer::new(&scene).unwrap().render_cube(&moved).unwrap();
+        next.bands = bands.clone();
+        add_noise(&mut next.data, 0.001, 12);
+        let d = solver.level_drift(&next).expect("a look");
+        assert!(d.moved() && d.band_shift.1 > 0.0, "{d:?}");
+        assert!(
+            (d.band_shift.0 - 2.0).abs() < 4.0 * d.band_shift.1 + 0.1,
+            "{d:?}"
+        );
     }
 }
