@@ -296,16 +296,7 @@ fn a_known_film_is_judged_live() {
         let rep = r.go(false, &config(2, false), &mut sink, &stop).unwrap();
         assert_eq!(rep.sweeps_completed, 2, "{rep:?}");
         for m in &sink.maps {
-            let (mut valid, mut wrong) = (0usize, 0usize);
-            for i in 0..m.width * m.height {
-                if m.valid[i] > 0.5 {
-                    valid += 1;
-                    let e = f64::from((m.thickness_nm[i] - r.truth.thickness_nm[i]).abs());
-                    if e > (3.0 * f64::from(m.sigma_thickness_nm[i])).max(2.0) {
-                        wrong += 1;
-                    }
-                }
-            }
+            let (valid, wrong) = valid_and_wrong(m, &r.truth);
             let total = (m.width * m.height) as f64;
             eprintln!("n {n}: valid {valid} of {total}, wrong {wrong}");
             if right {
@@ -359,6 +350,24 @@ fn the_first_sweeps_set_up_holds_the_second_sweep_back() {
     }
 }
 
+/// The last sweep the run estimated again on, the number its note gives
+/// after the last `key` (what the look came to: "mean gain ", "band shift
+/// "), and the note.
+fn last_look(summaries: &[SweepSummary], key: &str) -> (usize, f64, String) {
+    let last = summaries
+        .iter()
+        .rposition(|s| s.relook.is_some())
+        .expect("a sweep estimated again");
+    let why = summaries[last].relook.clone().unwrap_or_default();
+    let value = why
+        .rsplit(key)
+        .next()
+        .and_then(|t| t.split([' ', ',']).next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no {key:?} in {why}"));
+    (last, value, why)
+}
+
 /// The light dims by 5 % during the run, after the calibration's white
 /// references were taken (a lamp ageing or warming): every later sweep
 /// reads 5 % low. On the paper's cylinder, the angle free, each pixel's
@@ -393,19 +402,7 @@ fn a_lamp_that_dims_during_the_run_is_followed() {
         let counts: Vec<(usize, usize)> = sink
             .maps
             .iter()
-            .map(|m| {
-                let (mut valid, mut wrong) = (0usize, 0usize);
-                for p in 0..m.width * m.height {
-                    if m.valid[p] > 0.5 {
-                        valid += 1;
-                        let e = f64::from((m.thickness_nm[p] - r.truth.thickness_nm[p]).abs());
-                        if e > (3.0 * f64::from(m.sigma_thickness_nm[p])).max(2.0) {
-                            wrong += 1;
-                        }
-                    }
-                }
-                (valid, wrong)
-            })
+            .map(|m| valid_and_wrong(m, &r.truth))
             .collect();
         for (s, (valid, wrong)) in sink.summaries.iter().zip(&counts) {
             eprintln!(
@@ -425,18 +422,7 @@ fn a_lamp_that_dims_during_the_run_is_followed() {
         // 0.025 of 0.95 (three of its σ, ~0.008 with the film index
         // unknown; a look on a sweep whose frames straddle the change
         // finds part of it, and the next sweeps look again).
-        let last = sink
-            .summaries
-            .iter()
-            .rposition(|s| s.relook.is_some())
-            .expect("a look");
-        let why = sink.summaries[last].relook.clone().unwrap();
-        let gain: f64 = why
-            .split("mean gain ")
-            .nth(1)
-            .and_then(|t| t.split(',').next())
-            .and_then(|g| g.parse().ok())
-            .unwrap_or_else(|| panic!("{label}: {why}"));
+        let (last, gain, why) = last_look(&sink.summaries, "mean gain ");
         assert!((gain - 0.95).abs() < 0.025, "{label}: {why}");
         // No sweep valid and wrong, before the change, across it or after;
         // the sweeps after the last look valid (at least two of them).
@@ -487,16 +473,7 @@ fn a_filter_that_drifts_during_the_run_is_followed() {
         assert_eq!(rep.sweeps_completed, 10, "{label}: {rep:?}");
         let mut counts = Vec::new();
         for (s, m) in sink.summaries.iter().zip(&sink.maps) {
-            let (mut valid, mut wrong) = (0usize, 0usize);
-            for p in 0..m.width * m.height {
-                if m.valid[p] > 0.5 {
-                    valid += 1;
-                    let e = f64::from((m.thickness_nm[p] - r.truth.thickness_nm[p]).abs());
-                    if e > (3.0 * f64::from(m.sigma_thickness_nm[p])).max(2.0) {
-                        wrong += 1;
-                    }
-                }
-            }
+            let (valid, wrong) = valid_and_wrong(m, &r.truth);
             eprintln!(
                 "{label}: sweep {}: {valid} valid, {wrong} valid and wrong; looked again: {:?}",
                 s.sweep, s.relook
@@ -504,19 +481,8 @@ fn a_filter_that_drifts_during_the_run_is_followed() {
             counts.push((valid, wrong, m.width * m.height));
         }
         assert!(rep.relooks >= 1, "{label}: {rep:?}");
-        let last = sink
-            .summaries
-            .iter()
-            .rposition(|s| s.relook.is_some())
-            .expect("a look");
-        let why = sink.summaries[last].relook.clone().unwrap();
         // The last look fitted the drift (its σ ~0.1 nm on this scene).
-        let fitted: f64 = why
-            .rsplit("band shift ")
-            .next()
-            .and_then(|t| t.split(' ').next())
-            .and_then(|v| v.parse().ok())
-            .unwrap_or_else(|| panic!("{label}: {why}"));
+        let (last, fitted, why) = last_look(&sink.summaries, "band shift ");
         assert!((fitted - shift).abs() < 0.3, "{label}: {why}");
         assert!(
             last + 2 < counts.len(),

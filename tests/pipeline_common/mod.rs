@@ -187,6 +187,22 @@ pub fn thickness_error(maps: &ParamMaps, truth: &TruthMaps) -> (f64, f64, f64) {
     )
 }
 
+/// Valid pixels of `maps`, and those of them farther than max(3σ, 2 nm)
+/// from the truth (a valid pixel must be right).
+pub fn valid_and_wrong(maps: &ParamMaps, truth: &TruthMaps) -> (usize, usize) {
+    let (mut valid, mut wrong) = (0usize, 0usize);
+    for p in 0..maps.width * maps.height {
+        if maps.valid[p] > 0.5 {
+            valid += 1;
+            let e = f64::from((maps.thickness_nm[p] - truth.thickness_nm[p]).abs());
+            if e > (3.0 * f64::from(maps.sigma_thickness_nm[p])).max(2.0) {
+                wrong += 1;
+            }
+        }
+    }
+    (valid, wrong)
+}
+
 /// Maps compared bit for bit (NaN payloads included).
 pub fn bits(maps: &ParamMaps) -> Vec<u32> {
     maps.channels()
