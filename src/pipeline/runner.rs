@@ -227,7 +227,8 @@ pub struct RunReport {
     /// later sweep's look again ([`RunReport::relooks`]).
     pub frames_held: u64,
     /// Sweeps on which the film index, noise, level and band shift were
-    /// estimated again because the level had moved or poor fits rose.
+    /// estimated again because the calibration (the level or the band
+    /// centres) had moved or poor fits rose.
     pub relooks: u64,
     /// Whether the run was stopped early.
     pub stopped: bool,
@@ -843,9 +844,9 @@ impl Solve {
         s
     }
 
-    /// On a sweep after the set-up: where the level has moved since it was
-    /// estimated ([`Solver::level_drift`]) or the last sweep's poor fits
-    /// rose (a filter's pass bands drifting), estimate the film index,
+    /// On a sweep after the set-up: where the level or the band centres
+    /// have moved since they were estimated ([`Solver::level_drift`]) or
+    /// the last sweep's poor fits rose, estimate the film index,
     /// noise, level and band shift again on this sweep before solving it,
     /// holding capture back meanwhile as for the set-up. Returns why, and
     /// what they came to.
@@ -900,7 +901,7 @@ impl Solve {
                     self.solver.band_shift().0
                 )
             }
-            Err(e) => format!("not estimated ({e}); the earlier estimates kept"),
+            Err(e) => format!("not estimated again ({e})"),
         };
         tracing::info!(sweep, %why, %outcome, "image-wide estimates looked at again");
         Some(format!("{why}; {outcome}"))

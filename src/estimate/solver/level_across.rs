@@ -29,7 +29,11 @@
 //! on two degrees of freedom. The parts differ where that is beyond
 //! [`MAX_ACROSS_CHI2`] (the halves) or [`MAX_WINDOW_CHI2`] (a window, of
 //! up to 30 tried) and one level for both would move the thicknesses by
-//! more than [`MIN_ACROSS_SHIFT`] of their σ.
+//! more than [`MIN_ACROSS_SHIFT`] of their σ. A window must also change
+//! its pixels' reflectance by more than the noise floor, and takes only
+//! pixels whose fringe phase their fit knows to
+//! [`MAX_WINDOW_PHASE_SIGMA`]: over a window's few pixels, the bias a
+//! nonlinear fit leaves in each residual would otherwise read as a level.
 
 use super::index::SamplePixel;
 use super::level_fit::pixel_chi2_passes;

@@ -105,9 +105,9 @@ impl LevelDrift {
 
 impl Solver {
     /// How far the level and band centres in force are from those `cube`
-    /// shows (see the module's header). None before the image-wide stage has run, under
-    /// `free` (every pixel has its own level), without a noise level, or
-    /// where too few sample pixels fit.
+    /// shows (see the module's header). None before the image-wide stage
+    /// has run, under `free` (every pixel has its own level), without a
+    /// noise level, or where too few sample pixels fit.
     pub fn level_drift(&self, cube: &Cube) -> Option<LevelDrift> {
         if self.scene.level == LevelMode::Free || self.index.is_none() {
             return None;
