@@ -347,3 +347,62 @@ fn dropped_frames_flag_the_rows_that_needed_them() {
     check(&rows, &rep, &truth);
     assert!(rep.frames_dropped > 5, "{rep:?}");
 }
+
+/// The light dims by 5 % while the web runs, after the line's calibration
+/// (a lamp ageing): the film and angle are known here, so each pixel's χ²
+/// sees the gain and its rows are flagged rather than wrong — but kept,
+/// the warm-up's estimates would flag every row after the change. The
+/// look every few warm-ups' worth of rows sees the calibration move and
+/// estimates it again: the rows after that are valid and right.
+#[test]
+fn a_lamp_that_dims_while_the_web_runs_is_followed() {
+    use irid::device::camera::synthetic::LampChange;
+    let r = rig();
+    let cfg = r.camera_config();
+    let frames = 1500;
+    let (rows, rep, truth) = run_with(&r, cfg, frames, false, |mut cam| {
+        cam.set_lamp(Some(LampChange {
+            after_frames: 250,
+            over_frames: 0,
+            factor: 0.95,
+        }));
+        Box::new(cam)
+    });
+    let mut t = Vec::new();
+    // Per complete row: valid pixels, and valid pixels beyond max(3σ, 2 nm).
+    let per_row: Vec<(i64, usize, usize, usize)> = rows
+        .iter()
+        .filter(|row| row.complete)
+        .map(|row| {
+            truth.truth_row(row.index, &mut t);
+            let (mut valid, mut wrong) = (0, 0);
+            for (e, &d) in row.estimates.iter().zip(&t) {
+                if e.is_valid() {
+                    valid += 1;
+                    if (e.thickness_nm - d).abs() > (3.0 * e.sigma_thickness_nm).max(2.0) {
+                        wrong += 1;
+                    }
+                }
+            }
+            (row.index, valid, wrong, row.estimates.len())
+        })
+        .collect();
+    let n = per_row.len();
+    let quarter = |q: usize| &per_row[q * n / 4..(q + 1) * n / 4];
+    for q in 0..4 {
+        let (v, w, p) = quarter(q)
+            .iter()
+            .fold((0, 0, 0), |a, r| (a.0 + r.1, a.1 + r.2, a.2 + r.3));
+        eprintln!("quarter {q}: {v} of {p} valid, {w} valid and wrong");
+    }
+    assert!(rep.relooks >= 1, "{rep:?}");
+    // No valid pixel wrong anywhere (before, across and after the change).
+    let wrong: usize = per_row.iter().map(|r| r.2).sum();
+    let pixels: usize = per_row.iter().map(|r| r.3).sum();
+    assert!(wrong * 1000 < pixels, "{wrong} of {pixels} valid and wrong");
+    // The last quarter of the run, well after the look: valid again.
+    let (v, p) = quarter(3)
+        .iter()
+        .fold((0, 0), |a, r| (a.0 + r.1, a.1 + r.3));
+    assert!(v * 100 > p * 95, "last quarter: {v} of {p} valid");
+}

@@ -254,6 +254,12 @@ fn print_report(what: &str, rep: &LineReport, out: &LineOutput) {
             rep.rows_angle_corrected
         );
     }
+    if rep.relooks > 0 {
+        eprintln!(
+            "irid line: the calibration moved during the run and was estimated again {} times (see the log)",
+            rep.relooks
+        );
+    }
     if rep.capture_waits > 0 || out.output_waits() > 0 {
         eprintln!(
             "irid line: capture waited for the solver {} times, rows for the output worker {} times (the CPU or the disk fell behind)",

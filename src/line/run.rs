@@ -163,6 +163,11 @@ pub struct LineReport {
     /// capture waited for the solver (a real camera loses frames meanwhile,
     /// counted in `frames_dropped`; rows that miss a band are flagged).
     pub capture_waits: u64,
+    /// Times the calibration (the noise, level, band shift and, where
+    /// unknown, the film index) was estimated again after the warm-up,
+    /// because the look every [`super::solve::LOOK_EVERY`] warm-ups' worth
+    /// of rows saw it move.
+    pub relooks: u64,
 }
 
 /// How the stages are spread over threads.
@@ -308,6 +313,7 @@ impl Front<'_> {
         rep.latency_ms_p99 = stage.latency_hist.quantile(0.99);
         rep.warmup_wait_rows = stage.warmup_wait_rows;
         rep.warmup_wait_ms_max = stage.warmup_wait_max_ms;
+        rep.relooks = stage.relooks;
         rep.latency_ms_mean = if stage.latency_n > 0 {
             stage.latency_sum_ms / stage.latency_n as f64
         } else {

@@ -25,6 +25,11 @@ use crate::optics::band::Band;
 use crate::scene::{AngleKnowledge, Scene};
 use std::collections::VecDeque;
 
+/// The calibration is looked at again every this many warm-ups' worth of
+/// complete rows ([`Solver::level_drift`]: a few ms each on a 320-pixel
+/// web; a lamp or a filter drifts over minutes, not rows).
+pub const LOOK_EVERY: usize = 4;
+
 /// One emitted web row.
 #[derive(Clone, Debug, PartialEq)]
 pub struct WebRowOut {
@@ -61,6 +66,13 @@ pub struct RowSolver {
     /// warm-up).
     pending_angles: Option<(Vec<f64>, Correction)>,
     angle_scratch: AngleScratch,
+    /// The last complete rows solved (at most `warmup_rows`), for the look
+    /// at whether the calibration moved ([`Solver::level_drift`]).
+    recent: VecDeque<FinishedRow>,
+    /// Complete rows solved since the last look.
+    since_look: usize,
+    /// Looks that estimated the noise, level and band shift again.
+    relooks: u64,
 }
 
 impl RowSolver {
@@ -87,6 +99,9 @@ impl RowSolver {
             angles: None,
             pending_angles: None,
             angle_scratch: AngleScratch::default(),
+            recent: VecDeque::new(),
+            since_look: 0,
+            relooks: 0,
         })
     }
 
@@ -142,20 +157,37 @@ impl RowSolver {
 
     /// Learn the noise and level from the complete rows waiting.
     fn warm_up(&mut self) {
-        let rows: Vec<&FinishedRow> = self.warm.iter().filter(|r| r.complete()).collect();
+        let warm = std::mem::take(&mut self.warm);
+        let rows: Vec<&FinishedRow> = warm.iter().filter(|r| r.complete()).collect();
         self.ready = true;
         if rows.is_empty() {
             tracing::warn!("no complete web row to learn the noise level from");
-            return;
+        } else {
+            let cube = self.rows_cube(&rows);
+            match self.solver.estimate_film_index(&cube) {
+                Ok(est) => {
+                    if let Err(e) = self.solver.set_film_index(est) {
+                        tracing::warn!(%e, "film index not usable");
+                    }
+                }
+                Err(e) => tracing::warn!(%e, "noise level not learnt from the first rows"),
+            }
+            if let Err(e) = self.build_angles() {
+                tracing::warn!(%e, "angles per sensor row not usable");
+            }
         }
+        self.warm = warm;
+    }
+
+    /// `rows` as one cube, each corrected for its bands' angles where they
+    /// depend on the sensor row (so their spread is not learnt as a level).
+    fn rows_cube(&mut self, rows: &[&FinishedRow]) -> Cube {
         let (w, h, nb) = (self.width, rows.len(), self.cube.bands.len());
         let mut cube = Cube::zeros(w, h, self.cube.bands.clone());
         let mut one = Cube::zeros(w, 1, self.cube.bands.clone());
         let mut est = vec![PixelEstimate::invalid(Reason::Masked); w];
         for (y, r) in rows.iter().enumerate() {
             one.data.copy_from_slice(&r.spectra);
-            // The rows as the angles per band make them at θ_c, so their
-            // spread is not learnt as a level.
             if let Some(a) = &self.angles {
                 self.solver.solve_row(&one, 0, &mut est, &mut self.scratch);
                 a.correct_row(
@@ -172,17 +204,70 @@ impl RowSolver {
                     .copy_from_slice(&one.data[b * w..(b + 1) * w]);
             }
         }
-        match self.solver.estimate_film_index(&cube) {
-            Ok(est) => {
-                if let Err(e) = self.solver.set_film_index(est) {
-                    tracing::warn!(%e, "film index not usable");
-                }
+        cube
+    }
+
+    /// Keep a solved complete row for the next look, and look at the last
+    /// `warmup_rows` of them once [`LOOK_EVERY`] times as many have been
+    /// solved since the last look: where the calibration moved
+    /// since the warm-up (a lamp dimming, the filter's centres drifting),
+    /// the noise, level and band shift (and the film index, where unknown)
+    /// are estimated again from those rows, and the rows after them are
+    /// solved under the new estimates (the rows looked at were emitted
+    /// already).
+    fn keep(&mut self, row: &FinishedRow) {
+        if !row.complete() {
+            return;
+        }
+        if self.recent.len() >= self.warmup_rows {
+            if let Some(mut old) = self.recent.pop_front() {
+                old.clone_from(row);
+                self.recent.push_back(old);
             }
-            Err(e) => tracing::warn!(%e, "noise level not learnt from the first rows"),
+        } else {
+            self.recent.push_back(row.clone());
         }
-        if let Err(e) = self.build_angles() {
-            tracing::warn!(%e, "angles per sensor row not usable");
+        self.since_look += 1;
+        if self.since_look < LOOK_EVERY * self.warmup_rows || self.recent.len() < self.warmup_rows {
+            return;
         }
+        self.since_look = 0;
+        let recent = std::mem::take(&mut self.recent);
+        let rows: Vec<&FinishedRow> = recent.iter().collect();
+        let cube = self.rows_cube(&rows);
+        let moved = {
+            let _s = tracing::info_span!("line.drift").entered();
+            self.solver.level_drift(&cube).filter(|d| d.moved())
+        };
+        if let Some(d) = moved {
+            let _s = tracing::info_span!("line.relook").entered();
+            let looked = self
+                .solver
+                .estimate_film_index(&cube)
+                .and_then(|est| self.solver.set_film_index(est));
+            self.relooks += 1;
+            let (level, mode, _) = self.solver.level();
+            let (g, o) = level.mean();
+            tracing::info!(
+                row = row.index,
+                why = %d.describe(),
+                ok = looked.is_ok(),
+                level = mode.name(),
+                gain = g,
+                offset = o,
+                band_shift_nm = self.solver.band_shift().0,
+                "the calibration moved: estimated again"
+            );
+            if let Err(e) = self.build_angles() {
+                tracing::warn!(%e, "angles per sensor row not usable");
+            }
+        }
+        self.recent = recent;
+    }
+
+    /// How often the calibration was estimated again after the warm-up.
+    pub fn relooks(&self) -> u64 {
+        self.relooks
     }
 
     fn solve(&mut self, row: &FinishedRow) -> WebRowOut {
@@ -228,6 +313,7 @@ impl RowSolver {
             )
             .collect();
         for (o, r) in solved.into_iter().zip(rows.drain(..)) {
+            self.keep(&r);
             out(o, r);
         }
     }
@@ -237,6 +323,7 @@ impl RowSolver {
     pub fn push(&mut self, row: FinishedRow, out: &mut dyn FnMut(WebRowOut, FinishedRow)) {
         if self.ready {
             let r = self.solve(&row);
+            self.keep(&row);
             out(r, row);
             return;
         }
@@ -253,6 +340,7 @@ impl RowSolver {
         }
         while let Some(row) = self.warm.pop_front() {
             let r = self.solve(&row);
+            self.keep(&row);
             out(r, row);
         }
     }

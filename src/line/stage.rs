@@ -77,6 +77,8 @@ pub(super) struct StageReport {
     pub warmup_wait_rows: u64,
     /// Largest latency among them, ms.
     pub warmup_wait_max_ms: f64,
+    /// Looks after the warm-up that estimated the calibration again.
+    pub relooks: u64,
 }
 
 /// Solves rows and hands them to the sink.
@@ -178,6 +180,7 @@ impl<'s> RowStage<'s> {
             self.report.rows_angle_corrected += u64::from(row.angle_corrected);
         }
         self.sink.finish()?;
+        self.report.relooks = self.solver.relooks();
         Ok(self.report)
     }
 }

@@ -28,7 +28,7 @@
 //! bands × ~2000 samples for the demo's film = 8 MB), built once, in
 //! parallel. Seeded and on a virtual clock: bit-reproducible.
 
-use super::synthetic::{lctf_transmission, FilterView, SensorModel};
+use super::synthetic::{lctf_transmission, FilterView, LampChange, SensorModel};
 use super::{CameraError, CameraInfo, Frame, FrameMeta, FrameSource};
 use crate::optics::airy;
 use crate::optics::band::Band;
@@ -212,6 +212,8 @@ pub struct WebCamera {
     /// Thickness of the rows in view, per frame (scratch).
     thick: Vec<f64>,
     started: Option<(std::time::Instant, u64)>,
+    /// A change of the light, and the frame it was set at.
+    lamp: Option<(u64, LampChange)>,
 }
 
 const TABLE_STEP_NM: f64 = 0.05;
@@ -332,7 +334,14 @@ impl WebCamera {
             pos: 0.0,
             thick: vec![0.0; px],
             started: None,
+            lamp: None,
         })
+    }
+
+    /// Change the light from the next frame on, after the line's
+    /// calibration (None: the light stays as it is now).
+    pub fn set_lamp(&mut self, change: Option<LampChange>) {
+        self.lamp = change.map(|c| (self.seq, c));
     }
 
     /// The film.
@@ -449,7 +458,10 @@ impl FrameSource for WebCamera {
         let tr = self.filter.get();
         let alpha = tr.progress(t0 + exposure_ns / 2);
         let (a, b) = (self.band_of(tr.from_nm), self.band_of(tr.to_nm));
-        let k = s.counts_per_us * f64::from(s.exposure_us);
+        let light = self
+            .lamp
+            .map_or(1.0, |(set, c)| c.light_at(seq.saturating_sub(set)));
+        let k = light * s.counts_per_us * f64::from(s.exposure_us);
         let gain =
             |i: Option<usize>| i.map_or(0.0, |i| k * lctf_transmission(self.bands[i].center_nm));
         let (ga, gb) = (gain(a) * (1.0 - alpha), gain(b) * alpha);

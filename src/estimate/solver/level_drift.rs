@@ -46,6 +46,11 @@ pub const MAX_DRIFT_CHI2: f64 = 23.0;
 /// estimates correlate at 0.9), so alone each is measured ~2.4× tighter.
 pub const MAX_DRIFT_CHI2_ONE: f64 = 19.5;
 
+/// The χ² per sample pixel beyond which a change matters though it moves
+/// no thickness: one noise variance, a fraction of a pixel's own test's
+/// margin (clean looks read ~0.004 per pixel).
+pub const MIN_PIXEL_CHI2: f64 = 1.0;
+
 /// How far the level in force is from the one a sweep shows.
 #[derive(Clone, Debug, PartialEq)]
 pub struct LevelDrift {
@@ -70,9 +75,15 @@ pub struct LevelDrift {
 }
 
 impl LevelDrift {
-    /// Whether the level has moved beyond its noise, by enough to matter.
+    /// Whether the calibration has moved beyond its noise, by enough to
+    /// matter: it moves the thicknesses by more than [`MIN_ACROSS_SHIFT`]
+    /// of their σ, or raises the pixels' χ² by more than
+    /// [`MIN_PIXEL_CHI2`] each on average (their own tests then flag them,
+    /// or nearly: a 5 % gain on a web whose film and angle are known moved
+    /// its thicknesses by 0.2 σ and raised each pixel's χ² by ~100).
     pub fn moved(&self) -> bool {
-        self.chi2 > self.limit && self.shift > MIN_ACROSS_SHIFT
+        self.chi2 > self.limit
+            && (self.shift > MIN_ACROSS_SHIFT || self.chi2 > MIN_PIXEL_CHI2 * self.pixels as f64)
     }
 
     /// One line for a log or a summary: what the look measured, on top
