@@ -15,6 +15,12 @@
 //! the noise and level are learnt from them, so the spread is not taken for
 //! a calibration error (with a known film; an unknown film's index is
 //! estimated from the rows as seen).
+//!
+//! A calibration that moves after the warm-up (a lamp dimming, the
+//! filter's pass bands drifting) is followed: every [`LOOK_EVERY`]
+//! warm-ups' worth of complete rows the last `warmup_rows` are looked at
+//! ([`Solver::level_drift`]) and, where it moved, the noise, level and
+//! band shift are learnt again from them, as at the warm-up.
 
 use super::accumulate::FinishedRow;
 use super::angles::{AngleScratch, Correction, SensorAngles};
