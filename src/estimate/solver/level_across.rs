@@ -339,8 +339,9 @@ pub(super) fn level_across(
     let lin_sites: Vec<(usize, usize)> = lin.iter().map(|&i| sites[i]).collect();
     let mut worst: Option<Across> = None;
     for (fits, sites, halves) in [(fits, &sites, true), (&lin_fits[..], &lin_sites, false)] {
+        let mut px = fits.to_vec();
         for part in parts(sites, halves) {
-            let Some(a) = part_across(part, fits, sites, level, wavenumber, var) else {
+            let Some(a) = part_across(part, fits, sites, &mut px, level, wavenumber, var) else {
                 continue;
             };
             let key = |a: &Across| (a.differs(), a.chi2 / a.limit);
@@ -352,11 +353,13 @@ pub(super) fn level_across(
     worst
 }
 
-/// One part's step against the rest ([`level_across`]).
+/// One part's step against the rest ([`level_across`]); `px` holds a copy
+/// of `fits` whose extras each part replaces.
 fn part_across(
     part: Part,
     fits: &[LevelPixel],
     sites: &[(usize, usize)],
+    px: &mut [LevelPixel],
     level: &Level,
     wavenumber: &[f64],
     var: &[f64],
@@ -365,22 +368,19 @@ fn part_across(
         let c = if part.axis == 0 { s.0 } else { s.1 };
         (part.lo..part.hi).contains(&c)
     };
-    let px: Vec<LevelPixel> = fits
-        .iter()
-        .zip(sites)
-        .map(|(f, s)| {
-            let inside = if inside(s) { 1.0 } else { 0.0 };
-            let mut p = f.clone();
-            p.extra.push(
-                (0..f.y.len())
-                    .map(|k| inside * level.gain[k] * f.r[k])
-                    .collect(),
-            );
-            p.extra.push(vec![inside; f.y.len()]);
-            p
-        })
-        .collect();
-    let step = level_step(&px, level, LevelBasis::GainOffset, wavenumber, var)?;
+    // The part's two parameters after each pixel's own extras (the film
+    // index's, where unknown), in `px`'s copies of `fits`.
+    for ((p, f), s) in px.iter_mut().zip(fits).zip(sites) {
+        let inside = if inside(s) { 1.0 } else { 0.0 };
+        p.extra.truncate(f.extra.len());
+        p.extra.push(
+            (0..f.y.len())
+                .map(|k| inside * level.gain[k] * f.r[k])
+                .collect(),
+        );
+        p.extra.push(vec![inside; f.y.len()]);
+    }
+    let step = level_step(px, level, LevelBasis::GainOffset, wavenumber, var)?;
     let n = step.extra_step.len();
     if n < 2 || step.extra_cov.len() != n * n {
         return None;
@@ -391,11 +391,7 @@ fn part_across(
         step.extra_cov[(n - 2) * n + n - 1],
         step.extra_cov[(n - 1) * n + n - 1],
     ];
-    let det = c[0] * c[2] - c[1] * c[1];
-    if !(det > 0.0 && det.is_finite() && d.iter().all(|v| v.is_finite())) {
-        return None;
-    }
-    let chi2 = (d[0] * d[0] * c[2] - 2.0 * d[0] * d[1] * c[1] + d[1] * d[1] * c[0]) / det;
+    let chi2 = chi2_two(d, c)?;
     let within: Vec<&LevelPixel> = fits
         .iter()
         .zip(sites)
@@ -438,6 +434,16 @@ fn part_across(
         shift,
         size,
     })
+}
+
+/// χ² of two differences `d` against their covariance `c` (`[c₀₀, c₀₁,
+/// c₁₁]`); None where the covariance is singular or anything is not finite.
+pub(super) fn chi2_two(d: [f64; 2], c: [f64; 3]) -> Option<f64> {
+    let det = c[0] * c[2] - c[1] * c[1];
+    if !(det > 0.0 && det.is_finite() && d.iter().all(|v| v.is_finite())) {
+        return None;
+    }
+    Some((d[0] * d[0] * c[2] - 2.0 * d[0] * d[1] * c[1] + d[1] * d[1] * c[0]) / det)
 }
 
 /// The median over `fits` of |Δd|/σ_d, Δd each pixel's thickness response

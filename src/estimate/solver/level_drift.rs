@@ -26,7 +26,7 @@
 //! a band shift to ±0.1 nm. The caller then estimates everything again
 //! (the live runner: on the same sweep, before solving it).
 
-use super::level_across::{median_shift, MIN_ACROSS_SHIFT};
+use super::level_across::{chi2_two, median_shift, MIN_ACROSS_SHIFT};
 use super::Solver;
 use crate::estimate::level::{level_step, LevelBasis, LevelMode};
 use crate::estimate::Cube;
@@ -164,12 +164,9 @@ impl Solver {
                         share.cov_entry(0, 1),
                         share.cov_entry(1, 1),
                     ];
-                    let det = c[0] * c[2] - c[1] * c[1];
-                    if det.is_nan() || det <= 0.0 {
+                    let Some(chi2) = chi2_two(d, c) else {
                         continue;
-                    }
-                    let chi2 =
-                        (d[0] * d[0] * c[2] - 2.0 * d[0] * d[1] * c[1] + d[1] * d[1] * c[0]) / det;
+                    };
                     (c[0].sqrt(), c[2].sqrt(), chi2)
                 }
             };
@@ -197,18 +194,15 @@ impl Solver {
         // moves as a thickness change of −d·Δ/λ_k would, so its response is
         // −(d/λ_k)·∂R_k/∂d (the film's dispersion and the interfaces'
         // change over a nanometre neglected), fitted with one gain.
-        let with_shift: Vec<_> = fits
-            .iter()
-            .map(|p| {
-                let mut q = p.clone();
-                q.extra = vec![(0..p.r.len())
-                    .map(|k| -self.level.gain[k] * p.d * wn[k] * p.jac[0][k])
-                    .collect()];
-                q
-            })
-            .collect();
+        // (The looks above are done with the pixels' extras: the shift's
+        // response takes their place.)
+        for p in &mut fits {
+            p.extra = vec![(0..p.r.len())
+                .map(|k| -self.level.gain[k] * p.d * wn[k] * p.jac[0][k])
+                .collect()];
+        }
         let band_look =
-            level_step(&with_shift, &self.level, LevelBasis::Gain, &wn, &var).and_then(|step| {
+            level_step(&fits, &self.level, LevelBasis::Gain, &wn, &var).and_then(|step| {
                 let (ds, vs) = (*step.extra_step.first()?, *step.extra_var.first()?);
                 let chi2 = ds * ds / vs;
                 // The thicknesses take up the shift's mean phase, ~d·Δ·⟨1/λ⟩.
