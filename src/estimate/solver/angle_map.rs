@@ -41,6 +41,7 @@
 //! reports). `balanced` and `accurate` fit every pixel's angle.
 
 use super::row::gather;
+use super::table::Hint;
 use super::{Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
 use crate::estimate::level::LevelMode;
 use crate::estimate::{PixelEstimate, Reason};
@@ -307,23 +308,60 @@ impl Solver {
         // table fit at their mean angle (a sample's neighbour is a stride
         // away, too far on a steep film for the previous fit to start it,
         // and a fringe search is most of a free fit's cost).
+        // The first at the angle the image's sample showed most (a fringe
+        // search where there was none).
         let stride = (w / SAMPLES_PER_ROW).max(SAMPLE_STRIDE);
         let (mut sum_w, mut sum_ws) = (0f64, 0f64);
+        // The samples' table fits as optical thickness along the row: the
+        // next one's walk on its table starts on their line (a stride
+        // apart, the last fit alone is seldom within the walk's window of
+        // a sloping film, and the scan costs the sample most of its time).
+        let mut ramp = SampleRamp::default();
+        // Whether a sample that failed at the row's angle has been through
+        // the free fit's search for nothing (a film past the resolved
+        // range, a defect): the row's later samples that fail at the
+        // angle of its samples so far are dropped rather than searched
+        // again, each search costing as much as ~70 of the row's pixels
+        // (the thick hard coat's films past its range: a tenth of its
+        // time). Not before the row has a sample of its own: until then
+        // the angle tried is the image's, which the row may not share.
+        let mut searched_in_vain = false;
         for x in (stride / 2..w).step_by(stride) {
             gather(rows, ws, x, 1, nb, batch);
             let pixel = &batch[..nb];
-            let start = (sum_w > 0.0)
-                .then(|| bins.bin_of((sum_ws / sum_w).clamp(0.0, 1.0).sqrt().asin()))
-                .flatten()
-                .and_then(|tb| {
-                    let o = self.solve_pixel(pixel, Some(tb), scratch);
-                    o.is_valid().then_some((o.thickness_nm, tb))
-                });
+            let angle = if sum_w > 0.0 {
+                Some((sum_ws / sum_w).clamp(0.0, 1.0).sqrt().asin())
+            } else {
+                self.sample_theta
+            };
+            let mut failed_at_bin = false;
+            let start = angle.and_then(|t| bins.bin_of(t)).and_then(|tb| {
+                let q = prep.model.q2_mid(tb);
+                if let Some(g) = ramp.at(x as f64) {
+                    scratch.hint = Some(Hint {
+                        key: tb.to_bits(),
+                        d: g / q,
+                        before: f64::NAN,
+                    });
+                }
+                let o = self.solve_pixel(pixel, Some(tb), scratch);
+                if o.is_valid() {
+                    ramp.push(x as f64, o.thickness_nm * q);
+                }
+                failed_at_bin = unexplained(o.reason);
+                o.is_valid().then_some((o.thickness_nm, tb))
+            });
+            if failed_at_bin && searched_in_vain && sum_w > 0.0 {
+                continue;
+            }
             if start.is_some() {
                 scratch.warm = start;
                 scratch.warm_before = None;
             }
+            let searches = scratch.fringe_searches;
             let o = self.solve_pixel(pixel, None, scratch);
+            searched_in_vain |=
+                failed_at_bin && scratch.fringe_searches > searches && unexplained(o.reason);
             scratch.note_warm(&o);
             if o.is_valid() {
                 let (t, st) = (o.theta_deg.to_radians(), o.sigma_theta_deg.to_radians());
@@ -436,6 +474,29 @@ impl Solver {
     }
 }
 
+/// The last two samples' fits along a row, `(x, optical thickness)`.
+#[derive(Default)]
+struct SampleRamp {
+    last: Option<(f64, f64)>,
+    before: Option<(f64, f64)>,
+}
+
+impl SampleRamp {
+    fn push(&mut self, x: f64, g: f64) {
+        self.before = self.last.replace((x, g));
+    }
+
+    /// The optical thickness at `x` on the line through the two (the last
+    /// alone where there is one).
+    fn at(&self, x: f64) -> Option<f64> {
+        let (x1, g1) = self.last?;
+        Some(match self.before {
+            Some((x0, g0)) if x1 != x0 => g1 + (g1 - g0) / (x1 - x0) * (x - x1),
+            _ => g1,
+        })
+    }
+}
+
 impl Solver {
     /// A row pixel's variance `var` (its fit's at its bin, moved to the
     /// row's angle by `scale`) with the image-wide level's share taken as
@@ -504,6 +565,13 @@ fn sin2_interval(s: f64, ss: f64) -> f64 {
 /// Flags no angle near the line's changes: the spectrum itself unusable,
 /// or a film past what the bands resolve (the resolved range moves with
 /// the angle by the equal-phase factor, a few parts per thousand).
+/// A fit the model could not explain (a film past the resolved range, a
+/// defect), as against one too weak to say (no fringe, an ambiguous
+/// order, an angle not identifiable) or unusable input.
+fn unexplained(r: Reason) -> bool {
+    matches!(r, Reason::PoorFit | Reason::Unresolved)
+}
+
 fn is_input_reason(r: Reason) -> bool {
     matches!(
         r,
@@ -518,6 +586,24 @@ fn is_input_reason(r: Reason) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_samples_ramp_is_the_line_through_its_last_two() {
+        let mut r = SampleRamp::default();
+        assert_eq!(r.at(10.0), None);
+        r.push(0.0, 100.0);
+        // One fit: flat.
+        assert_eq!(r.at(50.0), Some(100.0));
+        r.push(40.0, 180.0);
+        r.push(80.0, 240.0);
+        // The last two (40, 180) and (80, 240): slope 1.5 per pixel; the
+        // first no longer counts.
+        let g = r.at(120.0).unwrap();
+        assert!((g - 300.0).abs() < 1e-9, "{g}");
+        // Back along the line too.
+        let g = r.at(60.0).unwrap();
+        assert!((g - 210.0).abs() < 1e-9, "{g}");
+    }
 
     /// A deterministic standard normal sequence (Box–Muller on an LCG).
     fn normals(n: usize, seed: u64) -> Vec<f64> {

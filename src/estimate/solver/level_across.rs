@@ -128,6 +128,7 @@ impl Solver {
     pub(super) fn test_level_across(&mut self, cube: &Cube) {
         // A range from an earlier estimate says nothing of this image.
         self.sample_g = None;
+        self.sample_theta = None;
         if self.calibration_suspect || self.scene.level == LevelMode::Free {
             return;
         }
@@ -163,14 +164,25 @@ impl Solver {
 }
 
 impl Solver {
-    /// Keep the largest optical thickness of `fits` (of a sample of `n`
-    /// pixels) for `fast`'s angle bins, where nearly all of the sample
+    /// Keep the median angle of `fits` (where at least 100 fitted) for
+    /// the first sample of `fast`'s rows on their angle, and their largest
+    /// optical thickness (of a sample of `n` pixels) for `fast`'s angle
+    /// bins, where nearly all of the sample
     /// fitted (at least 100 pixels and 98 %: films past the resolved range
     /// or out of the model leave the bins their whole range).
     fn note_sample_g(&mut self, n: usize, fits: &[LevelPixel]) {
         let Some(prep) = self.prepared.as_ref() else {
             return;
         };
+        let mut thetas: Vec<f64> = fits
+            .iter()
+            .map(|p| p.theta)
+            .filter(|t| t.is_finite())
+            .collect();
+        if thetas.len() >= 100 {
+            let mid = thetas.len() / 2;
+            self.sample_theta = Some(*thetas.select_nth_unstable_by(mid, f64::total_cmp).1);
+        }
         if fits.len() < 100 || (fits.len() as f64) < 0.98 * n as f64 {
             return;
         }

@@ -743,6 +743,10 @@ pub struct Solver {
     /// bins tabulate up to [`bins_g_limit`] of it instead of the whole
     /// resolved range ([`Solver::angle_bins`]).
     sample_g: Option<f64>,
+    /// The median angle, rad, of the same sample's fits (at least 100 of
+    /// them): where `fast`'s rows on their estimated angle start their
+    /// first sample ([`Solver::solve_row_on_angle`]).
+    sample_theta: Option<f64>,
     /// The model one small step up in the film index, where the index is
     /// estimated jointly with the level: each pixel's derivative with
     /// respect to it carries the index's share of the level's covariance.
@@ -895,6 +899,7 @@ impl Solver {
             level_hedge: None,
             calibration_suspect: false,
             sample_g: None,
+            sample_theta: None,
             index_step: None,
             share_table: std::sync::OnceLock::new(),
             residual_noise_floor: false,
