@@ -17,7 +17,8 @@
 //!
 //! Like [`super::synthetic::SyntheticCamera`] the camera reads the filter's
 //! state from a shared [`FilterView`] (a frame exposed while the filter
-//! settles is a blend of two bands), converts reflectance to counts
+//! settles is a blend of two bands; its pass bands can drift mid-run,
+//! [`WebCamera::drift_filter`]), converts reflectance to counts
 //! (`dark + k·exposure·T(band)·R`), adds Gaussian noise of a given
 //! *reflectance* σ, quantises and clips. Reflectance comes from a table per
 //! band and distinct incidence angle over the film's thickness range (0.05
@@ -202,6 +203,13 @@ pub struct WebCamera {
     bands: Vec<Band>,
     /// Per distinct angle, per band: `tables[a · bands + b]`.
     tables: Vec<Table>,
+    /// The same through a drifted filter, and the frame from which on
+    /// ([`WebCamera::drift_filter`]).
+    drifted: Option<(u64, Vec<Table>)>,
+    /// Ambient, film and substrate, and the distinct angles, degrees (the
+    /// tables are built again for a drifted filter).
+    media: [Dispersion; 3],
+    angles: Vec<f64>,
     /// Each sensor row's angle (index into the distinct angles).
     row_angle: Vec<usize>,
     filter: FilterView,
@@ -270,57 +278,8 @@ impl WebCamera {
                 },
             )
             .collect();
-        let mut band_nodes = Vec::with_capacity(bands.len());
-        for b in bands {
-            let points: Vec<(f64, f64)> = if b.fwhm_nm > 0.0 {
-                b.nodes().to_vec()
-            } else {
-                vec![(b.center_nm, 1.0)]
-            };
-            let mut nodes = Vec::with_capacity(points.len());
-            for (lam, wgt) in points {
-                let get = |d: &Dispersion, medium| {
-                    d.index_in_passband(lam, b.center_nm)
-                        .map_err(|e| WebCameraError::Optics {
-                            medium,
-                            wavelength_nm: lam,
-                            message: e.to_string(),
-                        })
-                };
-                let m = Media {
-                    n1: get(media[0], "ambient")?,
-                    n2: get(media[1], "film")?,
-                    n3: get(media[2], "substrate")?,
-                };
-                nodes.push((lam, wgt, m));
-            }
-            band_nodes.push(nodes);
-        }
-        let pol = cfg.polarization;
-        let nb = bands.len();
-        // Each table on its own: the same values whatever the threads.
-        use rayon::prelude::*;
-        let tables: Vec<Table> = (0..angles.len() * nb)
-            .into_par_iter()
-            .map(|i| {
-                let theta = angles[i / nb].to_radians();
-                let nodes = &band_nodes[i % nb];
-                let r = (0..n)
-                    .map(|j| {
-                        let d = lo + j as f64 * TABLE_STEP_NM;
-                        nodes
-                            .iter()
-                            .map(|&(lam, wgt, m)| wgt * airy::reflectance(m, d, theta, lam, pol))
-                            .sum::<f64>() as f32
-                    })
-                    .collect();
-                Table {
-                    d0: lo,
-                    inv_step: 1.0 / TABLE_STEP_NM,
-                    r,
-                }
-            })
-            .collect();
+        let media = [media[0].clone(), media[1].clone(), media[2].clone()];
+        let tables = tabulate(bands, &media, &angles, (lo, n), cfg.polarization)?;
         let px = cfg.width as usize * cfg.rows_in_view as usize;
         Ok(WebCamera {
             rng: ChaCha8Rng::seed_from_u64(cfg.seed),
@@ -328,6 +287,9 @@ impl WebCamera {
             film,
             bands: bands.to_vec(),
             tables,
+            drifted: None,
+            media,
+            angles,
             row_angle,
             filter,
             seq: 0,
@@ -342,6 +304,32 @@ impl WebCamera {
     /// calibration (None: the light stays as it is now).
     pub fn set_lamp(&mut self, change: Option<LampChange>) {
         self.lamp = change.map(|c| (self.seq, c));
+    }
+
+    /// The filter's pass bands drift (with temperature, say) by `shift_nm`
+    /// from `after_frames` frames on: each band's frames are rendered at
+    /// its centre plus the shift, while the controller and the metadata
+    /// still name the nominal one.
+    pub fn drift_filter(&mut self, after_frames: u64, shift_nm: f64) -> Result<(), WebCameraError> {
+        let moved: Vec<Band> = self
+            .bands
+            .iter()
+            .map(|b| Band {
+                center_nm: b.center_nm + shift_nm,
+                ..*b
+            })
+            .collect();
+        let lo = self.tables.first().map_or(0.0, |t| t.d0);
+        let n = self.tables.first().map_or(2, |t| t.r.len());
+        let tables = tabulate(
+            &moved,
+            &self.media,
+            &self.angles,
+            (lo, n),
+            self.cfg.polarization,
+        )?;
+        self.drifted = Some((self.seq + after_frames, tables));
+        Ok(())
     }
 
     /// The film.
@@ -403,6 +391,67 @@ impl WebCamera {
             std::thread::sleep(due - now);
         }
     }
+}
+
+/// Each band's reflectance over `n` thickness samples from `lo` nm (steps
+/// of [`TABLE_STEP_NM`]), per distinct angle (degrees): `[a · bands + b]`.
+fn tabulate(
+    bands: &[Band],
+    media: &[Dispersion; 3],
+    angles: &[f64],
+    (lo, n): (f64, usize),
+    pol: Polarization,
+) -> Result<Vec<Table>, WebCameraError> {
+    let mut band_nodes = Vec::with_capacity(bands.len());
+    for b in bands {
+        let points: Vec<(f64, f64)> = if b.fwhm_nm > 0.0 {
+            b.nodes().to_vec()
+        } else {
+            vec![(b.center_nm, 1.0)]
+        };
+        let mut nodes = Vec::with_capacity(points.len());
+        for (lam, wgt) in points {
+            let get = |d: &Dispersion, medium| {
+                d.index_in_passband(lam, b.center_nm)
+                    .map_err(|e| WebCameraError::Optics {
+                        medium,
+                        wavelength_nm: lam,
+                        message: e.to_string(),
+                    })
+            };
+            let m = Media {
+                n1: get(&media[0], "ambient")?,
+                n2: get(&media[1], "film")?,
+                n3: get(&media[2], "substrate")?,
+            };
+            nodes.push((lam, wgt, m));
+        }
+        band_nodes.push(nodes);
+    }
+    let nb = bands.len();
+    // Each table on its own: the same values whatever the threads.
+    use rayon::prelude::*;
+    Ok((0..angles.len() * nb)
+        .into_par_iter()
+        .map(|i| {
+            let theta = angles[i / nb].to_radians();
+            let nodes = &band_nodes[i % nb];
+            let r = (0..n)
+                .map(|j| {
+                    let d = lo + j as f64 * TABLE_STEP_NM;
+                    nodes
+                        .iter()
+                        .map(|&(lam, wgt, m)| wgt * airy::reflectance(m, d, theta, lam, pol))
+                        .sum::<f64>() as f32
+                })
+                .collect();
+            Table {
+                d0: lo,
+                inv_step: 1.0 / TABLE_STEP_NM,
+                r,
+            }
+        })
+        .collect())
 }
 
 impl FrameSource for WebCamera {
@@ -469,16 +518,17 @@ impl FrameSource for WebCamera {
         let max = f64::from(s.format.max_value());
         let dark = s.dark_offset;
         let nb = self.bands.len();
+        let tables = match &self.drifted {
+            Some((from, t)) if seq >= *from => t,
+            _ => &self.tables,
+        };
         for (y, (orow, drow)) in out.data[..n]
             .chunks_exact_mut(w)
             .zip(self.thick.chunks_exact(w))
             .enumerate()
         {
             let base = self.row_angle[y] * nb;
-            let (ta, tb) = (
-                a.map(|i| &self.tables[base + i]),
-                b.map(|i| &self.tables[base + i]),
-            );
+            let (ta, tb) = (a.map(|i| &tables[base + i]), b.map(|i| &tables[base + i]));
             for (o, &d) in orow.iter_mut().zip(drow) {
                 let ra = ta.map_or(0.0, |t| f64::from(t.at(d)));
                 let rb = tb.map_or(0.0, |t| f64::from(t.at(d)));
