@@ -49,6 +49,7 @@ use super::sequencer::{
 use super::stage::{catch, HaltOnDrop, Stage, StageFault};
 use super::tracker::{SweepBuf, TrackError, Tracker};
 use crate::device::camera::{CameraError, Frame, FrameSource};
+use crate::estimate::level::LevelMode;
 use crate::estimate::solver::Scratch;
 use crate::estimate::{Cube, EstimateError, MapRowMut, Mode, ParamMaps, PixelEstimate, Solver};
 use crate::optics::band::Band;
@@ -694,6 +695,13 @@ struct Drift {
     /// next check does not clear, up to [`MAX_RELOOK_WAIT`], so a change no
     /// look can model costs a look now and then, not every sweep.
     backoff: u64,
+    /// The last sweep's estimates came from a look that saw a change
+    /// (provisional: the change may have straddled that sweep, whose bands
+    /// then saw both sides of it); this sweep estimates them again.
+    confirm: bool,
+    /// That look saw a gain or an offset
+    /// ([`crate::estimate::solver::LevelDrift::is_level`]).
+    level_moved: bool,
 }
 
 /// The poor fits have risen where their fraction exceeds this many times
@@ -712,6 +720,8 @@ impl Drift {
             last: 0.0,
             wait: 0,
             backoff: 1,
+            confirm: false,
+            level_moved: false,
         }
     }
 
@@ -852,11 +862,15 @@ impl Solve {
     /// what they came to.
     fn look_again(&mut self, cube: &Cube, sweep: u64) -> Option<String> {
         self.solver.film_index()?;
-        if self.drift.wait > 0 {
+        let confirm = std::mem::take(&mut self.drift.confirm);
+        if self.drift.wait > 0 && !confirm {
             self.drift.wait -= 1;
             return None;
         }
-        let why = if self.drift.poor_rose {
+        let mut level_moved = confirm && self.drift.level_moved;
+        let why = if confirm {
+            "confirming the last look's estimates on the sweep after it (the change may have straddled that one)".to_string()
+        } else if self.drift.poor_rose {
             format!(
                 "poor fits rose to {:.1} % of the judged pixels (from {:.1} % after the last look)",
                 100.0 * self.drift.last,
@@ -865,8 +879,14 @@ impl Solve {
         } else {
             let _s = tracing::info_span!("solve.drift").entered();
             match self.solver.level_drift(cube) {
-                Some(d) if d.moved() => format!("the calibration moved: {}", d.describe()),
+                Some(d) if d.moved() => {
+                    level_moved = d.is_level();
+                    format!("the calibration moved: {}", d.describe())
+                }
                 _ => {
+                    // The estimates in force explain this sweep: a flag a
+                    // straddled sweep's look left is lifted.
+                    self.solver.clear_calibration_flag();
                     self.drift.backoff = 1;
                     return None;
                 }
@@ -877,9 +897,28 @@ impl Solve {
         }
         let looked = {
             let _s = tracing::info_span!("solve.relook").entered();
-            self.solver
+            let mut looked = self
+                .solver
                 .estimate_film_index(cube)
-                .and_then(|est| self.solver.set_film_index(est))
+                .and_then(|est| self.solver.set_film_index(est));
+            // `auto` keeps `absolute` where its test on this one sweep does
+            // not show the level: with the angle and index free a gain of
+            // ~3 % trades with them and shows little (*When is a pixel
+            // valid?*), and every thickness moves by several σ. But the
+            // look has just shown a gain or offset against the estimates
+            // in force, at p ≈ 1e-5: the level is modelled on this sweep.
+            // An explicit `absolute` stays (its test flags the sweep).
+            if looked.is_ok() && level_moved && self.solver.level().1 == LevelMode::Absolute {
+                let asked = self.solver.set_level_model(LevelMode::Scaled);
+                if asked == LevelMode::Auto {
+                    looked = self
+                        .solver
+                        .estimate_film_index(cube)
+                        .and_then(|est| self.solver.set_film_index(est));
+                }
+                self.solver.set_level_model(asked);
+            }
+            looked
         };
         self.counters.setup_hold.store(false, Ordering::Release);
         self.counters.relooks.fetch_add(1, Ordering::Relaxed);
@@ -890,21 +929,58 @@ impl Solve {
         // fires again waits longer before its look.
         self.drift.wait = self.drift.backoff - 1;
         self.drift.backoff = (2 * self.drift.backoff).min(MAX_RELOOK_WAIT);
+        // Estimates from a sweep a change may have straddled are
+        // provisional: this sweep is flagged, and the next estimates them
+        // again (a confirmation is not itself confirmed).
+        self.drift.confirm = !confirm;
+        self.drift.level_moved = level_moved;
         let outcome = match looked {
             Ok(()) => {
                 let (level, mode, _) = self.solver.level();
                 let (g, o) = level.mean();
                 let n = self.solver.film_index().map_or(f64::NAN, |i| i.n);
-                format!(
+                let now = format!(
                     "now n = {n:.4}, level {} (mean gain {g:.4}, offset {o:+.5}), band shift {:+.2} nm",
                     mode.name(),
                     self.solver.band_shift().0
-                )
+                );
+                match self.still_moved(cube) {
+                    Some(flag) => format!("{now}; {flag}"),
+                    None if !confirm => {
+                        let why = "provisional until the next sweep confirms them";
+                        self.solver.flag_calibration(why);
+                        format!("{now}; {why}: every pixel flagged")
+                    }
+                    None => now,
+                }
             }
             Err(e) => format!("not estimated again ({e})"),
         };
         tracing::info!(sweep, %why, %outcome, "image-wide estimates looked at again");
         Some(format!("{why}; {outcome}"))
+    }
+}
+
+impl Solve {
+    /// The estimates just made must explain the sweep they came from: a
+    /// look at it under them that still finds the calibration moved (under
+    /// `auto` the level test kept `absolute` on a sweep whose light changed
+    /// band by band, say) flags the sweep rather than map it valid and
+    /// wrong, and the next sweep is looked at again at once. Returns what
+    /// was flagged, if anything.
+    fn still_moved(&mut self, cube: &Cube) -> Option<String> {
+        let d = {
+            let _s = tracing::info_span!("solve.drift").entered();
+            self.solver.level_drift(cube).filter(|d| d.moved())?
+        };
+        let why = format!(
+            "these estimates do not explain the sweep either ({})",
+            d.describe()
+        );
+        self.solver.flag_calibration(&why);
+        self.drift.wait = 0;
+        self.drift.backoff = 1;
+        Some(format!("{why}: every pixel flagged"))
     }
 }
 

@@ -68,6 +68,8 @@ impl Solver {
     /// the index is known). The result is kept for later pixels and sweeps.
     pub fn estimate_film_index(&mut self, cube: &Cube) -> Result<IndexEstimate, EstimateError> {
         self.check_cube(cube)?;
+        // What a caller found unexplained is estimated afresh.
+        self.estimates_unexplained = false;
         // A shift fitted on an earlier image is fitted afresh.
         self.reset_band_shift()?;
         // The noise level every fit is judged against comes first, and never

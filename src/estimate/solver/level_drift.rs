@@ -75,6 +75,12 @@ pub struct LevelDrift {
 }
 
 impl LevelDrift {
+    /// Whether the look that stands out is a gain or an offset (the
+    /// light, the white reference, stray light), not the filter's bands.
+    pub fn is_level(&self) -> bool {
+        self.gain.1 > 0.0 || self.offset.1 > 0.0
+    }
+
     /// Whether the calibration has moved beyond its noise, by enough to
     /// matter: it moves the thicknesses by more than [`MIN_ACROSS_SHIFT`]
     /// of their σ, or raises the pixels' χ² by more than

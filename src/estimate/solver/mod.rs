@@ -738,6 +738,10 @@ pub struct Solver {
     /// `absolute` was asked for, but the image shows a correctable
     /// calibration error: every pixel is flagged.
     calibration_suspect: bool,
+    /// A caller found the image-wide estimates not explaining data they
+    /// should ([`Solver::flag_calibration`]): every pixel is flagged until
+    /// it clears this or they are estimated again.
+    estimates_unexplained: bool,
     /// The largest optical thickness (`d·q2_mid(θ)`) of the index stage's
     /// last sample of fits, where nearly all of it fitted: `fast`'s angle
     /// bins tabulate up to [`bins_g_limit`] of it instead of the whole
@@ -898,6 +902,7 @@ impl Solver {
             level_note: String::new(),
             level_hedge: None,
             calibration_suspect: false,
+            estimates_unexplained: false,
             sample_g: None,
             sample_theta: None,
             index_step: None,
@@ -1404,9 +1409,36 @@ impl Solver {
         (&self.level, self.level_mode, &self.level_note)
     }
 
+    /// The level model the image-wide estimates take (the scene's
+    /// `auto`, `absolute`, `scaled` or `free`), and set it, returning the
+    /// one before: a caller that knows more than one image shows (a live
+    /// run that saw the light change) may ask for the level to be
+    /// modelled for one estimate.
+    pub fn set_level_model(&mut self, mode: LevelMode) -> LevelMode {
+        std::mem::replace(&mut self.scene.level, mode)
+    }
+
+    /// Flag every pixel ("poor fit", the level's note saying `why`) until
+    /// [`Solver::clear_calibration_flag`] or the image-wide estimates are
+    /// made again: a caller found them not explaining the data they came
+    /// from (a live run's look at the sweep they were estimated on,
+    /// [`Solver::level_drift`], still sees the calibration move).
+    pub fn flag_calibration(&mut self, why: &str) {
+        self.estimates_unexplained = true;
+        self.level_note = format!("{}; {why}: every pixel flagged poor fit", self.level_note);
+    }
+
+    /// Lift [`Solver::flag_calibration`]'s flag: the estimates in force
+    /// explain the data again (a later sweep's look finds nothing moved).
+    /// The image's own tests' flags stay.
+    pub fn clear_calibration_flag(&mut self) {
+        self.estimates_unexplained = false;
+    }
+
     /// Use this level from now on (e.g. one estimated on an earlier sweep).
     pub fn set_level(&mut self, level: Level, mode: LevelMode, note: String) {
         self.calibration_suspect = false;
+        self.estimates_unexplained = false;
         self.level_hedge = None;
         self.level = level;
         self.level_mode = mode;

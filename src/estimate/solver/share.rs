@@ -93,7 +93,7 @@ impl Solver {
         est: &mut PixelEstimate,
         scratch: &mut Scratch,
     ) {
-        if est.is_valid() && self.calibration_suspect {
+        if est.is_valid() && (self.calibration_suspect || self.estimates_unexplained) {
             *est = PixelEstimate::invalid(Reason::PoorFit);
         }
         self.with_band_shift(est);
