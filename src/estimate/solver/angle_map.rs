@@ -308,8 +308,9 @@ impl Solver {
         // table fit at their mean angle (a sample's neighbour is a stride
         // away, too far on a steep film for the previous fit to start it,
         // and a fringe search is most of a free fit's cost).
-        // The first at the angle the image's sample showed most (a fringe
-        // search where there was none).
+        // The row's first sample starts at the table of the image sample's
+        // median angle (it had no angle to start from, and paid a fringe
+        // search); the later ones at their mean so far.
         let stride = (w / SAMPLES_PER_ROW).max(SAMPLE_STRIDE);
         let (mut sum_w, mut sum_ws) = (0f64, 0f64);
         // The samples' table fits as optical thickness along the row: the
