@@ -20,7 +20,9 @@
 //! filter's pass bands drifting) is followed: every [`LOOK_EVERY`]
 //! warm-ups' worth of complete rows the last `warmup_rows` are looked at
 //! ([`Solver::level_drift`]) and, where it moved, the noise, level and
-//! band shift are learnt again from them, as at the warm-up.
+//! band shift are learnt again from them, as at the warm-up; the rows
+//! solved with those estimates are flagged until the next warm-up's rows,
+//! all after the change, learn them once more.
 
 use super::accumulate::FinishedRow;
 use super::angles::{AngleScratch, Correction, SensorAngles};
@@ -77,6 +79,10 @@ pub struct RowSolver {
     recent: VecDeque<FinishedRow>,
     /// Complete rows solved since the last look.
     since_look: usize,
+    /// The last look estimated again (`Some(whether it saw a gain or an
+    /// offset)`): its estimates are provisional, the rows solved with them
+    /// flagged, until the next look, a warm-up's rows on, confirms them.
+    looked_again: Option<bool>,
     /// Looks that estimated the noise, level and band shift again.
     relooks: u64,
 }
@@ -107,6 +113,7 @@ impl RowSolver {
             angle_scratch: AngleScratch::default(),
             recent: VecDeque::new(),
             since_look: 0,
+            looked_again: None,
             relooks: 0,
         })
     }
@@ -218,9 +225,12 @@ impl RowSolver {
     /// solved since the last look: where the calibration moved
     /// since the warm-up (a lamp dimming, the filter's centres drifting),
     /// the noise, level and band shift (and the film index, where unknown)
-    /// are estimated again from those rows, and the rows after them are
-    /// solved under the new estimates (the rows looked at were emitted
-    /// already).
+    /// are estimated again from those rows ([`Solver::estimate_again`]),
+    /// and the rows after them are solved under the new estimates (the
+    /// rows looked at were emitted already). Those estimates are
+    /// provisional — the rows they were made from may straddle the change
+    /// — so the rows solved with them are flagged until the next look, a
+    /// warm-up's rows on, estimates again from rows all after it.
     fn keep(&mut self, row: &FinishedRow) {
         if !row.complete() {
             return;
@@ -234,39 +244,72 @@ impl RowSolver {
             self.recent.push_back(row.clone());
         }
         self.since_look += 1;
-        if self.since_look < LOOK_EVERY * self.warmup_rows || self.recent.len() < self.warmup_rows {
+        // After an estimate again the next look comes a warm-up's rows on
+        // (every row then came after it), else every [`LOOK_EVERY`].
+        let due = if self.looked_again.is_some() {
+            self.warmup_rows
+        } else {
+            LOOK_EVERY * self.warmup_rows
+        };
+        if self.since_look < due || self.recent.len() < self.warmup_rows {
             return;
         }
         self.since_look = 0;
         let recent = std::mem::take(&mut self.recent);
         let rows: Vec<&FinishedRow> = recent.iter().collect();
         let cube = self.rows_cube(&rows);
+        // The estimates from rows a change may have straddled are
+        // provisional (the rows solved with them flagged): these rows, all
+        // after it, estimate again whatever the look says.
+        let confirm = self.looked_again.take();
         let moved = {
             let _s = tracing::info_span!("line.drift").entered();
             self.solver.level_drift(&cube).filter(|d| d.moved())
         };
-        if let Some(d) = moved {
-            let _s = tracing::info_span!("line.relook").entered();
-            let looked = self
-                .solver
-                .estimate_film_index(&cube)
-                .and_then(|est| self.solver.set_film_index(est));
-            self.relooks += 1;
-            let (level, mode, _) = self.solver.level();
-            let (g, o) = level.mean();
-            tracing::info!(
-                row = row.index,
-                why = %d.describe(),
-                ok = looked.is_ok(),
-                level = mode.name(),
-                gain = g,
-                offset = o,
-                band_shift_nm = self.solver.band_shift().0,
-                "the calibration moved: estimated again"
-            );
-            if let Err(e) = self.build_angles() {
-                tracing::warn!(%e, "angles per sensor row not usable");
+        let (why, level_moved) = match (&moved, confirm) {
+            (Some(d), _) => (d.describe(), d.is_level()),
+            (None, Some(level_moved)) => {
+                ("confirming the last look's estimates".into(), level_moved)
             }
+            (None, None) => {
+                // The estimates in force explain these rows.
+                self.solver.clear_calibration_flag();
+                self.recent = recent;
+                return;
+            }
+        };
+        let _s = tracing::info_span!("line.relook").entered();
+        let looked = self.solver.estimate_again(&cube, level_moved);
+        self.relooks += 1;
+        match &looked {
+            Ok(Some(d)) => {
+                self.solver.flag_calibration(&format!(
+                    "these estimates do not explain the rows either ({})",
+                    d.describe()
+                ));
+                self.looked_again = Some(level_moved);
+            }
+            Ok(None) if confirm.is_none() => {
+                self.solver
+                    .flag_calibration("provisional until the next rows confirm them");
+                self.looked_again = Some(level_moved);
+            }
+            _ => {}
+        }
+        let (level, mode, _) = self.solver.level();
+        let (g, o) = level.mean();
+        tracing::info!(
+            row = row.index,
+            %why,
+            ok = looked.is_ok(),
+            level = mode.name(),
+            gain = g,
+            offset = o,
+            band_shift_nm = self.solver.band_shift().0,
+            "the calibration moved: estimated again"
+        );
+        if let Err(e) = self.build_angles() {
+            tracing::warn!(%e, "angles per sensor row not usable");
         }
         self.recent = recent;
     }

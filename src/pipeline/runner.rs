@@ -49,7 +49,6 @@ use super::sequencer::{
 use super::stage::{catch, HaltOnDrop, Stage, StageFault};
 use super::tracker::{SweepBuf, TrackError, Tracker};
 use crate::device::camera::{CameraError, Frame, FrameSource};
-use crate::estimate::level::LevelMode;
 use crate::estimate::solver::Scratch;
 use crate::estimate::{Cube, EstimateError, MapRowMut, Mode, ParamMaps, PixelEstimate, Solver};
 use crate::optics::band::Band;
@@ -897,28 +896,7 @@ impl Solve {
         }
         let looked = {
             let _s = tracing::info_span!("solve.relook").entered();
-            let mut looked = self
-                .solver
-                .estimate_film_index(cube)
-                .and_then(|est| self.solver.set_film_index(est));
-            // `auto` keeps `absolute` where its test on this one sweep does
-            // not show the level: with the angle and index free a gain of
-            // ~3 % trades with them and shows little (*When is a pixel
-            // valid?*), and every thickness moves by several σ. But the
-            // look has just shown a gain or offset against the estimates
-            // in force, at p ≈ 1e-5: the level is modelled on this sweep.
-            // An explicit `absolute` stays (its test flags the sweep).
-            if looked.is_ok() && level_moved && self.solver.level().1 == LevelMode::Absolute {
-                let asked = self.solver.set_level_model(LevelMode::Scaled);
-                if asked == LevelMode::Auto {
-                    looked = self
-                        .solver
-                        .estimate_film_index(cube)
-                        .and_then(|est| self.solver.set_film_index(est));
-                }
-                self.solver.set_level_model(asked);
-            }
-            looked
+            self.solver.estimate_again(cube, level_moved)
         };
         self.counters.setup_hold.store(false, Ordering::Release);
         self.counters.relooks.fetch_add(1, Ordering::Relaxed);
@@ -935,7 +913,7 @@ impl Solve {
         self.drift.confirm = !confirm;
         self.drift.level_moved = level_moved;
         let outcome = match looked {
-            Ok(()) => {
+            Ok(still) => {
                 let (level, mode, _) = self.solver.level();
                 let (g, o) = level.mean();
                 let n = self.solver.film_index().map_or(f64::NAN, |i| i.n);
@@ -944,8 +922,20 @@ impl Solve {
                     mode.name(),
                     self.solver.band_shift().0
                 );
-                match self.still_moved(cube) {
-                    Some(flag) => format!("{now}; {flag}"),
+                match still {
+                    Some(d) => {
+                        // The estimates just made do not explain the sweep
+                        // they came from: flagged, and the next sweep
+                        // looked at at once.
+                        let why = format!(
+                            "these estimates do not explain the sweep either ({})",
+                            d.describe()
+                        );
+                        self.solver.flag_calibration(&why);
+                        self.drift.wait = 0;
+                        self.drift.backoff = 1;
+                        format!("{now}; {why}: every pixel flagged")
+                    }
                     None if !confirm => {
                         let why = "provisional until the next sweep confirms them";
                         self.solver.flag_calibration(why);
@@ -958,29 +948,6 @@ impl Solve {
         };
         tracing::info!(sweep, %why, %outcome, "image-wide estimates looked at again");
         Some(format!("{why}; {outcome}"))
-    }
-}
-
-impl Solve {
-    /// The estimates just made must explain the sweep they came from: a
-    /// look at it under them that still finds the calibration moved (under
-    /// `auto` the level test kept `absolute` on a sweep whose light changed
-    /// band by band, say) flags the sweep rather than map it valid and
-    /// wrong, and the next sweep is looked at again at once. Returns what
-    /// was flagged, if anything.
-    fn still_moved(&mut self, cube: &Cube) -> Option<String> {
-        let d = {
-            let _s = tracing::info_span!("solve.drift").entered();
-            self.solver.level_drift(cube).filter(|d| d.moved())?
-        };
-        let why = format!(
-            "these estimates do not explain the sweep either ({})",
-            d.describe()
-        );
-        self.solver.flag_calibration(&why);
-        self.drift.wait = 0;
-        self.drift.backoff = 1;
-        Some(format!("{why}: every pixel flagged"))
     }
 }
 

@@ -29,7 +29,7 @@
 use super::level_across::{chi2_two, median_shift, MIN_ACROSS_SHIFT};
 use super::Solver;
 use crate::estimate::level::{level_step, LevelBasis, LevelMode};
-use crate::estimate::Cube;
+use crate::estimate::{Cube, EstimateError};
 
 /// Pixels fitted per look: a 1 % gain on the paper's cylinder moves the
 /// step by ~4 of its σ on 256 of them, and their fits take a few ms.
@@ -121,6 +121,40 @@ impl LevelDrift {
 }
 
 impl Solver {
+    /// Estimate the film index, noise, level and band shift again on
+    /// `cube` after a look ([`Solver::level_drift`]) found the calibration
+    /// moved — by a gain or an offset where `level_moved` — and look at
+    /// `cube` once more under the new estimates. `auto` keeps `absolute`
+    /// where its test on this one image does not show the level: with the
+    /// angle and index free a gain of ~3 % trades with them and shows
+    /// little, and every thickness moves by several σ. But the look has
+    /// shown it, against the estimates in force, at p ≈ 1e-5: there the
+    /// level is modelled (`scaled`) on this image. An explicit `absolute`
+    /// stays (its own test flags the image). Returns the second look where
+    /// it still sees the calibration move: the new estimates do not explain
+    /// the data they came from, and the caller flags what it solves with
+    /// them ([`Solver::flag_calibration`]).
+    pub fn estimate_again(
+        &mut self,
+        cube: &Cube,
+        level_moved: bool,
+    ) -> Result<Option<LevelDrift>, EstimateError> {
+        let est = self.estimate_film_index(cube)?;
+        self.set_film_index(est)?;
+        if level_moved
+            && self.level_mode == LevelMode::Absolute
+            && self.scene.level == LevelMode::Auto
+        {
+            self.scene.level = LevelMode::Scaled;
+            let again = self
+                .estimate_film_index(cube)
+                .and_then(|est| self.set_film_index(est));
+            self.scene.level = LevelMode::Auto;
+            again?;
+        }
+        Ok(self.level_drift(cube).filter(|d| d.moved()))
+    }
+
     /// How far the level and band centres in force are from those `cube`
     /// shows (see the module's header). None before the image-wide stage
     /// has run, under `free` (every pixel has its own level), without a

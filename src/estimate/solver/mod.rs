@@ -1409,15 +1409,6 @@ impl Solver {
         (&self.level, self.level_mode, &self.level_note)
     }
 
-    /// The level model the image-wide estimates take (the scene's
-    /// `auto`, `absolute`, `scaled` or `free`), and set it, returning the
-    /// one before: a caller that knows more than one image shows (a live
-    /// run that saw the light change) may ask for the level to be
-    /// modelled for one estimate.
-    pub fn set_level_model(&mut self, mode: LevelMode) -> LevelMode {
-        std::mem::replace(&mut self.scene.level, mode)
-    }
-
     /// Flag every pixel ("poor fit", the level's note saying `why`) until
     /// [`Solver::clear_calibration_flag`] or the image-wide estimates are
     /// made again: a caller found them not explaining the data they came
