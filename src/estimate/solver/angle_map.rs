@@ -43,7 +43,8 @@
 use super::row::gather;
 use super::table::Hint;
 use super::{Scratch, Solver, ANGLE_SIGMA_LIMIT_DEG};
-use crate::estimate::level::LevelMode;
+use crate::estimate::level::{LevelMode, LevelPixel};
+use crate::estimate::model::FilmModel;
 use crate::estimate::{PixelEstimate, Reason};
 
 /// A row's samples: about this many, evenly spread ...
@@ -265,6 +266,14 @@ impl RowAngle {
 }
 
 impl Solver {
+    /// Whether `fast`'s rows on their estimated angle take half their
+    /// samples first, as the index stage's sample said of this image
+    /// ([`half_the_samples_serve`]); false before that stage or where it
+    /// did not sample.
+    pub fn row_samples_halved(&self) -> bool {
+        self.row_samples_halved
+    }
+
     /// Whether a row of `w` pixels is solved on its estimated angle.
     pub(super) fn row_angle_applies(&self, w: usize) -> bool {
         self.prepared
@@ -301,84 +310,52 @@ impl Solver {
         };
         let nb = self.bands.len();
         batch.resize(super::row::GATHER * nb, 0.0);
-        // 1. The samples' angle-free fits.
+        // 1. The samples' angle-free fits, in order along the row; where
+        // the image's sample says half of them serve
+        // ([`half_the_samples_serve`]), every other one first, and the
+        // rest only where the row's line from those is too loose.
         let mut samples = std::mem::take(&mut scratch.angle_samples);
         samples.clear();
-        // Each sample starts where the row's samples so far put it: the
-        // table fit at their mean angle (a sample's neighbour is a stride
-        // away, too far on a steep film for the previous fit to start it,
-        // and a fringe search is most of a free fit's cost).
-        // The row's first sample starts at the table of the image sample's
-        // median angle (it had no angle to start from, and paid a fringe
-        // search); the later ones at their mean so far.
         let stride = (w / SAMPLES_PER_ROW).max(SAMPLE_STRIDE);
-        let (mut sum_w, mut sum_ws) = (0f64, 0f64);
-        // The samples' table fits as optical thickness along the row: the
-        // next one's walk on its table starts on their line (a stride
-        // apart, the last fit alone is seldom within the walk's window of
-        // a sloping film, and the scan costs the sample most of its time).
-        let mut ramp = SampleRamp::default();
-        // Whether a sample that failed at the row's angle has been through
-        // the free fit's search for nothing (a film past the resolved
-        // range, a defect): the row's later samples that fail at the
-        // angle of its samples so far are dropped rather than searched
-        // again, each search costing as much as ~70 of the row's pixels
-        // (the thick hard coat's films past its range: a tenth of its
-        // time). Not before the row has a sample of its own: until then
-        // the angle tried is the image's, which the row may not share.
-        let mut searched_in_vain = false;
-        for x in (stride / 2..w).step_by(stride) {
-            gather(rows, ws, x, 1, nb, batch);
-            let pixel = &batch[..nb];
-            let angle = if sum_w > 0.0 {
-                Some((sum_ws / sum_w).clamp(0.0, 1.0).sqrt().asin())
-            } else {
-                self.sample_theta
-            };
-            let mut failed_at_bin = false;
-            let start = angle.and_then(|t| bins.bin_of(t)).and_then(|tb| {
-                let q = prep.model.q2_mid(tb);
-                if let Some(g) = ramp.at(x as f64) {
-                    scratch.hint = Some(Hint {
-                        key: tb.to_bits(),
-                        d: g / q,
-                        before: f64::NAN,
-                    });
-                }
-                let o = self.solve_pixel(pixel, Some(tb), scratch);
-                if o.is_valid() {
-                    ramp.push(x as f64, o.thickness_nm * q);
-                }
-                failed_at_bin = unexplained(o.reason);
-                o.is_valid().then_some((o.thickness_nm, tb))
-            });
-            if failed_at_bin && searched_in_vain && sum_w > 0.0 {
-                continue;
-            }
-            if start.is_some() {
-                scratch.warm = start;
-                scratch.warm_before = None;
-            }
-            let searches = scratch.fringe_searches;
-            let o = self.solve_pixel(pixel, None, scratch);
-            searched_in_vain |=
-                failed_at_bin && scratch.fringe_searches > searches && unexplained(o.reason);
-            scratch.note_warm(&o);
-            if o.is_valid() {
-                let (t, st) = (o.theta_deg.to_radians(), o.sigma_theta_deg.to_radians());
-                let (s2, ss) = (sin2(t), sin2_sigma(t, st));
-                samples.push((x as f64, s2, ss));
-                if ss > 0.0 {
-                    sum_w += 1.0 / (ss * ss);
-                    sum_ws += s2 / (ss * ss);
-                }
-            }
-        }
+        let mut sampler = RowSampler {
+            fits: std::mem::take(&mut scratch.sample_fits),
+            ..RowSampler::default()
+        };
+        sampler.fits.clear();
+        let xs = || (stride / 2..w).step_by(stride);
+        let sharp = |s: &[(f64, f64, f64)]| median_sigma(s) <= MAX_SIN2_SIGMA;
+        let mut take = |x: usize, samples: &mut Vec<_>, sampler: &mut RowSampler| {
+            let hint = sampler.before(x as f64);
+            self.take_sample(rows, ws, x, hint, bins, batch, sampler, samples, scratch);
+        };
         // 2. The row's line, where the samples' angles are sharp enough
         // for their mean to be unbiased.
-        let sharp = median_sigma(&samples) <= MAX_SIN2_SIGMA;
-        let line = sharp.then(|| RowAngles::fit(&mut samples)).flatten();
+        let line = if self.row_samples_halved {
+            xs().step_by(2)
+                .for_each(|x| take(x, &mut samples, &mut sampler));
+            let mut half = samples.clone();
+            let first = sharp(&half).then(|| RowAngles::fit(&mut half)).flatten();
+            match first {
+                Some(line) if self.line_is_tight(prep, &line, &sampler.fits) => Some(line),
+                _ => {
+                    // Each sample between two of the first half starts on
+                    // the ramp of the two before it, as if taken in order.
+                    xs().skip(1)
+                        .step_by(2)
+                        .for_each(|x| take(x, &mut samples, &mut sampler));
+                    sharp(&samples)
+                        .then(|| RowAngles::fit(&mut samples))
+                        .flatten()
+                }
+            }
+        } else {
+            xs().for_each(|x| take(x, &mut samples, &mut sampler));
+            sharp(&samples)
+                .then(|| RowAngles::fit(&mut samples))
+                .flatten()
+        };
         scratch.angle_samples = samples;
+        scratch.sample_fits = sampler.fits;
         let Some(line) = line else {
             scratch.start_afresh();
             return false;
@@ -473,6 +450,205 @@ impl Solver {
         }
         true
     }
+}
+
+/// A row line's share of a pixel's σ below which its first half of
+/// samples serves: the line's σ of sin²θ moves a pixel's thickness by
+/// `d·|dq/ds|/q·σ_s`, and where that is at most this fraction of the
+/// pixel's own σ (their median over the samples) it widens σ by at most
+/// 4 %; a line from every sample (each local line from 9 samples instead
+/// of 6, ~1.2× narrower) would take at most 1.5 % of σ off it.
+const TIGHT_LINE: f64 = 0.3;
+
+/// A row's samples as they are taken: their angles' running weighted mean
+/// (the next sample's starting angle), the ramp of their table fits'
+/// optical thickness, and each table fit `(x, g, d, σ_d)`.
+#[derive(Default)]
+struct RowSampler {
+    sum_w: f64,
+    sum_ws: f64,
+    ramp: SampleRamp,
+    fits: Vec<(f64, f64, f64, f64)>,
+    /// Whether a sample that failed at the row's angle has been through
+    /// the free fit's search for nothing (see [`Solver::take_sample`]).
+    searched_in_vain: bool,
+}
+
+impl RowSampler {
+    /// The optical thickness at `x` on the line through the two table fits
+    /// nearest before it (the nearest alone where there is one; the
+    /// nearest after it where there is none): the ramp the row's samples
+    /// taken in order would give.
+    fn before(&self, x: f64) -> Option<f64> {
+        let j = self.fits.partition_point(|f| f.0 < x);
+        let mut ramp = SampleRamp::default();
+        for f in &self.fits[j.saturating_sub(2)..j] {
+            ramp.push(f.0, f.1);
+        }
+        ramp.at(x).or_else(|| self.fits.get(j).map(|f| f.1))
+    }
+}
+
+impl Solver {
+    /// One sample of a row at `x`: its table fit at the bin of the row's
+    /// angle so far (its walk started at optical thickness `hint`), then
+    /// its angle-free fit from there, pushed to `samples` as
+    /// `(x, sin²θ, σ)` where valid.
+    #[allow(clippy::too_many_arguments)]
+    fn take_sample(
+        &self,
+        rows: &[f32],
+        ws: usize,
+        x: usize,
+        hint: Option<f64>,
+        bins: &super::table::AngleBins,
+        batch: &mut [f64],
+        sampler: &mut RowSampler,
+        samples: &mut Vec<(f64, f64, f64)>,
+        scratch: &mut Scratch,
+    ) {
+        let Some(prep) = &self.prepared else {
+            return;
+        };
+        let nb = self.bands.len();
+        gather(rows, ws, x, 1, nb, batch);
+        let pixel = &batch[..nb];
+        let angle = if sampler.sum_w > 0.0 {
+            Some(
+                (sampler.sum_ws / sampler.sum_w)
+                    .clamp(0.0, 1.0)
+                    .sqrt()
+                    .asin(),
+            )
+        } else {
+            self.sample_theta
+        };
+        let mut failed_at_bin = false;
+        let start = angle.and_then(|t| bins.bin_of(t)).and_then(|tb| {
+            let q = prep.model.q2_mid(tb);
+            if let Some(g) = hint {
+                scratch.hint = Some(Hint {
+                    key: tb.to_bits(),
+                    d: g / q,
+                    before: f64::NAN,
+                });
+            }
+            let o = self.solve_pixel(pixel, Some(tb), scratch);
+            if o.is_valid() {
+                let g = o.thickness_nm * q;
+                sampler.ramp.push(x as f64, g);
+                let fit = (x as f64, g, o.thickness_nm, o.sigma_thickness_nm);
+                let at = sampler.fits.partition_point(|f| f.0 < fit.0);
+                sampler.fits.insert(at, fit);
+            }
+            failed_at_bin = unexplained(o.reason);
+            o.is_valid().then_some((o.thickness_nm, tb))
+        });
+        // Once a sample's search found nothing the model explains (a film
+        // past the resolved range, a defect), the row's later samples that
+        // fail at the angle of its samples so far are dropped rather than
+        // searched again, each search costing as much as ~70 of the row's
+        // pixels (the thick hard coat's films past its range: a tenth of
+        // its time). Not before the row has a sample of its own: until
+        // then the angle tried is the image's, which the row may not share.
+        if failed_at_bin && sampler.searched_in_vain && sampler.sum_w > 0.0 {
+            return;
+        }
+        if start.is_some() {
+            scratch.warm = start;
+            scratch.warm_before = None;
+        }
+        let searches = scratch.fringe_searches;
+        let o = self.solve_pixel(pixel, None, scratch);
+        sampler.searched_in_vain |=
+            failed_at_bin && scratch.fringe_searches > searches && unexplained(o.reason);
+        scratch.note_warm(&o);
+        if o.is_valid() {
+            let (t, st) = (o.theta_deg.to_radians(), o.sigma_theta_deg.to_radians());
+            let (s2, ss) = (sin2(t), sin2_sigma(t, st));
+            samples.push((x as f64, s2, ss));
+            if ss > 0.0 {
+                sampler.sum_w += 1.0 / (ss * ss);
+                sampler.sum_ws += s2 / (ss * ss);
+            }
+        }
+    }
+
+    /// Whether `line`'s share of a pixel's σ is at most [`TIGHT_LINE`] of
+    /// the pixel's own at the samples' table fits `(x, g, d, σ_d)` (their
+    /// median), so that the line from them serves the row.
+    fn line_is_tight(
+        &self,
+        prep: &super::Prepared,
+        line: &RowAngles,
+        fits: &[(f64, f64, f64, f64)],
+    ) -> bool {
+        let q = |s: f64| prep.model.q2_mid(s.clamp(0.0, 1.0).sqrt().asin());
+        let mut r: Vec<f64> = fits
+            .iter()
+            .filter(|f| f.3 > 0.0)
+            .map(|&(x, _, d, sd)| {
+                let (s2, ss) = line.at(x);
+                let h = 1e-6;
+                let (a, b) = ((s2 - h).max(0.0), (s2 + h).min(1.0));
+                let rate = (q(b) - q(a)) / (b - a) / q(s2);
+                (d * rate * ss).abs() / sd
+            })
+            .collect();
+        if r.len() < MIN_SAMPLES {
+            return false;
+        }
+        crate::estimate::noise::median(&mut r) <= TIGHT_LINE
+    }
+}
+
+/// Whether a row's line from half its samples ([`SAMPLES_PER_ROW`] / 2, one
+/// window) would add at most [`TIGHT_LINE`] of a pixel's own σ, predicted
+/// from the image's sample of angle-free fits (each one's `JᵀJ` over
+/// thickness and angle, their median): the line's σ of `sin²θ` is a
+/// sample's over √6 with the free fits' bias floor, and the pixel's own σ
+/// its thickness's at a known angle. Decided once per image, so that every
+/// row (on whichever thread) samples alike.
+pub(super) fn half_the_samples_serve(model: &FilmModel, fits: &[LevelPixel]) -> bool {
+    let mut r: Vec<f64> = fits
+        .iter()
+        .filter_map(|p| half_line_share(model, p))
+        .collect();
+    if r.len() < 100 {
+        return false;
+    }
+    crate::estimate::noise::median(&mut r) <= TIGHT_LINE
+}
+
+/// One fit's [`half_the_samples_serve`] ratio: the thickness error a line
+/// from half a row's samples leaves (the free fit's σ of `sin²θ` over √6,
+/// with the bias floor, moved to thickness at equal phase) over the
+/// pixel's own σ at a known angle; `None` where its `JᵀJ` is singular.
+fn half_line_share(model: &FilmModel, p: &LevelPixel) -> Option<f64> {
+    let [jd, jt] = p.jac.as_slice() else {
+        return None;
+    };
+    let (mut a, mut b, mut c) = (0.0, 0.0, 0.0);
+    for (&u, &v) in jd.iter().zip(jt) {
+        if u.is_finite() && v.is_finite() {
+            (a, b, c) = (a + u * u, b + u * v, c + v * v);
+        }
+    }
+    let det = a * c - b * b;
+    if !(a > 0.0 && det > 0.0 && p.d.is_finite() && p.theta.is_finite()) {
+        return None;
+    }
+    // The noise level the fit's own σ_d implies (σ_θ's floor near normal
+    // incidence is not scale-free), then σ_d at a known angle and σ_θ.
+    let noise = p.sigma_d / (c / det).sqrt();
+    let (sd_known, st) = (noise / a.sqrt(), noise * (a / det).sqrt());
+    let half = (SAMPLES_PER_ROW / 2).min(WINDOW) as f64;
+    let line = sin2_sigma(p.theta, st) * (1.0 / half + BIAS_FLOOR * BIAS_FLOOR).sqrt();
+    let q = |s: f64| model.q2_mid(s.clamp(0.0, 1.0).sqrt().asin());
+    let (s2, h) = (sin2(p.theta), 1e-6);
+    let (lo, hi) = ((s2 - h).max(0.0), (s2 + h).min(1.0));
+    let rate = (q(hi) - q(lo)) / (hi - lo) / q(s2);
+    Some((p.d * rate * line).abs() / sd_known).filter(|v| v.is_finite())
 }
 
 /// The last two samples' fits along a row, `(x, optical thickness)`.
@@ -587,6 +763,99 @@ fn is_input_reason(r: Reason) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::estimate::model::ModelOut;
+    use crate::optics::band::Band;
+    use crate::optics::dispersion::Dispersion;
+    use crate::optics::Polarization;
+
+    /// 1.46 on 1.6, unpolarised, 31 bands 400–700 nm.
+    fn model() -> FilmModel {
+        let bands: Vec<Band> = (0..31)
+            .map(|i| Band {
+                center_nm: 400.0 + 10.0 * i as f64,
+                fwhm_nm: 0.0,
+            })
+            .collect();
+        let c = Dispersion::constant;
+        let pol = Polarization::Unpolarized;
+        FilmModel::new(&bands, &c(1.0), &c(1.46), &c(1.6), pol, &[false; 31]).unwrap()
+    }
+
+    /// A sample pixel's fit at `(d, θ)` with the model's own derivatives
+    /// and its free fit's σ_d at σ_R = 0.001.
+    fn fit_at(m: &FilmModel, d: f64, t: f64) -> LevelPixel {
+        let mut out = ModelOut::new(31);
+        m.eval(d, t, &mut out, true);
+        let sum = |u: &[f64], v: &[f64]| u.iter().zip(v).map(|(a, b)| a * b).sum::<f64>();
+        let (a, b, c) = (
+            sum(&out.dr_dd, &out.dr_dd),
+            sum(&out.dr_dd, &out.dr_dth),
+            sum(&out.dr_dth, &out.dr_dth),
+        );
+        LevelPixel {
+            y: out.r.clone(),
+            r: out.r.clone(),
+            jac: vec![out.dr_dd.clone(), out.dr_dth.clone()],
+            extra: Vec::new(),
+            id: 0,
+            d,
+            sigma_d: 0.001 * (c / (a * c - b * b)).sqrt(),
+            theta: t,
+        }
+    }
+
+    /// The ratio against a second formulation: the Jacobian by central
+    /// differences of the model's reflectance (not its derivatives), the
+    /// free fit's σ_θ and the known angle's σ_d from the explicit 2 × 2
+    /// inverse, and the thickness's rate at equal phase from
+    /// `q² = n₂² − n₁²·sin²θ` (`∂d/∂s = d·n₁²/(2q²)`), not differences of q.
+    /// Then the decision: a line from six samples is a small share of a
+    /// thin film's σ at 45° (its angle is sharp, the thickness's lever on
+    /// it short), and most of a 2 µm film's at 8° (near normal incidence
+    /// `sin²θ` is flat and the lever is ~8× longer).
+    #[test]
+    fn half_the_samples_serve_where_their_line_is_a_small_share_of_sigma() {
+        let m = model();
+        let mut out = ModelOut::new(31);
+        let mut r_at = |d: f64, t: f64| {
+            m.eval(d, t, &mut out, false);
+            out.r.clone()
+        };
+        for &(d, deg) in &[(150.0, 45.0), (250.0, 30.0), (900.0, 20.0), (2000.0, 8.0)] {
+            let t = f64::to_radians(deg);
+            let (hd, ht) = (1e-3, 1e-6);
+            let (dp, dm) = (r_at(d + hd, t), r_at(d - hd, t));
+            let (tp, tm) = (r_at(d, t + ht), r_at(d, t - ht));
+            let (mut a, mut b, mut c) = (0.0, 0.0, 0.0);
+            for k in 0..31 {
+                let (u, v) = ((dp[k] - dm[k]) / (2.0 * hd), (tp[k] - tm[k]) / (2.0 * ht));
+                (a, b, c) = (a + u * u, b + u * v, c + v * v);
+            }
+            let sigma_theta = 0.001 * (a / (a * c - b * b)).sqrt();
+            let sigma_d = 0.001 / a.sqrt();
+            // Taken no nearer normal incidence than σ_θ, as a row's samples.
+            let sigma_s = (2.0 * t.max(sigma_theta)).sin() * sigma_theta;
+            let s = t.sin().powi(2);
+            let q2 = 1.46f64.powi(2) - s;
+            let line = sigma_s * (1.0 / 6.0 + 0.15f64.powi(2)).sqrt();
+            let want = d / (2.0 * q2) * line / sigma_d;
+            let got = half_line_share(&m, &fit_at(&m, d, t)).unwrap();
+
+            assert!(
+                (got / want - 1.0).abs() < 1e-4,
+                "{d} nm at {deg}°: {got} vs {want}"
+            );
+        }
+        let many = |d: f64, deg: f64| -> Vec<LevelPixel> {
+            (0..120)
+                .map(|i| fit_at(&m, d + 0.5 * i as f64, f64::to_radians(deg)))
+                .collect()
+        };
+        assert!(half_the_samples_serve(&m, &many(150.0, 45.0)));
+        assert!(!half_the_samples_serve(&m, &many(2000.0, 8.0)));
+        // Too few fits to say: every sample.
+        assert!(!half_the_samples_serve(&m, &many(150.0, 45.0)[..99]));
+    }
 
     #[test]
     fn a_samples_ramp_is_the_line_through_its_last_two() {

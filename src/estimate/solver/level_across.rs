@@ -129,6 +129,7 @@ impl Solver {
         // A range from an earlier estimate says nothing of this image.
         self.sample_g = None;
         self.sample_theta = None;
+        self.row_samples_halved = false;
         if self.calibration_suspect || self.scene.level == LevelMode::Free {
             return;
         }
@@ -182,6 +183,7 @@ impl Solver {
         if thetas.len() >= 100 {
             let mid = thetas.len() / 2;
             self.sample_theta = Some(*thetas.select_nth_unstable_by(mid, f64::total_cmp).1);
+            self.row_samples_halved = super::angle_map::half_the_samples_serve(&prep.model, fits);
         }
         if fits.len() < 100 || (fits.len() as f64) < 0.98 * n as f64 {
             return;

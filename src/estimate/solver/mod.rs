@@ -202,6 +202,8 @@ pub struct Scratch {
     scaled: Vec<f64>,
     /// A row's angle samples (x, sin²θ, its σ) (`angle_map`).
     angle_samples: Vec<(f64, f64, f64)>,
+    /// The same samples' table fits, `(x, g, d, σ_d)` (`angle_map`).
+    sample_fits: Vec<(f64, f64, f64, f64)>,
     sorted_y: Vec<f64>,
     spectrum: Vec<f64>,
     weight: Vec<f64>,
@@ -751,6 +753,11 @@ pub struct Solver {
     /// them): where `fast`'s rows on their estimated angle start their
     /// first sample ([`Solver::solve_row_on_angle`]).
     sample_theta: Option<f64>,
+    /// Whether the same sample's fits say a row's line from half its
+    /// samples would add little to a pixel's σ (`angle_map`'s
+    /// [`angle_map::half_the_samples_serve`]): `fast`'s rows then take
+    /// half their samples first, and the rest only where those fall short.
+    row_samples_halved: bool,
     /// The model one small step up in the film index, where the index is
     /// estimated jointly with the level: each pixel's derivative with
     /// respect to it carries the index's share of the level's covariance.
@@ -905,6 +912,7 @@ impl Solver {
             estimates_unexplained: false,
             sample_g: None,
             sample_theta: None,
+            row_samples_halved: false,
             index_step: None,
             share_table: std::sync::OnceLock::new(),
             residual_noise_floor: false,
