@@ -260,6 +260,13 @@ fn print_report(what: &str, rep: &LineReport, out: &LineOutput) {
             rep.relooks
         );
     }
+    if rep.unsettled_looks > 0 {
+        eprintln!(
+            "irid line: the calibration kept moving (a flickering lamp, a filter that will not hold?): at {} looks it had moved {} or more looks in a row, and the rows were flagged until it was steady",
+            rep.unsettled_looks,
+            crate::line::solve::UNSETTLED_LOOKS
+        );
+    }
     if rep.capture_waits > 0 || out.output_waits() > 0 {
         eprintln!(
             "irid line: capture waited for the solver {} times, rows for the output worker {} times (the CPU or the disk fell behind)",

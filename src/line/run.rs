@@ -168,6 +168,11 @@ pub struct LineReport {
     /// because the look every [`super::solve::LOOK_EVERY`] warm-ups' worth
     /// of rows saw it move.
     pub relooks: u64,
+    /// Of those looks, the ones at which the calibration had moved at
+    /// [`super::solve::UNSETTLED_LOOKS`] or more looks in a row (a lamp
+    /// that flickers): every row was flagged from then until a look found
+    /// it steady.
+    pub unsettled_looks: u64,
 }
 
 /// How the stages are spread over threads.
@@ -314,6 +319,7 @@ impl Front<'_> {
         rep.warmup_wait_rows = stage.warmup_wait_rows;
         rep.warmup_wait_ms_max = stage.warmup_wait_max_ms;
         rep.relooks = stage.relooks;
+        rep.unsettled_looks = stage.unsettled_looks;
         rep.latency_ms_mean = if stage.latency_n > 0 {
             stage.latency_sum_ms / stage.latency_n as f64
         } else {

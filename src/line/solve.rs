@@ -38,6 +38,13 @@ use std::collections::VecDeque;
 /// web; a lamp or a filter drifts over minutes, not rows).
 pub const LOOK_EVERY: usize = 4;
 
+/// Looks in a row that saw the calibration move (or estimated it again
+/// without explaining the rows) before the line calls it unsettled: a lamp
+/// that flickers, a filter that will not hold. The rows are then flagged
+/// until a look finds it steady, and it is estimated again only every
+/// [`LOOK_EVERY`] warm-ups' worth of rows, not every warm-up's.
+pub const UNSETTLED_LOOKS: u32 = 3;
+
 /// One emitted web row.
 #[derive(Clone, Debug, PartialEq)]
 pub struct WebRowOut {
@@ -85,6 +92,12 @@ pub struct RowSolver {
     looked_again: Option<bool>,
     /// Looks that estimated the noise, level and band shift again.
     relooks: u64,
+    /// Looks in a row that saw the calibration move or whose estimates did
+    /// not explain the rows ([`UNSETTLED_LOOKS`]).
+    unsettled: u32,
+    /// Looks at which [`RowSolver::unsettled`] was at least
+    /// [`UNSETTLED_LOOKS`].
+    unsettled_looks: u64,
 }
 
 impl RowSolver {
@@ -115,6 +128,8 @@ impl RowSolver {
             since_look: 0,
             looked_again: None,
             relooks: 0,
+            unsettled: 0,
+            unsettled_looks: 0,
         })
     }
 
@@ -245,8 +260,11 @@ impl RowSolver {
         }
         self.since_look += 1;
         // After an estimate again the next look comes a warm-up's rows on
-        // (every row then came after it), else every [`LOOK_EVERY`].
-        let due = if self.looked_again.is_some() {
+        // (every row then came after it), else every [`LOOK_EVERY`]; and
+        // every [`LOOK_EVERY`] while the calibration is unsettled (its rows
+        // flagged meanwhile: confirming sooner would cost an estimate a
+        // warm-up for nothing).
+        let due = if self.looked_again.is_some() && self.unsettled < UNSETTLED_LOOKS {
             self.warmup_rows
         } else {
             LOOK_EVERY * self.warmup_rows
@@ -274,6 +292,7 @@ impl RowSolver {
             (None, None) => {
                 // The estimates in force explain these rows.
                 self.solver.clear_calibration_flag();
+                self.unsettled = 0;
                 self.recent = recent;
                 return;
             }
@@ -296,6 +315,24 @@ impl RowSolver {
             }
             _ => {}
         }
+        // Settled where the estimates made to confirm the last look's
+        // explain their rows and this look saw nothing move; one more look
+        // that saw a move otherwise.
+        let settled = moved.is_none() && matches!(looked, Ok(None));
+        self.unsettled = if settled { 0 } else { self.unsettled + 1 };
+        if self.unsettled >= UNSETTLED_LOOKS {
+            self.unsettled_looks += 1;
+            self.solver.flag_calibration(&format!(
+                "the calibration keeps moving ({} looks in a row saw it move): every row flagged until a look finds it steady",
+                self.unsettled
+            ));
+            self.looked_again = Some(level_moved);
+            tracing::warn!(
+                row = row.index,
+                looks = self.unsettled,
+                "the calibration keeps moving: rows flagged until it is steady"
+            );
+        }
         let (level, mode, _) = self.solver.level();
         let (g, o) = level.mean();
         tracing::info!(
@@ -317,6 +354,13 @@ impl RowSolver {
     /// How often the calibration was estimated again after the warm-up.
     pub fn relooks(&self) -> u64 {
         self.relooks
+    }
+
+    /// How many of those looks found the calibration unsettled (moved at
+    /// [`UNSETTLED_LOOKS`] or more looks in a row): its rows were flagged
+    /// until a look found it steady.
+    pub fn unsettled_looks(&self) -> u64 {
+        self.unsettled_looks
     }
 
     fn solve(&mut self, row: &FinishedRow) -> WebRowOut {

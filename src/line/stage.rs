@@ -79,6 +79,9 @@ pub(super) struct StageReport {
     pub warmup_wait_max_ms: f64,
     /// Looks after the warm-up that estimated the calibration again.
     pub relooks: u64,
+    /// Looks that found the calibration unsettled (see
+    /// [`super::run::LineReport::unsettled_looks`]).
+    pub unsettled_looks: u64,
 }
 
 /// Solves rows and hands them to the sink.
@@ -181,6 +184,7 @@ impl<'s> RowStage<'s> {
         }
         self.sink.finish()?;
         self.report.relooks = self.solver.relooks();
+        self.report.unsettled_looks = self.solver.unsettled_looks();
         Ok(self.report)
     }
 }
