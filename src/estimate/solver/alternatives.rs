@@ -118,8 +118,8 @@ const MIRROR_SCAN_SLACK: f64 = 1.5;
 const ITERS: usize = 25;
 
 impl Solver {
-    /// The alternatives to the best of `fits` (judged pixels only), into
-    /// `out`; returns how many.
+    /// The alternatives to the best of `fits` (judged pixels only), pushed
+    /// to `out` while it has room.
     #[allow(clippy::too_many_arguments)]
     pub(super) fn alternative_fits(
         &self,
@@ -129,10 +129,10 @@ impl Solver {
         noise: Option<f64>,
         prep: &Prepared,
         scratch: &mut Scratch,
-        out: &mut [Fit],
-    ) -> usize {
+        out: &mut heapless::Vec<Fit, 5>,
+    ) {
         let Some(sigma) = noise.filter(|_| self.judging()) else {
-            return 0;
+            return;
         };
         let free = theta_known.is_none();
         let Some(best) = fits
@@ -140,14 +140,14 @@ impl Solver {
             .filter(|f| f.sse.is_finite() && f.d.is_finite() && f.theta.is_finite())
             .min_by(|a, b| a.sse.total_cmp(&b.sse))
         else {
-            return 0;
+            return;
         };
         let model = &prep.model;
         let signal = self.fringe_signal(prep, best.theta, n_ok, sigma, scratch);
         let weak = signal < WEAK_FRINGES;
         if !weak && !free {
             // The angle known and the fringes strong: no alternative.
-            return 0;
+            return;
         }
 
         let step = 0.125 / self.table.sigma_center;
@@ -155,7 +155,6 @@ impl Solver {
         let (g0, g_max) = (best.d * q2, self.d_max * q2);
         let (lam_min, lam_max) = self.band_span();
         let thin = g0 < 0.5 * lam_max && signal < SUB_FRINGE_BELOW;
-        let mut n = 0;
         // A start is refined only where its scan point comes within this
         // of the fit's residual: a basin that far off cannot end within
         // the ambiguity margin (Δχ² < 9) after a refinement that moves the
@@ -171,19 +170,18 @@ impl Solver {
         let mirror_gate =
             best.sse + (MIRROR_SCAN_SLACK * signal).max(WEAK_FRINGES) * threshold * sigma * sigma;
         let in_range = (self.d_min, self.d_max);
-        let mut push = |n: &mut usize,
-                        start: Option<(f64, f64, f64)>,
+        let mut push = |start: Option<(f64, f64, f64)>,
                         bounds: (f64, f64),
                         gate: f64,
                         scratch: &mut Scratch| {
             let Some((d, th, e)) = start else { return };
-            if *n >= out.len() || e > gate {
+            if out.is_full() || e > gate {
                 return;
             }
             let f = self.refine_within(model, d, th, free, ITERS, bounds, scratch);
             if f.sse.is_finite() {
-                out[*n] = f;
-                *n += 1;
+                // Room checked above.
+                let _ = out.push(f);
             }
         };
         if weak {
@@ -197,10 +195,10 @@ impl Solver {
             let bounds = (self.d_min, 2.0 * g_res / q);
             let span = (g_res, 2.0 * g_res);
             let start = self.scan_start(model, best.theta, span, step, None, bounds, free, scratch);
-            push(&mut n, start, bounds, gate, scratch);
+            push(start, bounds, gate, scratch);
         }
         if !free {
-            return n;
+            return;
         }
         if self.scene.polarization.s_weight() < 0.5 && signal < MIRROR_BELOW {
             let (n1, n3) = prep.model.ambient_substrate_mid();
@@ -241,7 +239,7 @@ impl Solver {
                 });
                 let start =
                     self.scan_start_in(model, tm, span, step, None, in_range, side, scratch);
-                push(&mut n, start, in_range, mirror_gate, scratch);
+                push(start, in_range, mirror_gate, scratch);
                 // And the next best away from it: near a Brewster angle the
                 // scan's best can lead back to the fitted side (noise-free
                 // p light at 61 bands, n2 1.37: a 200 nm film at 54.7° read
@@ -252,7 +250,7 @@ impl Solver {
                     let away = Some((d * model.q2_mid(th), 1.5 * step));
                     let next =
                         self.scan_start_in(model, tm, span, step, away, in_range, side, scratch);
-                    push(&mut n, next, in_range, mirror_gate, scratch);
+                    push(next, in_range, mirror_gate, scratch);
                 }
             }
         }
@@ -268,7 +266,7 @@ impl Solver {
                 true,
                 scratch,
             );
-            push(&mut n, start, in_range, gate, scratch);
+            push(start, in_range, gate, scratch);
         }
         if thin {
             // A film below its first fringe: its phase hardly changes
@@ -286,9 +284,8 @@ impl Solver {
                 true,
                 scratch,
             );
-            push(&mut n, start, in_range, gate, scratch);
+            push(start, in_range, gate, scratch);
         }
-        n
     }
 
     /// The fringe signal at angle `theta` in χ² thresholds: the energy of

@@ -638,11 +638,15 @@ impl Solver {
         // the range; with the angle free, two mirror angles, the whole
         // range, the sub-fringe range).
         let own = &fits[..fits.len().min(3)];
-        let mut alt = [Fit::default(); 5];
-        let n_alt = self.alternative_fits(fits, n_ok, theta_known, noise, prep, scratch, &mut alt);
+        // Not zeroed per pixel: most pixels have none (a zeroed array of
+        // five fits was a quarter of this function's time on the paper's
+        // cylinder, `perf annotate`).
+        let mut alt = heapless::Vec::<Fit, 5>::new();
+        self.alternative_fits(fits, n_ok, theta_known, noise, prep, scratch, &mut alt);
+        let n_alt = alt.len();
         // Every fit, read where it lies (copying them into one array and
         // sorting it stalled on the copy: a tenth of this function's time).
-        let all = || own.iter().chain(&alt[..n_alt]);
+        let all = || own.iter().chain(alt.iter());
         let by_sse = |a: &&Fit, b: &&Fit| a.sse.total_cmp(&b.sse);
         // The first of the lowest, as a stable sort's head, read in place
         // (a copy, its halves stored and a field loaded across them, stalled
