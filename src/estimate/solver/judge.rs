@@ -281,7 +281,12 @@ impl Solver {
         if !(self.judging() && var > 0.0 && theta.is_finite()) {
             return false;
         }
-        self.fringe_energy(prep, theta, n_ok, var) < MIN_VISIBILITY
+        // [`Solver::fringe_energy`] < MIN_VISIBILITY without its division
+        // (`var` > 0; a NaN envelope compares false either way): on every
+        // pixel's path, whose next step waited on it.
+        let (h, q) = prep.envelopes_at(theta);
+        let c = (h - q).abs();
+        n_ok as f64 * c * c < MIN_VISIBILITY * 8.0 * var
     }
 
     /// The energy of the deepest fringe any thickness gives at `theta`
