@@ -19,7 +19,7 @@ mod scene_common;
 use irid::estimate::solver::Scratch;
 use irid::estimate::{Cube, Mode, ParamMaps, PixelEstimate, Reason, Solver};
 use irid::scene::{FilmKnowledge, Scene};
-use irid::synth::{add_noise, scene_bands, Renderer};
+use irid::synth::{add_noise, scene_bands, Renderer, TruthMaps};
 use scene_common::point_model;
 use std::path::Path;
 
@@ -50,6 +50,20 @@ fn lone_fits(solver: &Solver, cube: &Cube) -> Vec<PixelEstimate> {
         }
     }
     out
+}
+
+/// Scene `s` rendered (its truth's noise) and fitted in `fast`, rows on
+/// their angle and every pixel alone: the solver, the rows' maps, the lone
+/// fits and the truth.
+fn rows_and_lone(s: &Scene) -> (Solver, ParamMaps, Vec<PixelEstimate>, TruthMaps) {
+    let bands = scene_bands(s).unwrap();
+    let r = Renderer::new(s).unwrap();
+    let cube = r.render_cube(&bands).unwrap();
+    let truth = r.truth_maps(&bands);
+    let mut solver = Solver::new(s, &bands, Mode::Fast).unwrap();
+    let rows = solver.fit_cube(&cube).unwrap();
+    let lone = lone_fits(&solver, &cube);
+    (solver, rows, lone, truth)
 }
 
 /// Over the valid pixels: count, mean |Δd|, the fraction within 2σ, the
@@ -116,14 +130,7 @@ fn rows_on_their_angle_beat_lone_fits_with_an_honest_sigma() {
         ("thick-hardcoat", 300, 24),
         ("dispersive-p61", 240, 16),
     ] {
-        let s = bundled(name, w, h);
-        let bands = scene_bands(&s).unwrap();
-        let r = Renderer::new(&s).unwrap();
-        let cube = r.render_cube(&bands).unwrap();
-        let truth = r.truth_maps(&bands);
-        let mut solver = Solver::new(&s, &bands, Mode::Fast).unwrap();
-        let rows = solver.fit_cube(&cube).unwrap();
-        let lone = lone_fits(&solver, &cube);
+        let (_, rows, lone, truth) = rows_and_lone(&bundled(name, w, h));
         let (nr, mae_r, cov_r, wrong_r, z2_r) = score_maps(&rows, &truth.thickness_nm);
         let (nl, mae_l, cov_l, wrong_l, _) = score_lone(&lone, &truth.thickness_nm);
         let angle_ok = angle_within_3_sigma(&rows, &truth.theta_deg);
@@ -339,13 +346,7 @@ fn rows_take_half_their_samples_where_the_image_says_they_serve() {
     ] {
         let mut s = bundled(name, w, h);
         s.noise_sigma = None;
-        let bands = scene_bands(&s).unwrap();
-        let r = Renderer::new(&s).unwrap();
-        let cube = r.render_cube(&bands).unwrap();
-        let truth = r.truth_maps(&bands);
-        let mut solver = Solver::new(&s, &bands, Mode::Fast).unwrap();
-        let rows = solver.fit_cube(&cube).unwrap();
-        let lone = lone_fits(&solver, &cube);
+        let (solver, rows, lone, truth) = rows_and_lone(&s);
         let (nr, mae_r, cov_r, wrong_r, z2_r) = score_maps(&rows, &truth.thickness_nm);
         let (nl, mae_l, _, _, _) = score_lone(&lone, &truth.thickness_nm);
         eprintln!(

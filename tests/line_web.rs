@@ -393,6 +393,43 @@ fn warmup_rows(r: &WebRig) -> usize {
         .warmup_rows
 }
 
+/// One complete row against the truth.
+struct RowTally {
+    index: i64,
+    /// Its last band's time.
+    time_ns: u64,
+    valid: usize,
+    /// Valid pixels beyond max(3σ, 2 nm) of the truth.
+    wrong: usize,
+    pixels: usize,
+}
+
+/// Every complete row of `rows` against `truth`'s film.
+fn tally(rows: &[WebRowOut], truth: &WebCamera) -> Vec<RowTally> {
+    let mut t = Vec::new();
+    rows.iter()
+        .filter(|row| row.complete)
+        .map(|row| {
+            truth.truth_row(row.index, &mut t);
+            let (mut valid, mut wrong) = (0, 0);
+            for (e, &d) in row.estimates.iter().zip(&t) {
+                if e.is_valid() {
+                    valid += 1;
+                    let off = (e.thickness_nm - d).abs();
+                    wrong += usize::from(off > (3.0 * e.sigma_thickness_nm).max(2.0));
+                }
+            }
+            RowTally {
+                index: row.index,
+                time_ns: row.time_ns,
+                valid,
+                wrong,
+                pixels: row.estimates.len(),
+            }
+        })
+        .collect()
+}
+
 /// After a change of the calibration mid-run: at least one look again;
 /// the rows with valid pixels off by more than max(3σ, 2 nm) — beyond the
 /// one or two a row of 96 has by chance — all within one look's span (the
@@ -401,24 +438,10 @@ fn warmup_rows(r: &WebRig) -> usize {
 /// a thousand wrong over the run's second half; and its last quarter
 /// ≥ 95 % valid.
 fn assert_followed(rows: &[WebRowOut], rep: &LineReport, truth: &WebCamera, warmup_rows: usize) {
-    let mut t = Vec::new();
     // Per complete row: valid pixels, and valid pixels beyond max(3σ, 2 nm).
-    let per_row: Vec<(i64, usize, usize, usize)> = rows
-        .iter()
-        .filter(|row| row.complete)
-        .map(|row| {
-            truth.truth_row(row.index, &mut t);
-            let (mut valid, mut wrong) = (0, 0);
-            for (e, &d) in row.estimates.iter().zip(&t) {
-                if e.is_valid() {
-                    valid += 1;
-                    if (e.thickness_nm - d).abs() > (3.0 * e.sigma_thickness_nm).max(2.0) {
-                        wrong += 1;
-                    }
-                }
-            }
-            (row.index, valid, wrong, row.estimates.len())
-        })
+    let per_row: Vec<(i64, usize, usize, usize)> = tally(rows, truth)
+        .into_iter()
+        .map(|r| (r.index, r.valid, r.wrong, r.pixels))
         .collect();
     let n = per_row.len();
     let quarter = |q: usize| &per_row[q * n / 4..(q + 1) * n / 4];
@@ -524,24 +547,11 @@ fn a_lamp_that_flickers_flags_the_rows_until_it_holds() {
         })
     });
     let warmup = warmup_rows(&r);
-    let mut t = Vec::new();
     // Per complete row: (index, its last band's time, valid, valid and
     // wrong, pixels).
-    let per_row: Vec<(i64, u64, usize, usize, usize)> = rows
-        .iter()
-        .filter(|row| row.complete)
-        .map(|row| {
-            truth.truth_row(row.index, &mut t);
-            let (mut valid, mut wrong) = (0, 0);
-            for (e, &d) in row.estimates.iter().zip(&t) {
-                if e.is_valid() {
-                    valid += 1;
-                    let off = (e.thickness_nm - d).abs();
-                    wrong += usize::from(off > (3.0 * e.sigma_thickness_nm).max(2.0));
-                }
-            }
-            (row.index, row.time_ns, valid, wrong, row.estimates.len())
-        })
+    let per_row: Vec<(i64, u64, usize, usize, usize)> = tally(&rows, &truth)
+        .into_iter()
+        .map(|r| (r.index, r.time_ns, r.valid, r.wrong, r.pixels))
         .collect();
     let n = per_row.len();
     let (valid, wrong) = per_row.iter().fold((0, 0), |a, r| (a.0 + r.2, a.1 + r.3));

@@ -22,7 +22,9 @@
 //! ([`Solver::level_drift`]) and, where it moved, the noise, level and
 //! band shift are learnt again from them, as at the warm-up; the rows
 //! solved with those estimates are flagged until the next warm-up's rows,
-//! all after the change, learn them once more.
+//! all after the change, learn them once more. A calibration that keeps
+//! moving ([`UNSETTLED_LOOKS`] looks in a row) flags every row until a look
+//! finds it steady, and is estimated again only at the looks' pace.
 
 use super::accumulate::FinishedRow;
 use super::angles::{AngleScratch, Correction, SensorAngles};

@@ -461,13 +461,13 @@ impl Solver {
 const TIGHT_LINE: f64 = 0.3;
 
 /// A row's samples as they are taken: their angles' running weighted mean
-/// (the next sample's starting angle), the ramp of their table fits'
-/// optical thickness, and each table fit `(x, g, d, σ_d)`.
+/// (the next sample's starting angle) and each table fit `(x, g, d, σ_d)`
+/// in order along the row (`g` its optical thickness, the next walks'
+/// ramp).
 #[derive(Default)]
 struct RowSampler {
     sum_w: f64,
     sum_ws: f64,
-    ramp: SampleRamp,
     fits: Vec<(f64, f64, f64, f64)>,
     /// Whether a sample that failed at the row's angle has been through
     /// the free fit's search for nothing (see [`Solver::take_sample`]).
@@ -536,7 +536,6 @@ impl Solver {
             let o = self.solve_pixel(pixel, Some(tb), scratch);
             if o.is_valid() {
                 let g = o.thickness_nm * q;
-                sampler.ramp.push(x as f64, g);
                 let fit = (x as f64, g, o.thickness_nm, o.sigma_thickness_nm);
                 let at = sampler.fits.partition_point(|f| f.0 < fit.0);
                 sampler.fits.insert(at, fit);

@@ -754,9 +754,9 @@ pub struct Solver {
     /// first sample ([`Solver::solve_row_on_angle`]).
     sample_theta: Option<f64>,
     /// Whether the same sample's fits say a row's line from half its
-    /// samples would add little to a pixel's σ (`angle_map`'s
-    /// [`angle_map::half_the_samples_serve`]): `fast`'s rows then take
-    /// half their samples first, and the rest only where those fall short.
+    /// samples would add little to a pixel's σ (`half_the_samples_serve`
+    /// in `angle_map`): `fast`'s rows then take half their samples first,
+    /// and the rest only where those fall short.
     row_samples_halved: bool,
     /// The model one small step up in the film index, where the index is
     /// estimated jointly with the level: each pixel's derivative with
