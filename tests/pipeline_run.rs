@@ -380,23 +380,54 @@ fn last_look(summaries: &[SweepSummary], key: &str) -> (usize, f64, String) {
 /// after it are right, with a gain of ~0.95. On one thread (each frame
 /// read on demand) and threaded (paced, capture held back while the run
 /// looks again).
+/// The demo rig (seed 21) with `change` made to its camera, run for
+/// `sweeps` sweeps on one thread or threaded; every sweep completed.
+fn run_changed(
+    sweeps: u64,
+    single: bool,
+    label: &str,
+    change: impl FnOnce(&mut Rig),
+) -> (Rig, irid::pipeline::runner::RunReport, CollectSink) {
+    let mut r = rig(21, "ascending", false);
+    change(&mut r);
+    let mut sink = CollectSink::default();
+    let stop = AtomicBool::new(false);
+    let rep = r
+        .go(false, &config(sweeps, single), &mut sink, &stop)
+        .unwrap();
+    assert_eq!(rep.sweeps_completed, sweeps, "{label}: {rep:?}");
+    (r, rep, sink)
+}
+
+/// Per sweep of `sink`: valid pixels, those farther than max(3σ, 2 nm)
+/// from `r`'s truth, and all pixels (each printed).
+fn sweep_counts(sink: &CollectSink, r: &Rig, label: &str) -> Vec<(usize, usize, usize)> {
+    let mut counts = Vec::new();
+    for (s, m) in sink.summaries.iter().zip(&sink.maps) {
+        let (valid, wrong) = valid_and_wrong(m, &r.truth);
+        eprintln!(
+            "{label}: sweep {}: {valid} valid, {wrong} valid and wrong; looked again: {:?}",
+            s.sweep, s.relook
+        );
+        counts.push((valid, wrong, m.width * m.height));
+    }
+    counts
+}
+
 #[test]
 fn a_lamp_that_dims_during_the_run_is_followed() {
     use irid::device::camera::synthetic::LampChange;
     for single in [true, false] {
-        let mut r = rig(21, "ascending", false);
+        let label = if single { "one thread" } else { "threaded" };
         // ~3 sweeps of frames at the calibration's light (a sweep reads
         // ~4 frames per band, settling included), then 5 % less at once.
-        r.cam.set_lamp(Some(LampChange {
-            after_frames: 400,
-            over_frames: 0,
-            factor: 0.95,
-        }));
-        let mut sink = CollectSink::default();
-        let stop = AtomicBool::new(false);
-        let rep = r.go(false, &config(10, single), &mut sink, &stop).unwrap();
-        let label = if single { "one thread" } else { "threaded" };
-        assert_eq!(rep.sweeps_completed, 10, "{label}: {rep:?}");
+        let (r, rep, sink) = run_changed(10, single, label, |r| {
+            r.cam.set_lamp(Some(LampChange {
+                after_frames: 400,
+                over_frames: 0,
+                factor: 0.95,
+            }))
+        });
         // Per sweep: valid pixels, and those farther than max(3σ, 2 nm)
         // from the truth.
         let counts: Vec<(usize, usize)> = sink
@@ -465,27 +496,16 @@ fn a_lamp_that_dims_during_the_run_is_followed() {
 #[test]
 fn a_lamp_that_dims_slowly_is_followed() {
     use irid::device::camera::synthetic::LampChange;
-    let mut r = rig(21, "ascending", false);
-    r.cam.set_lamp(Some(LampChange {
-        after_frames: 400,
-        over_frames: 1200,
-        factor: 0.95,
-    }));
-    let mut sink = CollectSink::default();
-    let stop = AtomicBool::new(false);
-    let rep = r.go(false, &config(12, true), &mut sink, &stop).unwrap();
-    assert_eq!(rep.sweeps_completed, 12, "{rep:?}");
+    let (r, rep, sink) = run_changed(12, true, "", |r| {
+        r.cam.set_lamp(Some(LampChange {
+            after_frames: 400,
+            over_frames: 1200,
+            factor: 0.95,
+        }))
+    });
     assert!(rep.relooks >= 1, "{rep:?}");
     let n = sink.maps.len();
-    let mut counts = Vec::new();
-    for (m, s) in sink.maps.iter().zip(&sink.summaries) {
-        let (valid, wrong) = valid_and_wrong(m, &r.truth);
-        eprintln!(
-            "sweep {}: {valid} valid, {wrong} valid and wrong; looked again: {:?}",
-            s.sweep, s.relook
-        );
-        counts.push((valid, wrong, m.width * m.height));
-    }
+    let counts = sweep_counts(&sink, &r, "");
     for (i, &(valid, wrong, total)) in counts.iter().enumerate() {
         let most = if i + 2 >= n { 1 } else { 10 };
         assert!(
@@ -516,21 +536,10 @@ fn a_filter_that_drifts_during_the_run_is_followed() {
             "{shift} nm, {}",
             if single { "one thread" } else { "threaded" }
         );
-        let mut r = rig(21, "ascending", false);
-        r.cam.drift_filter(400, shift).unwrap();
-        let mut sink = CollectSink::default();
-        let stop = AtomicBool::new(false);
-        let rep = r.go(false, &config(10, single), &mut sink, &stop).unwrap();
-        assert_eq!(rep.sweeps_completed, 10, "{label}: {rep:?}");
-        let mut counts = Vec::new();
-        for (s, m) in sink.summaries.iter().zip(&sink.maps) {
-            let (valid, wrong) = valid_and_wrong(m, &r.truth);
-            eprintln!(
-                "{label}: sweep {}: {valid} valid, {wrong} valid and wrong; looked again: {:?}",
-                s.sweep, s.relook
-            );
-            counts.push((valid, wrong, m.width * m.height));
-        }
+        let (r, rep, sink) = run_changed(10, single, &label, |r| {
+            r.cam.drift_filter(400, shift).unwrap()
+        });
+        let counts = sweep_counts(&sink, &r, &label);
         assert!(rep.relooks >= 1, "{label}: {rep:?}");
         // The last look fitted the drift (its σ ~0.1 nm on this scene).
         let (last, fitted, why) = last_look(&sink.summaries, "band shift ");
